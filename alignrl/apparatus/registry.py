@@ -1,0 +1,106 @@
+"""Apparatus specs: one string names any instrument alignrl can work on.
+
+* a preset name: `synthetic`, `synthetic-b` (every YAML file in alignrl/apparatus/presets/),
+* `sem:PATH.yaml`: a synthetic SEM with the instrument parameters of a YAML file,
+* `csv:PATH`: the scenario simulator replaying a recorded CSV (`csv:default` is the shipped
+  2000-scenario set of the `synthetic` preset),
+* `package.module:Class`: a user's own driver, imported and constructed with the keyword
+  arguments of `apparatus_args` / `--apparatus-args JSON`. alignrl needs no change for it.
+
+For presets, `sem:` and `csv:` the same arguments override instrument or simulator settings
+(for example `{"dose_electrons_per_px": 50}` or `{"noise": 0.02, "split": "test"}`).
+"""
+
+from __future__ import annotations
+
+import importlib
+import inspect
+import math
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from alignrl.apparatus.base import APPARATUS_METHODS, Apparatus
+from alignrl.apparatus.simulator import ScenarioSimulator, default_scenarios_path
+from alignrl.apparatus.synthetic import PRESET_DIR, SyntheticSEM, load_sem_config
+
+__all__ = ["make_apparatus", "preset_names"]
+
+
+def preset_names() -> list[str]:
+    """Names of the shipped synthetic instruments."""
+    return sorted(path.stem for path in PRESET_DIR.glob("*.yaml"))
+
+
+def _check_protocol(obj: object, spec: str) -> Apparatus:
+    missing = [name for name in (*APPARATUS_METHODS, "knobs") if not hasattr(obj, name)]
+    if missing:
+        raise ValueError(
+            f"apparatus {spec!r} does not implement the Apparatus protocol: missing "
+            f"{', '.join(missing)} (see docs/apparatus.md)"
+        )
+    knobs = obj.knobs  # type: ignore[attr-defined]
+    if not isinstance(knobs, Mapping) or not knobs:
+        raise ValueError(
+            f"apparatus {spec!r}: knobs must be a non-empty mapping name -> (low, high)"
+        )
+    for name, interval in knobs.items():
+        try:
+            low, high = (float(v) for v in interval)
+        except (TypeError, ValueError):
+            raise ValueError(
+                f"apparatus {spec!r}: knob {name!r} needs (low, high), got {interval!r}"
+            ) from None
+        if not (math.isfinite(low) and math.isfinite(high) and low < high):
+            raise ValueError(f"apparatus {spec!r}: knob {name!r} has an empty or infinite interval")
+    return obj  # type: ignore[return-value]
+
+
+def _import_driver(spec: str, args: Mapping[str, Any]) -> Apparatus:
+    module_name, _, attribute = spec.partition(":")
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as error:
+        raise ValueError(
+            f"apparatus {spec!r}: cannot import module {module_name!r}: {error}"
+        ) from None
+    try:
+        target = getattr(module, attribute)
+    except AttributeError:
+        raise ValueError(
+            f"apparatus {spec!r}: module {module_name!r} has no {attribute!r}"
+        ) from None
+    if not callable(target):
+        raise ValueError(f"apparatus {spec!r}: {attribute!r} is not a class or factory")
+    try:
+        inspect.signature(target).bind(**args)
+    except TypeError as error:
+        raise ValueError(
+            f"apparatus {spec!r} does not accept the arguments {dict(args)}: {error}"
+        ) from None
+    except ValueError:
+        pass  # no signature to check (a builtin): let the call speak
+    return _check_protocol(target(**args), spec)
+
+
+def make_apparatus(
+    spec: str, args: Mapping[str, Any] | None = None, seed: int | None = None
+) -> Apparatus:
+    """Build the apparatus a spec names (see the module docstring)."""
+    args = dict(args or {})
+    if not isinstance(spec, str) or not spec:
+        raise ValueError("an apparatus spec must be a non-empty string")
+    if spec.startswith("csv:"):
+        location = spec[len("csv:") :]
+        path = default_scenarios_path() if location == "default" else Path(location)
+        return ScenarioSimulator(path, seed=seed, **args)
+    if spec.startswith("sem:"):
+        return SyntheticSEM(load_sem_config(spec[len("sem:") :], **args), seed=seed)
+    if spec in preset_names():
+        return SyntheticSEM(load_sem_config(PRESET_DIR / f"{spec}.yaml", **args), seed=seed)
+    if ":" in spec and all(part.isidentifier() for part in spec.replace(":", ".").split(".")):
+        return _import_driver(spec, args)
+    raise ValueError(
+        f"unknown apparatus {spec!r}: use a preset ({', '.join(preset_names())}), "
+        "csv:PATH (or csv:default), sem:PATH.yaml, or an import path package.module:Class"
+    )

@@ -1,0 +1,408 @@
+"""The scenario CSV: recorded focus sweeps, one alignment scenario per row (seed section 4.3).
+
+A recording sets a lens voltage, measures the image's edge width, stores the pair and raises
+the voltage, until the knob's interval is swept. The file (docs/scenarios.md) is::
+
+    scenario,seed,knob,low,high,n_pairs,n_failed,voltage_1,edge_width_1,...,voltage_K,edge_width_K
+
+* `scenario`   integer id of the scenario (unique in the file)
+* `seed`       integer passed to `Apparatus.reset` before the sweep
+* `knob`       the swept knob, e.g. `defocus`
+* `low`,`high` the knob's allowed interval during the recording, volts
+* `n_pairs`    how many (voltage, edge width) pairs follow; at least 5
+* `n_failed`   acquisitions of the sweep that gave no value (no edges, driver fault)
+* `voltage_i`  lens voltage of the i-th measurement, volts, strictly increasing along the row
+* `edge_width_i` measured average edge width there, pixels (> 0)
+
+Rows differ in length: a row ends after its `n_pairs` pairs (trailing cells absent or empty);
+the header carries as many pair columns as the longest possible sweep. Files may be gzipped
+(`.csv.gz`). Reading is strict: a bad cell is an error naming file, row, line and column;
+nothing is dropped or repaired.
+"""
+
+from __future__ import annotations
+
+import csv
+import gzip
+import io
+import math
+import os
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import IO
+
+import numpy as np
+
+__all__ = [
+    "META_COLUMNS",
+    "MIN_PAIRS",
+    "ScenarioFormatError",
+    "ScenarioRecord",
+    "ScenarioSet",
+    "ScenarioWriter",
+    "header",
+    "read_scenarios",
+]
+
+META_COLUMNS = ("scenario", "seed", "knob", "low", "high", "n_pairs", "n_failed")
+MIN_PAIRS = 5  # fewer points cannot locate a focus minimum
+
+
+class ScenarioFormatError(ValueError):
+    """A scenario file that breaks the format; the message names where."""
+
+
+@dataclass(frozen=True)
+class ScenarioRecord:
+    """One recorded sweep: voltages (V) and the edge widths (px) measured at them."""
+
+    scenario: int
+    seed: int
+    knob: str
+    low: float
+    high: float
+    voltages: np.ndarray
+    edge_widths: np.ndarray
+    n_failed: int = 0
+
+    def to_cells(self) -> list[str]:
+        cells = [
+            str(self.scenario),
+            str(self.seed),
+            self.knob,
+            repr(float(self.low)),
+            repr(float(self.high)),
+            str(len(self.voltages)),
+            str(self.n_failed),
+        ]
+        for voltage, width in zip(self.voltages, self.edge_widths, strict=True):
+            # repr: the shortest text that reads back as the same float, so rows round-trip.
+            cells += [repr(float(voltage)), repr(float(width))]
+        return cells
+
+
+def header(max_pairs: int) -> list[str]:
+    """The header row for files whose sweeps have at most `max_pairs` points."""
+    if max_pairs < MIN_PAIRS:
+        raise ValueError(f"a scenario file needs room for at least {MIN_PAIRS} pairs")
+    pairs = [name for i in range(1, max_pairs + 1) for name in (f"voltage_{i}", f"edge_width_{i}")]
+    return [*META_COLUMNS, *pairs]
+
+
+@dataclass(frozen=True)
+class ScenarioSet:
+    """All scenarios of a file as padded arrays, ready for batched interpolation.
+
+    Row s has `n_pairs[s]` valid points; beyond them `voltages` repeats its last value and
+    `edge_widths` its last width, so each row stays non-decreasing.
+    """
+
+    path: str
+    knob: str
+    scenario_ids: np.ndarray  # (S,) int
+    seeds: np.ndarray  # (S,) int
+    lows: np.ndarray  # (S,) V
+    highs: np.ndarray  # (S,) V
+    n_pairs: np.ndarray  # (S,) int
+    n_failed: np.ndarray  # (S,) int
+    voltages: np.ndarray  # (S, K) V
+    edge_widths: np.ndarray  # (S, K) px
+    max_pairs: int  # pair columns in the header
+
+    def __len__(self) -> int:
+        return int(self.scenario_ids.size)
+
+    def record(self, index: int) -> ScenarioRecord:
+        count = int(self.n_pairs[index])
+        return ScenarioRecord(
+            scenario=int(self.scenario_ids[index]),
+            seed=int(self.seeds[index]),
+            knob=self.knob,
+            low=float(self.lows[index]),
+            high=float(self.highs[index]),
+            voltages=self.voltages[index, :count].copy(),
+            edge_widths=self.edge_widths[index, :count].copy(),
+            n_failed=int(self.n_failed[index]),
+        )
+
+
+def _open_text(path: Path, mode: str) -> IO[str]:
+    if path.suffix == ".gz":
+        return io.TextIOWrapper(gzip.open(path, mode + "b"), encoding="utf-8", newline="")
+    return open(path, mode, encoding="utf-8", newline="")
+
+
+def _is_gzip(path: Path) -> bool:
+    return path.suffix == ".gz"
+
+
+def _read_text(path: Path) -> str:
+    try:
+        with _open_text(path, "r") as handle:
+            return handle.read()
+    except FileNotFoundError:
+        raise FileNotFoundError(f"scenario file {path} does not exist") from None
+    except (EOFError, gzip.BadGzipFile, UnicodeDecodeError) as error:
+        raise ScenarioFormatError(f"{path}: cannot be read as a (gzipped) CSV: {error}") from None
+
+
+class _Where:
+    """Formats error locations: file, data row, line and column."""
+
+    def __init__(self, path: Path, names: Sequence[str]) -> None:
+        self.path, self.names = path, names
+
+    def __call__(self, row: int, column: int | None, message: str) -> ScenarioFormatError:
+        place = f"{self.path}, row {row} (line {row + 1})"
+        if column is not None:
+            name = self.names[column] if column < len(self.names) else f"#{column + 1}"
+            place += f", column {name}"
+        return ScenarioFormatError(f"{place}: {message}")
+
+
+def _number(text: str, where: _Where, row: int, column: int) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise where(row, column, f"{text!r} is not a number") from None
+    if not math.isfinite(value):
+        raise where(row, column, f"{text!r} is not a finite number")
+    return value
+
+
+def _integer(text: str, where: _Where, row: int, column: int) -> int:
+    try:
+        return int(text)
+    except ValueError:
+        raise where(row, column, f"{text!r} is not an integer") from None
+
+
+def _check_header(names: list[str], path: Path) -> int:
+    """Validate the header; return the number of pair columns it declares."""
+    for position, expected in enumerate(META_COLUMNS):
+        found = names[position] if position < len(names) else None
+        if found != expected:
+            raise ScenarioFormatError(
+                f"{path}, line 1 (header), column {position + 1}: expected {expected!r}, found "
+                f"{found!r}. The header must start with {','.join(META_COLUMNS)}"
+            )
+    pair_names = names[len(META_COLUMNS) :]
+    if len(pair_names) % 2:
+        raise ScenarioFormatError(
+            f"{path}, line 1 (header): the pair columns must come in (voltage_i, edge_width_i) "
+            f"pairs, found an odd number ({len(pair_names)})"
+        )
+    max_pairs = len(pair_names) // 2
+    for i in range(1, max_pairs + 1):
+        got = pair_names[2 * i - 2 : 2 * i]
+        want = [f"voltage_{i}", f"edge_width_{i}"]
+        if got != want:
+            column = len(META_COLUMNS) + 2 * i - 1
+            raise ScenarioFormatError(
+                f"{path}, line 1 (header), column {column}: expected {','.join(want)}, "
+                f"found {','.join(got)}"
+            )
+    if max_pairs < MIN_PAIRS:
+        raise ScenarioFormatError(
+            f"{path}, line 1 (header): {max_pairs} pair columns; a scenario needs at least "
+            f"{MIN_PAIRS} (voltage, edge_width) pairs"
+        )
+    return max_pairs
+
+
+def _parse_row(cells: list[str], row: int, where: _Where, max_pairs: int) -> ScenarioRecord:
+    n_meta = len(META_COLUMNS)
+    if len(cells) > n_meta + 2 * max_pairs:
+        raise where(row, None, f"{len(cells)} cells, but the header has {n_meta + 2 * max_pairs}")
+    for column in range(n_meta):
+        if column >= len(cells) or cells[column].strip() == "":
+            raise where(row, column, "empty cell: every metadata column needs a value")
+    scenario = _integer(cells[0], where, row, 0)
+    seed = _integer(cells[1], where, row, 1)
+    knob = cells[2].strip()
+    if not knob.isidentifier():
+        raise where(row, 2, f"{knob!r} is not a knob name")
+    low = _number(cells[3], where, row, 3)
+    high = _number(cells[4], where, row, 4)
+    if not low < high:
+        raise where(row, 4, f"high {high:g} must be above low {low:g}")
+    n_pairs = _integer(cells[5], where, row, 5)
+    n_failed = _integer(cells[6], where, row, 6)
+    if n_failed < 0:
+        raise where(row, 6, f"{n_failed} is negative")
+    if n_pairs < MIN_PAIRS:
+        raise where(
+            row, 5, f"only {n_pairs} (voltage, edge_width) pairs; a scenario needs {MIN_PAIRS}"
+        )
+    if n_pairs > max_pairs:
+        raise where(row, 5, f"{n_pairs} pairs, but the header has room for {max_pairs}")
+    pair_cells = cells[n_meta:]
+    for offset in range(2 * n_pairs):
+        if offset >= len(pair_cells) or pair_cells[offset].strip() == "":
+            raise where(
+                row,
+                n_meta + offset,
+                f"missing cell inside the row (n_pairs says {n_pairs} pairs)",
+            )
+    for offset in range(2 * n_pairs, len(pair_cells)):
+        if pair_cells[offset].strip() != "":
+            raise where(row, n_meta + offset, f"data beyond the row's n_pairs = {n_pairs}")
+    values = [_number(pair_cells[k], where, row, n_meta + k) for k in range(2 * n_pairs)]
+    voltages = np.asarray(values[0::2], dtype=np.float64)
+    widths = np.asarray(values[1::2], dtype=np.float64)
+    for i in range(n_pairs):
+        column = n_meta + 2 * i
+        if not low <= voltages[i] <= high:
+            raise where(
+                row,
+                column,
+                f"{voltages[i]:g} V lies outside the row's interval [{low:g}, {high:g}]",
+            )
+        if i and voltages[i] <= voltages[i - 1]:
+            raise where(
+                row,
+                column,
+                f"{voltages[i]:g} V is not above the previous voltage {voltages[i - 1]:g} V; "
+                "voltages must increase along a row",
+            )
+        if widths[i] <= 0:
+            raise where(row, column + 1, f"edge width {widths[i]:g} px must be positive")
+    return ScenarioRecord(scenario, seed, knob, low, high, voltages, widths, n_failed)
+
+
+def iter_records(path: str | Path) -> Iterator[ScenarioRecord]:
+    """Parse and validate a scenario file row by row."""
+    path = Path(path)
+    text = _read_text(path)
+    if text.strip() == "":
+        raise ScenarioFormatError(f"{path} is empty: expected a header line, then one row each")
+    if not text.endswith("\n"):
+        last_line = text.count("\n") + 1
+        raise ScenarioFormatError(
+            f"{path}, line {last_line}: the last line is incomplete (no line end); the recorder "
+            "was probably interrupted while writing it. Delete that line, then record again "
+            "with --append"
+        )
+    reader = csv.reader(io.StringIO(text))
+    names = next(reader)
+    max_pairs = _check_header(names, path)
+    where = _Where(path, names)
+    knob: str | None = None
+    first_row_of: dict[int, int] = {}
+    for row, cells in enumerate(reader, start=1):
+        if not cells:
+            raise where(row, None, "blank line inside the file")
+        record = _parse_row(cells, row, where, max_pairs)
+        if knob is None:
+            knob = record.knob
+        elif record.knob != knob:
+            raise where(row, 2, f"knob {record.knob!r} differs from the file's {knob!r}")
+        if record.scenario in first_row_of:
+            raise where(
+                row,
+                0,
+                f"scenario {record.scenario} already appears in row "
+                f"{first_row_of[record.scenario]}",
+            )
+        first_row_of[record.scenario] = row
+        yield record
+
+
+def read_header_pairs(path: str | Path) -> int:
+    """Number of pair columns declared by an existing file's header."""
+    path = Path(path)
+    with _open_text(path, "r") as handle:
+        names = next(csv.reader(handle), [])
+    return _check_header(names, path)
+
+
+def read_scenarios(path: str | Path) -> ScenarioSet:
+    """Read and validate a whole scenario file into padded arrays."""
+    path = Path(path)
+    records = list(iter_records(path))
+    if not records:
+        raise ScenarioFormatError(f"{path}: a header but no scenarios")
+    max_pairs = read_header_pairs(path)
+    width = max(len(record.voltages) for record in records)
+    voltages = np.empty((len(records), width))
+    widths = np.empty((len(records), width))
+    for index, record in enumerate(records):
+        count = len(record.voltages)
+        voltages[index, :count] = record.voltages
+        voltages[index, count:] = record.voltages[-1]
+        widths[index, :count] = record.edge_widths
+        widths[index, count:] = record.edge_widths[-1]
+    return ScenarioSet(
+        path=str(path),
+        knob=records[0].knob,
+        scenario_ids=np.array([r.scenario for r in records], dtype=np.int64),
+        seeds=np.array([r.seed for r in records], dtype=np.int64),
+        lows=np.array([r.low for r in records]),
+        highs=np.array([r.high for r in records]),
+        n_pairs=np.array([len(r.voltages) for r in records], dtype=np.int64),
+        n_failed=np.array([r.n_failed for r in records], dtype=np.int64),
+        voltages=voltages,
+        edge_widths=widths,
+        max_pairs=max_pairs,
+    )
+
+
+class ScenarioWriter:
+    """Writes scenario rows as they finish: each row is one write, flushed and synced, so an
+    interrupted recording keeps every finished row. In a `.gz` file every row is a gzip member
+    of its own (a multi-member gzip file is standard), so the file is complete after each row.
+
+    mode "new" refuses an existing file, "force" replaces it, "append" continues it (its header
+    must declare the same number of pair columns).
+    """
+
+    def __init__(self, path: str | Path, max_pairs: int, mode: str = "new") -> None:
+        self.path = Path(path)
+        self.max_pairs = max_pairs
+        if mode not in ("new", "force", "append"):
+            raise ValueError(f"mode must be new, force or append, not {mode!r}")
+        exists = self.path.exists()
+        if mode == "new" and exists:
+            raise FileExistsError(
+                f"{self.path} already exists: pass --force to replace it or --append to continue it"
+            )
+        if mode == "append" and exists:
+            declared = read_header_pairs(self.path)
+            if declared != max_pairs:
+                raise ScenarioFormatError(
+                    f"{self.path}: its header has {declared} pair columns, this recording needs "
+                    f"{max_pairs}; append only with the same sweep settings"
+                )
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        write_header = not (mode == "append" and exists)
+        self._handle = open(self.path, "ab" if mode == "append" else "wb")
+        if write_header:
+            self._write_line(header(max_pairs))
+
+    def _write_line(self, cells: list[str]) -> None:
+        buffer = io.StringIO()
+        csv.writer(buffer, lineterminator="\n").writerow(cells)
+        data = buffer.getvalue().encode("utf-8")
+        if _is_gzip(self.path):
+            data = gzip.compress(data, mtime=0)  # mtime 0: the same rows give the same bytes
+        self._handle.write(data)
+        self._handle.flush()
+        os.fsync(self._handle.fileno())
+
+    def write(self, record: ScenarioRecord) -> None:
+        if len(record.voltages) > self.max_pairs:
+            raise ValueError(
+                f"scenario {record.scenario}: {len(record.voltages)} pairs exceed the header's "
+                f"{self.max_pairs}"
+            )
+        self._write_line(record.to_cells())
+
+    def close(self) -> None:
+        self._handle.close()
+
+    def __enter__(self) -> ScenarioWriter:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()

@@ -1,0 +1,194 @@
+"""The scenario simulator: an Apparatus that replays recorded focus sweeps (seed section 4.2).
+
+`reset` picks a recorded scenario; `measure` returns the recorded edge width at the current
+voltage by linear interpolation between the recorded points, with optional multiplicative
+re-measurement noise; `optimum` is the minimum of the recorded curve refined by fitting the
+focus curve near it. A voltage outside the span a scenario could measure raises
+`NoEdgesError`, exactly as the recorded instrument did.
+
+`query` answers many (scenario, voltage) pairs at once in numpy, for vectorized envs.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from alignrl.apparatus.base import NoEdgesError, check_write
+from alignrl.apparatus.scenarios import ScenarioSet, read_scenarios
+
+__all__ = ["DEFAULT_SCENARIOS", "ScenarioSimulator", "default_scenarios_path", "split_indices"]
+
+DEFAULT_SCENARIOS = Path(__file__).resolve().parent.parent / "data" / "scenarios-synthetic.csv.gz"
+HELD_OUT_EVERY = 10  # split "test" holds out every 10th scenario; "train" keeps the rest
+
+Split = Literal["all", "train", "test"]
+
+
+def default_scenarios_path() -> Path:
+    """The shipped 2000-scenario recording of the `synthetic` preset."""
+    if not DEFAULT_SCENARIOS.exists():
+        raise FileNotFoundError(
+            f"the default scenario set {DEFAULT_SCENARIOS} is missing; regenerate it with "
+            "`make scenarios`"
+        )
+    return DEFAULT_SCENARIOS
+
+
+def split_indices(n_scenarios: int, split: Split) -> np.ndarray:
+    """Row indices of a split: "test" is every 10th row (9, 19, ...), "train" the others."""
+    rows = np.arange(n_scenarios)
+    held_out = rows % HELD_OUT_EVERY == HELD_OUT_EVERY - 1
+    if split == "all":
+        return rows
+    if split == "test":
+        return rows[held_out]
+    if split == "train":
+        return rows[~held_out]
+    raise ValueError(f"split must be 'all', 'train' or 'test', not {split!r}")
+
+
+def refined_minima(voltages: np.ndarray, widths: np.ndarray, n_pairs: np.ndarray) -> np.ndarray:
+    """Voltage of each curve's minimum, refined by a local fit of the focus curve.
+
+    Near focus the edge width follows w^2 = a (V - b)^2 + c (a Gaussian probe), so a parabola
+    in w^2 through the recorded minimum and its neighbours has its vertex b at the optimum.
+    The vertex is kept within the neighbouring recorded points; a flat or inverted fit falls
+    back to the recorded minimum.
+    """
+    rows = np.arange(voltages.shape[0])
+    valid = np.arange(voltages.shape[1])[None, :] < n_pairs[:, None]
+    best = np.argmin(np.where(valid, widths, np.inf), axis=1)
+    # Five points centred on the minimum where the row allows.
+    first = np.clip(best - 2, 0, np.maximum(n_pairs - 5, 0))
+    window = first[:, None] + np.arange(5)[None, :]
+    v = voltages[rows[:, None], window]
+    w2 = widths[rows[:, None], window] ** 2
+    centre = v.mean(axis=1, keepdims=True)
+    x = v - centre
+    design = np.stack([x**2, x, np.ones_like(x)], axis=2)  # (S, 5, 3)
+    normal = np.einsum("sij,sik->sjk", design, design)
+    rhs = np.einsum("sij,si->sj", design, w2)
+    # Five distinct voltages make every normal matrix invertible.
+    coefficients = np.linalg.solve(normal, rhs[..., None])[..., 0]
+    a, b = coefficients[:, 0], coefficients[:, 1]
+    recorded = voltages[rows, best]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        vertex = centre[:, 0] - b / (2 * a)
+    lower = voltages[rows, np.maximum(best - 1, 0)]
+    upper = voltages[rows, np.minimum(best + 1, n_pairs - 1)]
+    ok = (a > 0) & np.isfinite(vertex)
+    return np.where(ok, np.clip(vertex, lower, upper), recorded)
+
+
+class ScenarioSimulator:
+    """Replays a scenario CSV as an Apparatus (`csv:PATH`).
+
+    Parameters
+    ----------
+    path: the scenario file; None for the shipped default set of the `synthetic` preset.
+    noise: relative std of the re-measurement noise (0.02 = 2 %); 0 replays exactly.
+    split: "all", "train" (9 of 10 scenarios) or "test" (the held-out tenth).
+    seed: seeds scenario choice and noise when `reset` is called without a seed.
+    """
+
+    def __init__(
+        self,
+        path: str | Path | None = None,
+        noise: float = 0.0,
+        split: Split = "all",
+        seed: int | None = None,
+        scenarios: ScenarioSet | None = None,
+    ) -> None:
+        if not 0.0 <= noise < 1.0:
+            raise ValueError(f"noise must be a relative std in [0, 1), got {noise}")
+        self.scenarios = (
+            scenarios
+            if scenarios is not None
+            else read_scenarios(path if path is not None else default_scenarios_path())
+        )
+        self.noise = float(noise)
+        self.split: Split = split
+        self.indices = split_indices(len(self.scenarios), split)
+        if self.indices.size == 0:
+            raise ValueError(f"split {split!r} of {self.scenarios.path} holds no scenario")
+        data = self.scenarios
+        self.knob = data.knob
+        self.knobs: Mapping[str, tuple[float, float]] = {
+            data.knob: (float(data.lows.min()), float(data.highs.max()))
+        }
+        self.optima = refined_minima(data.voltages, data.edge_widths, data.n_pairs)
+        rows = np.arange(len(data))
+        self._first_v = data.voltages[:, 0]
+        self._last_v = data.voltages[rows, data.n_pairs - 1]
+        # Flatten all rows into one sorted array: row s is shifted by s * stride, so a single
+        # searchsorted locates (scenario, voltage) pairs for every row at once.
+        self._origin = float(data.voltages.min())
+        self._stride = float(data.voltages.max() - self._origin) + 1.0
+        self._width = data.voltages.shape[1]
+        self._flat = (data.voltages - self._origin + rows[:, None] * self._stride).ravel()
+        self._seeds = np.random.SeedSequence(seed)
+        self.acquisitions = 0
+        self.reset(seed)
+
+    # --- batched path -------------------------------------------------------------------
+
+    def query(self, scenario_rows: np.ndarray, voltages: np.ndarray) -> np.ndarray:
+        """Recorded edge widths (px) at many (row, voltage) pairs; NaN outside a row's span.
+
+        `scenario_rows` are row indices into the file (0..len-1), not scenario ids.
+        """
+        rows = np.asarray(scenario_rows, dtype=np.int64)
+        volts = np.asarray(voltages, dtype=np.float64)
+        rows, volts = np.broadcast_arrays(rows, volts)
+        data = self.scenarios
+        keys = volts - self._origin + rows * self._stride
+        position = np.searchsorted(self._flat, keys, side="right") - rows * self._width
+        upper = np.clip(position, 1, data.n_pairs[rows] - 1)
+        lower = upper - 1
+        v0, v1 = data.voltages[rows, lower], data.voltages[rows, upper]
+        w0, w1 = data.edge_widths[rows, lower], data.edge_widths[rows, upper]
+        result = w0 + (volts - v0) * (w1 - w0) / (v1 - v0)
+        outside = (volts < self._first_v[rows]) | (volts > self._last_v[rows])
+        return np.where(outside, np.nan, result)
+
+    # --- the Apparatus protocol ---------------------------------------------------------
+
+    def reset(self, seed: int | None = None) -> None:
+        """Pick a scenario of the split; the knob starts at the middle of its interval."""
+        if seed is None:
+            seed = int(self._seeds.spawn(1)[0].generate_state(1)[0])
+        self._rng = np.random.default_rng(seed)
+        self.row = int(self._rng.choice(self.indices))
+        low, high = self.knobs[self.knob]
+        self._voltage = 0.5 * (low + high)
+
+    def read(self) -> dict[str, float]:
+        return {self.knob: self._voltage}
+
+    def write(self, values: Mapping[str, float]) -> None:
+        check_write(self.knobs, values)
+        if self.knob in values:
+            self._voltage = float(values[self.knob])
+
+    def measure(self) -> float:
+        self.acquisitions += 1
+        width = float(self.query(np.array([self.row]), np.array([self._voltage]))[0])
+        if np.isnan(width):
+            first, last = self._first_v[self.row], self._last_v[self.row]
+            raise NoEdgesError(
+                f"no edges: {self._voltage:g} V is outside the span [{first:g}, {last:g}] V "
+                f"where scenario {int(self.scenarios.scenario_ids[self.row])} was measurable"
+            )
+        if self.noise > 0:
+            width *= max(0.05, 1.0 + self.noise * float(self._rng.standard_normal()))
+        return width
+
+    def image(self) -> np.ndarray | None:
+        return None
+
+    def optimum(self) -> dict[str, float]:
+        return {self.knob: float(self.optima[self.row])}

@@ -1,0 +1,283 @@
+"""The `alignrl` command. Verbs read like the work; every reporting verb has `--json`
+(keys documented in docs/cli.md and kept stable).
+
+    alignrl record --apparatus SPEC --scenarios N --out FILE.csv [--seed S] [--step adaptive]
+    alignrl scenarios validate FILE [--plot PNG] [--json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+import signal
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from alignrl import __version__
+from alignrl.apparatus.base import ApparatusError
+from alignrl.apparatus.recorder import sweep_many, sweep_plan
+from alignrl.apparatus.registry import make_apparatus
+from alignrl.apparatus.scenarios import ScenarioWriter, read_scenarios
+
+EXIT_USAGE = 2  # bad input: a clear message, nothing written
+EXIT_INTERRUPTED = 130
+
+
+class CommandError(Exception):
+    """A user-facing failure: printed as one line, exit code 2."""
+
+
+def _json_object(text: str, option: str) -> dict[str, Any]:
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError as error:
+        raise CommandError(f"{option}: not valid JSON ({error})") from None
+    if not isinstance(value, dict):
+        raise CommandError(f"{option}: expected a JSON object such as '{{\"noise\": 0.02}}'")
+    return value
+
+
+def _emit(payload: dict[str, Any], as_json: bool, lines: Sequence[str]) -> None:
+    if as_json:
+        print(json.dumps(payload, indent=2, sort_keys=True))
+    else:
+        print("\n".join(lines))
+
+
+# --- record -----------------------------------------------------------------------------
+
+
+def _existing_scenarios(path: Path) -> list[int]:
+    return [int(i) for i in read_scenarios(path).scenario_ids]
+
+
+def cmd_record(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    apparatus_args = _json_object(args.apparatus_args, "--apparatus-args")
+    factory = functools.partial(make_apparatus, args.apparatus, apparatus_args)
+    probe = factory()
+    plan = sweep_plan(probe.knobs, knob=args.knob, step=args.step)
+    out = Path(args.out)
+    if args.scenarios < 1:
+        raise CommandError("--scenarios must be at least 1")
+    first = 0
+    if args.append and out.exists():
+        done = _existing_scenarios(out)
+        first = max(done) + 1 if done else 0
+    mode = "append" if args.append else "force" if args.force else "new"
+    todo = range(first, args.scenarios)
+    written = skipped = failed = 0
+    pairs: list[int] = []
+    started = time.perf_counter()
+    with ScenarioWriter(out, plan.max_pairs, mode=mode) as writer:
+        bar = tqdm(
+            total=args.scenarios,
+            initial=first,
+            unit="scenario",
+            desc="recording",
+            disable=args.quiet,
+            file=sys.stderr,
+        )
+        try:
+            for scenario, record in sweep_many(factory, plan, todo, args.seed, args.workers):
+                if record is None:
+                    skipped += 1
+                    bar.write(f"scenario {scenario}: fewer than 5 measurable points, skipped")
+                else:
+                    writer.write(record)
+                    written += 1
+                    failed += record.n_failed
+                    pairs.append(len(record.voltages))
+                bar.update(1)
+        except KeyboardInterrupt:
+            bar.close()
+            print(
+                f"\ninterrupted: {written} scenarios written to {out} are kept; continue with "
+                f"the same command and --append",
+                file=sys.stderr,
+            )
+            return EXIT_INTERRUPTED
+        bar.close()
+    elapsed = time.perf_counter() - started
+    payload = {
+        "out": str(out),
+        "apparatus": args.apparatus,
+        "knob": plan.knob,
+        "step": plan.step,
+        "seed": args.seed,
+        "first_scenario": first,
+        "scenarios_written": written,
+        "scenarios_skipped": skipped,
+        "failed_acquisitions": failed,
+        "median_pairs": float(np.median(pairs)) if pairs else 0.0,
+        "seconds": round(elapsed, 3),
+    }
+    _emit(
+        payload,
+        args.json,
+        [
+            f"recorded {written} scenarios of {args.apparatus} into {out} "
+            f"({skipped} skipped, {failed} failed acquisitions, "
+            f"median {payload['median_pairs']:.0f} pairs per sweep, {elapsed:.1f} s)"
+        ],
+    )
+    return 0
+
+
+# --- scenarios validate -----------------------------------------------------------------
+
+
+def scenario_summary(path: Path) -> dict[str, Any]:
+    """Facts a microscopist checks first about a recording."""
+    from alignrl.apparatus.simulator import ScenarioSimulator
+
+    data = read_scenarios(path)
+    simulator = ScenarioSimulator(scenarios=data)
+    rows = np.arange(len(data))
+    best_width = np.array(
+        [data.edge_widths[s, : data.n_pairs[s]].min() for s in rows], dtype=np.float64
+    )
+    low, high = simulator.knobs[data.knob]
+    return {
+        "file": str(path),
+        "valid": True,
+        "scenarios": len(data),
+        "knob": data.knob,
+        "interval": [low, high],
+        "pairs": {
+            "min": int(data.n_pairs.min()),
+            "median": float(np.median(data.n_pairs)),
+            "max": int(data.n_pairs.max()),
+        },
+        "failed_acquisitions": int(data.n_failed.sum()),
+        "optimum_v": {
+            "min": float(simulator.optima.min()),
+            "median": float(np.median(simulator.optima)),
+            "max": float(simulator.optima.max()),
+        },
+        "best_edge_width_px": {
+            "min": float(best_width.min()),
+            "median": float(np.median(best_width)),
+            "max": float(best_width.max()),
+        },
+    }
+
+
+def plot_scenarios(path: Path, out: Path, curves: int = 24) -> None:
+    """Focus curves of a recording and the spread of their optima, as a PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from alignrl.apparatus.simulator import ScenarioSimulator
+
+    data = read_scenarios(path)
+    simulator = ScenarioSimulator(scenarios=data)
+    figure, (left, right) = plt.subplots(1, 2, figsize=(11, 4), dpi=100)
+    for s in np.linspace(0, len(data) - 1, min(curves, len(data))).astype(int):
+        count = data.n_pairs[s]
+        left.plot(data.voltages[s, :count], data.edge_widths[s, :count], ".-", lw=0.8, ms=3)
+    left.set_xlabel(f"{data.knob} voltage (V)")
+    left.set_ylabel("edge width (px)")
+    left.set_title(f"focus curves ({min(curves, len(data))} of {len(data)} scenarios)")
+    right.hist(simulator.optima, bins=30, color="tab:blue")
+    right.set_xlabel("optimum voltage (V)")
+    right.set_ylabel("scenarios")
+    right.set_title("where the focus lies")
+    figure.suptitle(str(path.name))
+    figure.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(out)
+    plt.close(figure)
+
+
+def cmd_scenarios_validate(args: argparse.Namespace) -> int:
+    path = Path(args.file)
+    summary = scenario_summary(path)
+    if args.plot:
+        plot_scenarios(path, Path(args.plot))
+        summary["plot"] = args.plot
+    pairs, optimum, best = summary["pairs"], summary["optimum_v"], summary["best_edge_width_px"]
+    low, high = summary["interval"]
+    lines = [
+        f"{path}: valid, {summary['scenarios']} scenarios of knob {summary['knob']!r} "
+        f"in [{low:g}, {high:g}] V",
+        f"  points per sweep   min {pairs['min']}, median {pairs['median']:g}, max {pairs['max']}",
+        f"  failed acquisitions {summary['failed_acquisitions']}",
+        f"  optimum (V)        min {optimum['min']:.2f}, median {optimum['median']:.2f}, "
+        f"max {optimum['max']:.2f}",
+        f"  sharpest edge (px) min {best['min']:.2f}, median {best['median']:.2f}, "
+        f"max {best['max']:.2f}",
+    ]
+    if args.plot:
+        lines.append(f"  plot: {args.plot}")
+    _emit(summary, args.json, lines)
+    return 0
+
+
+# --- the parser -------------------------------------------------------------------------
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="alignrl",
+        description="Train and run reinforcement-learning agents that align electron microscopes.",
+    )
+    parser.add_argument("--version", action="version", version=f"alignrl {__version__}")
+    verbs = parser.add_subparsers(dest="verb", required=True, metavar="VERB")
+
+    record = verbs.add_parser(
+        "record", help="sweep an apparatus into a scenario CSV (seed section 4.3)"
+    )
+    record.add_argument("--apparatus", required=True, help="apparatus spec, e.g. synthetic")
+    record.add_argument("--apparatus-args", default="{}", help="JSON keyword arguments")
+    record.add_argument("--scenarios", type=int, required=True, help="total scenarios wanted")
+    record.add_argument("--out", required=True, help="output CSV (.csv or .csv.gz)")
+    record.add_argument("--seed", type=int, default=0, help="base seed of the scenarios")
+    record.add_argument("--step", choices=("constant", "adaptive"), default="adaptive")
+    record.add_argument("--knob", default="defocus", help="the knob to sweep")
+    record.add_argument(
+        "--workers", type=int, default=1, help="processes (simulated apparatus only)"
+    )
+    existing = record.add_mutually_exclusive_group()
+    existing.add_argument("--force", action="store_true", help="replace an existing file")
+    existing.add_argument("--append", action="store_true", help="continue an existing file")
+    record.add_argument("--quiet", action="store_true", help="no progress bar")
+    record.add_argument("--json", action="store_true", help="machine-readable summary")
+    record.set_defaults(handler=cmd_record)
+
+    scenarios = verbs.add_parser("scenarios", help="inspect scenario CSV files")
+    scenario_verbs = scenarios.add_subparsers(dest="scenarios_verb", required=True)
+    validate = scenario_verbs.add_parser("validate", help="check a scenario CSV strictly")
+    validate.add_argument("file")
+    validate.add_argument("--plot", help="write the focus curves to this PNG")
+    validate.add_argument("--json", action="store_true")
+    validate.set_defaults(handler=cmd_scenarios_validate)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    # Ctrl-C must reach the recorder's handler as KeyboardInterrupt, also under `make`.
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        return int(args.handler(args))
+    except (CommandError, ValueError, FileNotFoundError, FileExistsError) as error:
+        print(f"alignrl: error: {error}", file=sys.stderr)
+        return EXIT_USAGE
+    except ApparatusError as error:
+        print(f"alignrl: apparatus error: {error}", file=sys.stderr)
+        return EXIT_USAGE
+
+
+if __name__ == "__main__":
+    sys.exit(main())

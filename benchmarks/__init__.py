@@ -1,0 +1,1 @@
+"""Measured figures of alignrl (`make bench`); never part of `make test`."""

@@ -1,0 +1,171 @@
+"""Measured figures of alignrl, written to docs/benchmarks.md by `make bench`.
+
+Each benchmark runs on one core (OpenCV threads off) and reports a median over repeats, next
+to the target its issue set. Nothing here is a test: a slow machine gives slow numbers.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import os
+import platform
+import statistics
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+import alignrl
+from alignrl.apparatus import ScenarioSimulator, edge_width, make_apparatus
+from alignrl.apparatus.recorder import sweep_many, sweep_plan
+
+
+@dataclass(frozen=True)
+class Figure:
+    name: str
+    value: str
+    target: str
+    note: str = ""
+
+
+def _median_seconds(action: Callable[[], object], repeats: int) -> float:
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        action()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def bench_render(repeats: int) -> Figure:
+    sem = make_apparatus("synthetic", seed=0)
+    sem.acquire()  # warm caches
+    seconds = _median_seconds(sem.acquire, repeats)
+    return Figure(
+        "synthetic SEM: render one 256x256 frame (blur, shift, shot + detector noise)",
+        f"{seconds * 1e3:.2f} ms",
+        "a few ms on one core",
+    )
+
+
+def bench_edge_width(repeats: int) -> list[Figure]:
+    sem = make_apparatus("synthetic", {"drift_v_per_acquisition": 0.0}, seed=0)
+    optimum = sem.optimum()["defocus"]
+    figures = []
+    for label, error_v in (("in focus", 0.0), ("10 V off", 10.0), ("30 V off", 30.0)):
+        sem.write({"defocus": float(np.clip(optimum + error_v, 0, 100))})
+        frame = sem.acquire()
+        seconds = _median_seconds(lambda frame=frame: edge_width(frame), repeats)
+        figures.append(
+            Figure(
+                f"edge_width on a 256x256 synthetic frame, {label}", f"{seconds * 1e3:.2f} ms", ""
+            )
+        )
+    return figures
+
+
+def bench_query(million: int) -> Figure:
+    simulator = ScenarioSimulator()
+    rng = np.random.default_rng(0)
+    n = million * 1_000_000
+    rows = rng.integers(0, len(simulator.scenarios), n)
+    low, high = simulator.knobs[simulator.knob]
+    volts = rng.uniform(low, high, n)
+    simulator.query(rows[:1000], volts[:1000])
+    seconds = _median_seconds(lambda: simulator.query(rows, volts), 5)
+    return Figure(
+        f"scenario simulator: batched query of {n:,} (scenario, voltage) pairs",
+        f"{n / seconds / 1e6:.2f} M queries/s",
+        ">= 1 M queries/s on one core",
+    )
+
+
+def bench_record(scenarios: int, workers: int) -> Figure:
+    factory = _SyntheticFactory()
+    plan = sweep_plan(factory().knobs)
+    start = time.perf_counter()
+    rows = list(sweep_many(factory, plan, range(scenarios), 0, workers))
+    seconds = time.perf_counter() - start
+    per_scenario = seconds / scenarios
+    pairs = statistics.median(len(r.voltages) for _, r in rows if r is not None)
+    return Figure(
+        f"recorder: {scenarios} adaptive sweeps of `synthetic`, {workers} worker(s)",
+        f"{per_scenario:.3f} s per scenario",
+        "",
+        f"median {pairs:.0f} stored points + 9 pre-scan acquisitions per sweep; "
+        f"2000 scenarios at this rate: {2000 * per_scenario / 60:.1f} min",
+    )
+
+
+class _SyntheticFactory:
+    """Picklable factory for worker processes."""
+
+    def __call__(self):
+        return make_apparatus("synthetic")
+
+
+def machine() -> list[str]:
+    cpu = platform.processor() or "unknown"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return [
+        f"- CPU: {cpu}, {os.cpu_count()} logical cores visible",
+        f"- Python {platform.python_version()}, numpy {np.__version__}, "
+        f"OpenCV {cv2.__version__}, alignrl {alignrl.__version__}",
+        f"- OS: {platform.platform()}",
+    ]
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--out", default="docs/benchmarks.md")
+    parser.add_argument("--quick", action="store_true", help="fewer repeats (smoke run)")
+    args = parser.parse_args(argv)
+    cv2.setNumThreads(1)
+    repeats = 20 if args.quick else 200
+    figures = [bench_render(repeats), *bench_edge_width(repeats // 2)]
+    figures.append(bench_query(1 if args.quick else 2))
+    figures.append(bench_record(4 if args.quick else 20, 1))
+    figures.append(bench_record(4 if args.quick else 20, 2))
+
+    lines = [
+        "# Benchmarks",
+        "",
+        "Written by `make bench` (`python -m benchmarks.run --out docs/benchmarks.md`); "
+        "every figure below was measured by that command on this machine:",
+        "",
+        *machine(),
+        f"- Date: {datetime.date.today().isoformat()}",
+        "",
+        "| what | measured | target |",
+        "| --- | --- | --- |",
+    ]
+    for figure in figures:
+        note = f" ({figure.note})" if figure.note else ""
+        lines.append(f"| {figure.name}{note} | {figure.value} | {figure.target} |")
+    lines.append("")
+    manual = Path(__file__).with_name("manual.md")
+    if manual.exists():
+        lines += ["", manual.read_text().rstrip(), ""]
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.NamedTemporaryFile("w", dir=out.parent, delete=False, suffix=".tmp") as handle:
+        handle.write("\n".join(lines))
+    os.replace(handle.name, out)
+    print("\n".join(lines))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

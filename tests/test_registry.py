@@ -1,0 +1,97 @@
+"""Apparatus specs: presets, csv:, sem:, and a user's driver by import path."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from alignrl.apparatus import (
+    Apparatus,
+    ScenarioSimulator,
+    SimulatedApparatus,
+    SyntheticSEM,
+    make_apparatus,
+    preset_names,
+)
+from alignrl.apparatus.recorder import sweep, sweep_plan
+from alignrl.apparatus.scenarios import ScenarioWriter
+
+
+def test_presets_are_listed_and_built() -> None:
+    assert {"synthetic", "synthetic-b"} <= set(preset_names())
+    sem = make_apparatus("synthetic-b")
+    assert isinstance(sem, SyntheticSEM)
+    assert isinstance(sem, SimulatedApparatus)
+    assert sem.config.name == "synthetic-b"
+
+
+def test_preset_arguments_override_instrument_parameters() -> None:
+    sem = make_apparatus("synthetic", {"dose_electrons_per_px": 50.0})
+    assert sem.config.dose_electrons_per_px == 50.0
+    with pytest.raises(ValueError, match="dose_electrons_per_pixel"):
+        make_apparatus("synthetic", {"dose_electrons_per_pixel": 50.0})
+
+
+def test_sem_spec_reads_a_users_instrument_file(tmp_path: Path) -> None:
+    config = tmp_path / "lab-sem.yaml"
+    config.write_text("name: lab-sem\ndefocus_interval_v: [-40, 40]\noptimum_v: 0\n")
+    sem = make_apparatus(f"sem:{config}")
+    assert sem.knobs == {"defocus": (-40.0, 40.0)}
+
+
+def _tiny_recording(path: Path) -> None:
+    lens = make_apparatus("fake_drivers:ParabolicLens")
+    plan = sweep_plan(lens.knobs, step="constant")
+    with ScenarioWriter(path, plan.max_pairs) as writer:
+        for scenario in range(3):
+            record = sweep(lens, plan, scenario, seed=scenario)
+            assert record is not None
+            writer.write(record)
+
+
+def test_csv_spec_builds_the_scenario_simulator_with_arguments(tmp_path: Path) -> None:
+    path = tmp_path / "three.csv"
+    _tiny_recording(path)
+    simulator = make_apparatus(f"csv:{path}", {"noise": 0.01})
+    assert isinstance(simulator, ScenarioSimulator)
+    assert simulator.noise == 0.01
+    assert isinstance(simulator, Apparatus)
+    with pytest.raises(FileNotFoundError, match=r"missing\.csv"):
+        make_apparatus(f"csv:{tmp_path / 'missing.csv'}")
+
+
+def test_import_path_loads_a_users_driver_with_keyword_arguments() -> None:
+    lens = make_apparatus("fake_drivers:ParabolicLens", {"gain_px_per_v": 0.5})
+    assert lens.gain == 0.5
+    lens.write({"defocus": lens.optimum()["defocus"] + 10.0})
+    assert lens.measure() == pytest.approx(2.563 * np.hypot(1.0, 5.0))
+
+
+def test_the_documented_example_driver_loads_and_measures() -> None:
+    microscope = make_apparatus("my_microscope:MyMicroscope", {"timeout_s": 2.0})
+    assert "defocus" in microscope.knobs
+    microscope.reset(1)
+    low, high = microscope.knobs["defocus"]
+    microscope.write({"defocus": 0.5 * (low + high)})
+    assert microscope.measure() > 0
+    with pytest.raises(ValueError):
+        microscope.write({"defocus": high + 1.0})
+
+
+@pytest.mark.parametrize(
+    ("spec", "args", "fragment"),
+    [
+        ("fake_drivers:NoSuchClass", {}, "has no 'NoSuchClass'"),
+        ("no_such_module_xyz:Driver", {}, "cannot import module 'no_such_module_xyz'"),
+        ("fake_drivers:ParabolicLens", {"volts": 3}, "does not accept the arguments"),
+        ("fake_drivers:NotAnApparatus", {}, "missing read, write, measure, image"),
+        ("fake_drivers:EmptyInterval", {}, "empty or infinite interval"),
+        ("not a spec", {}, "unknown apparatus 'not a spec'"),
+        ("", {}, "non-empty"),
+    ],
+)
+def test_bad_specs_are_refused_with_a_reason(spec: str, args: dict, fragment: str) -> None:
+    with pytest.raises(ValueError, match=fragment):
+        make_apparatus(spec, args)
