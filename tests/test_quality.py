@@ -7,7 +7,14 @@ import math
 import numpy as np
 import pytest
 
-from alignrl.apparatus import NoEdgesError, SEMConfig, SyntheticSEM, edge_width, measure_edges
+from alignrl.apparatus import (
+    NoEdgesError,
+    SEMConfig,
+    SyntheticSEM,
+    edge_width,
+    make_apparatus,
+    measure_edges,
+)
 from alignrl.apparatus.quality import TEN_NINETY_PER_SIGMA, estimate_noise_std
 
 SIZE = 256
@@ -168,3 +175,45 @@ def test_measurement_reports_its_edges() -> None:
     assert result.width_px == pytest.approx(
         np.average(result.edge_widths_px, weights=result.edge_points)
     )
+
+
+def test_far_out_of_focus_frames_never_read_as_sharp() -> None:
+    """A defocused frame must not pass for a focused one: that would fool every controller."""
+    sem = make_apparatus("synthetic", seed=0)
+    rng = np.random.default_rng(2024)
+    readings = []
+    for index in range(120):
+        if index % 6 == 0:
+            sem.reset(int(rng.integers(2**31)))
+        optimum = sem.optimum()["defocus"]
+        side = 1.0 if rng.random() < 0.5 else -1.0
+        error_v = side * rng.uniform(30.0, 50.0)  # probe sigma 6-10 px
+        sem.write({"defocus": float(np.clip(optimum + error_v, 0.0, 100.0))})
+        true_sigma = sem.probe_sigmas_px()[0]
+        if true_sigma < 5.0:
+            continue
+        readings.append(sem.measure())
+    in_focus = TEN_NINETY_PER_SIGMA * sem.config.probe_sigma0_px
+    assert len(readings) > 80
+    assert min(readings) > 3 * in_focus, sorted(readings)[:5]
+
+
+def test_recorded_glitch_frame_is_measured_as_blurred() -> None:
+    """Regression: scenario 1722 of an earlier default recording read 2.55 px at 10 V, 40 V
+    from focus, from a noise-made step on the flank of a blurred particle."""
+    from alignrl.apparatus.recorder import sweep, sweep_plan
+
+    sem = make_apparatus("synthetic")
+    frames: dict[float, np.ndarray] = {}
+    measure = sem.measure
+
+    def keep_frame() -> float:
+        width = measure()
+        frames[sem.read()["defocus"]] = sem.image()
+        return width
+
+    sem.measure = keep_frame  # type: ignore[method-assign]
+    record = sweep(sem, sweep_plan(sem.knobs), 1722, 3824399162)
+    assert record is not None
+    assert record.edge_widths[1] > 10.0  # at 10 V
+    assert edge_width(frames[10.0]) > 10.0

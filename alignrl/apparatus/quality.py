@@ -33,6 +33,7 @@ MIN_EDGE_POINTS = 8  # an edge shorter than this is too noisy to measure
 MAX_EDGE_POINTS = 1000  # edge points sampled per image; more only costs time
 DETECTION_SNR = 6.0  # gradient threshold in units of the noise's gradient std (Rayleigh tail 1e-8)
 MIN_CONTRAST_SNR = 5.0  # an edge's step must stand this far above its averaged noise
+COARSE_SCALE_MIN_SIGMA = 0.75  # at a coarse scale, edges must be at least this wide (x scale)
 SELECTION_MARGIN = 1.5  # ... and this far above the step that detection alone selects from noise
 
 
@@ -141,19 +142,52 @@ def _fit_window(
     """10-90 % widths measured in a window of ~4 sigma each side of each edge.
 
     Four sigma reaches both plateaus of a Gaussian edge and keeps neighbouring features out;
-    the window is iterated from `start` (default: a guess of sigma ~ 2 px).
+    the window is iterated from `start` (default: a guess of sigma ~ 2 px). A window is only
+    accepted where the levels are flat beyond it: on a wide ramp a small window would find
+    a self-consistent but false narrow "edge" in the noise, so where the step continues
+    outside the window, the window is doubled.
     Returns (width, half window, dark level, bright level) per row.
     """
     half_window = np.full(profiles.shape[0], min(10.0, max_half)) if start is None else start
-    for _ in range(6):
+    floor = np.zeros_like(half_window)  # windows proven too small, doubled
+    for _ in range(8):
         width, low, high = _ten_ninety(profiles, t, half_window)
+        continuing = _step_continues(profiles, t, half_window, low, high, max_half)
+        floor = np.where(continuing, np.minimum(2.0 * half_window, max_half), floor)
         sigma = width / TEN_NINETY_PER_SIGMA
-        new_half = np.clip(4.0 * sigma + 3.0, 4.0, max_half)
-        moving = np.isfinite(width) & (np.abs(new_half - half_window) >= PROFILE_STEP_PX)
+        new_half = np.maximum(np.clip(4.0 * sigma + 3.0, 4.0, max_half), floor)
+        new_half = np.where(continuing, floor, new_half)
+        moving = (np.isfinite(width) | continuing) & (
+            np.abs(new_half - half_window) >= PROFILE_STEP_PX
+        )
         if not moving.any():
             break
         half_window = np.where(moving, new_half, half_window)
+    width = np.where(continuing, np.nan, width)  # never settled on a flat window
     return width, half_window, low, high
+
+
+def _step_continues(
+    profiles: np.ndarray,
+    t: np.ndarray,
+    half_window: np.ndarray,
+    low: np.ndarray,
+    high: np.ndarray,
+    max_half: float,
+) -> np.ndarray:
+    """Whether the intensity keeps rising beyond the window (by over 30 % of the step).
+
+    Only a continuation in the edge's own direction counts: a neighbouring particle makes the
+    dark side brighter or the bright side darker, which says nothing about this edge.
+    """
+    outer = np.minimum(2.0 * half_window, max_half)
+    beyond_dark = (t[None, :] >= -outer[:, None]) & (t[None, :] < -half_window[:, None])
+    beyond_bright = (t[None, :] <= outer[:, None]) & (t[None, :] > half_window[:, None])
+    darker = low - _row_medians(profiles, beyond_dark)
+    brighter = _row_medians(profiles, beyond_bright) - high
+    rise = np.nan_to_num(np.maximum(darker, 0.0)) + np.nan_to_num(np.maximum(brighter, 0.0))
+    with np.errstate(invalid="ignore"):
+        return (rise > 0.3 * (high - low)) & (half_window < max_half)
 
 
 def _realign(
@@ -206,9 +240,13 @@ def _realign(
 
 
 def _measure_at_scale(
-    gray: np.ndarray, noise_std: float, detection_sigma: float
+    gray: np.ndarray, noise_std: float, detection_sigma: float, min_sigma_px: float = 0.0
 ) -> tuple[np.ndarray, np.ndarray] | str:
-    """Edges detected at one smoothing scale: (widths px, points per edge), or why none."""
+    """Edges detected at one smoothing scale: (widths px, points per edge), or why none.
+
+    Edges narrower than `min_sigma_px` are refused: at a coarse scale, tried because the
+    finer one found nothing it could trust, a sharp edge can only be noise.
+    """
     smooth = cv2.GaussianBlur(gray, (0, 0), detection_sigma, borderType=cv2.BORDER_REFLECT)
     # Sobel with ksize 3 sums 8 weighted differences: divide by 8 for a per-pixel derivative.
     grad_x = cv2.Sobel(smooth, cv2.CV_32F, 1, 0, ksize=3, borderType=cv2.BORDER_REFLECT) / 8.0
@@ -320,7 +358,9 @@ def _measure_at_scale(
         # pure noise averages to a step of about the threshold's contrast: demand more.
         noise_step = np.sqrt(2.0 * np.pi) * smoothed_sigma * DETECTION_SNR * noise_gradient
         above_selection = contrast >= SELECTION_MARGIN * noise_step
+    wide_enough = sigma >= min_sigma_px
     usable = np.isfinite(width) & clear_step & consistent & steep_enough & above_selection
+    usable &= wide_enough
     if not usable.any():
         return "no detected edge had a measurable rise above the noise"
     return width[usable], counts[usable]
@@ -336,8 +376,10 @@ def measure_edges(image: np.ndarray) -> EdgeMeasurement:
     gray = _as_gray(image)
     noise_std = estimate_noise_std(gray)
     reason = ""
-    for detection_sigma in DETECTION_SIGMAS_PX:
-        result = _measure_at_scale(gray, noise_std, detection_sigma)
+    for index, detection_sigma in enumerate(DETECTION_SIGMAS_PX):
+        # A sharp edge would have been found at the finer scale already.
+        min_sigma = COARSE_SCALE_MIN_SIGMA * detection_sigma if index else 0.0
+        result = _measure_at_scale(gray, noise_std, detection_sigma, min_sigma)
         if isinstance(result, str):
             reason = result
             continue
