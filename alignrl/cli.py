@@ -21,9 +21,14 @@ import numpy as np
 
 from alignrl import __version__
 from alignrl.apparatus.base import ApparatusError
-from alignrl.apparatus.recorder import sweep_many, sweep_plan
+from alignrl.apparatus.recorder import SweepPlan, scenario_seed, sweep_many, sweep_plan
 from alignrl.apparatus.registry import make_apparatus
-from alignrl.apparatus.scenarios import ScenarioWriter, read_scenarios
+from alignrl.apparatus.scenarios import (
+    MIN_PAIRS,
+    ScenarioFormatError,
+    ScenarioWriter,
+    read_scenarios,
+)
 
 EXIT_USAGE = 2  # bad input: a clear message, nothing written
 EXIT_INTERRUPTED = 130
@@ -53,29 +58,43 @@ def _emit(payload: dict[str, Any], as_json: bool, lines: Sequence[str]) -> None:
 # --- record -----------------------------------------------------------------------------
 
 
-def _existing_scenarios(path: Path) -> list[int]:
-    return [int(i) for i in read_scenarios(path).scenario_ids]
+def _continue_from(out: Path, plan: SweepPlan, seed: int) -> int:
+    """First scenario id to record when appending to `out`, after checking it is the same
+    recording (same knob, interval and seeds), so that --append never mixes two sweeps."""
+    existing = read_scenarios(out)
+    if existing.knob != plan.knob:
+        raise CommandError(f"{out} sweeps knob {existing.knob!r}, this recording {plan.knob!r}")
+    if np.any(existing.lows != plan.low) or np.any(existing.highs != plan.high):
+        raise CommandError(
+            f"{out} was recorded over another interval than [{plan.low:g}, {plan.high:g}]"
+        )
+    for scenario, row_seed in zip(existing.scenario_ids, existing.seeds, strict=True):
+        if row_seed != scenario_seed(seed, int(scenario)):
+            raise CommandError(
+                f"{out}: scenario {scenario} was recorded with another --seed; append with "
+                "the seed of the original recording"
+            )
+    return int(existing.scenario_ids.max()) + 1
 
 
 def cmd_record(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    apparatus_args = _json_object(args.apparatus_args, "--apparatus-args")
-    factory = functools.partial(make_apparatus, args.apparatus, apparatus_args)
-    probe = factory()
-    plan = sweep_plan(probe.knobs, knob=args.knob, step=args.step)
-    out = Path(args.out)
     if args.scenarios < 1:
         raise CommandError("--scenarios must be at least 1")
-    first = 0
-    if args.append and out.exists():
-        done = _existing_scenarios(out)
-        first = max(done) + 1 if done else 0
+    apparatus_args = _json_object(args.apparatus_args, "--apparatus-args")
+    factory = functools.partial(make_apparatus, args.apparatus, apparatus_args)
+    apparatus = factory()  # opened once; worker processes open their own
+    plan = sweep_plan(apparatus.knobs, knob=args.knob, step=args.step)
+    out = Path(args.out)
+    existed = out.exists()
+    first = _continue_from(out, plan, args.seed) if args.append and existed else 0
     mode = "append" if args.append else "force" if args.force else "new"
     todo = range(first, args.scenarios)
     written = skipped = failed = 0
     pairs: list[int] = []
     started = time.perf_counter()
+    rows = sweep_many(factory, plan, todo, args.seed, args.workers, apparatus=apparatus)
     with ScenarioWriter(out, plan.max_pairs, mode=mode) as writer:
         bar = tqdm(
             total=args.scenarios,
@@ -86,15 +105,19 @@ def cmd_record(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         try:
-            for scenario, record in sweep_many(factory, plan, todo, args.seed, args.workers):
-                if record is None:
-                    skipped += 1
-                    bar.write(f"scenario {scenario}: fewer than 5 measurable points, skipped")
-                else:
+            for scenario, record in rows:
+                failed += record.n_failed
+                if record.usable:
                     writer.write(record)
                     written += 1
-                    failed += record.n_failed
                     pairs.append(len(record.voltages))
+                else:
+                    skipped += 1
+                    bar.write(
+                        f"scenario {scenario}: only {len(record.voltages)} measurable points "
+                        f"({record.n_failed} failed acquisitions), not written",
+                        file=sys.stderr,
+                    )
                 bar.update(1)
         except KeyboardInterrupt:
             bar.close()
@@ -105,6 +128,12 @@ def cmd_record(args: argparse.Namespace) -> int:
             )
             return EXIT_INTERRUPTED
         bar.close()
+    if written == 0 and skipped > 0 and (not existed or mode != "append"):
+        out.unlink()  # only the header we wrote: a file no reader would accept
+        raise CommandError(
+            f"no scenario had {MIN_PAIRS} measurable points ({failed} failed acquisitions): "
+            f"check that {args.apparatus} shows edges over its interval; {out} not written"
+        )
     elapsed = time.perf_counter() - started
     payload = {
         "out": str(out),
@@ -201,7 +230,12 @@ def plot_scenarios(path: Path, out: Path, curves: int = 24) -> None:
 
 def cmd_scenarios_validate(args: argparse.Namespace) -> int:
     path = Path(args.file)
-    summary = scenario_summary(path)
+    try:
+        summary = scenario_summary(path)
+    except (ScenarioFormatError, FileNotFoundError) as error:
+        if args.json:
+            print(json.dumps({"file": str(path), "valid": False, "error": str(error)}, indent=2))
+        raise CommandError(str(error)) from None
     if args.plot:
         plot_scenarios(path, Path(args.plot))
         summary["plot"] = args.plot
@@ -271,11 +305,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         return int(args.handler(args))
+    except ApparatusError as error:  # before ValueError: NoEdgesError is both
+        print(f"alignrl: apparatus error: {error}", file=sys.stderr)
+        return EXIT_USAGE
     except (CommandError, ValueError, FileNotFoundError, FileExistsError) as error:
         print(f"alignrl: error: {error}", file=sys.stderr)
-        return EXIT_USAGE
-    except ApparatusError as error:
-        print(f"alignrl: apparatus error: {error}", file=sys.stderr)
         return EXIT_USAGE
 
 

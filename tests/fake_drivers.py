@@ -28,6 +28,7 @@ class ParabolicLens:
         fault_every: int = 0,
         interrupt_at_reset: int | None = None,
         delay_s: float = 0.0,
+        faulty_within_v: float | None = None,
     ) -> None:
         self.knobs: Mapping[str, tuple[float, float]] = {"defocus": (0.0, 100.0)}
         self.gain, self.sigma0 = gain_px_per_v, sigma0_px
@@ -35,6 +36,7 @@ class ParabolicLens:
         self.fault_every = fault_every  # every n-th acquisition raises a driver fault
         self.interrupt_at_reset = interrupt_at_reset  # operator presses Ctrl-C at this reset
         self.delay_s = delay_s
+        self.faulty_within_v = faulty_within_v  # the driver times out this close to focus
         self.resets = 0
         self.calls = 0
         self.writes: list[dict[str, float]] = []
@@ -62,6 +64,8 @@ class ParabolicLens:
         if self.fault_every and self.calls % self.fault_every == 0:
             raise ApparatusError("driver timeout")
         error = self.voltage - self.optimum_v
+        if self.faulty_within_v is not None and abs(error) < self.faulty_within_v:
+            raise ApparatusError("driver timeout near focus")
         if self.blind_beyond_v is not None and abs(error) > self.blind_beyond_v:
             raise NoEdgesError("far out of focus")
         return TEN_NINETY * math.hypot(self.sigma0, self.gain * error)

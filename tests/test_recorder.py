@@ -77,7 +77,9 @@ def test_driver_faults_are_retried() -> None:
 
 def test_a_scenario_with_too_few_points_is_skipped() -> None:
     apparatus = lens(blind_beyond_v=3.0)
-    assert sweep(apparatus, sweep_plan(apparatus.knobs, step="constant"), 0, 1) is None
+    record = sweep(apparatus, sweep_plan(apparatus.knobs, step="constant"), 0, 1)
+    assert not record.usable and len(record.voltages) < 5
+    assert record.n_failed == 51 - len(record.voltages)
 
 
 def test_sweep_plans_are_validated() -> None:
@@ -241,3 +243,60 @@ def test_killed_recorder_loses_no_finished_row(tmp_path: Path, how: signal.Signa
     )
     assert resumed.returncode == 0, resumed.stderr
     assert out.read_bytes() == reference.read_bytes()
+
+
+def test_a_driver_fault_near_focus_does_not_coarsen_the_sweep() -> None:
+    apparatus = lens(faulty_within_v=0.6)
+    plan = sweep_plan(apparatus.knobs, step="adaptive")
+    record = sweep(apparatus, plan, scenario=0, seed=5)
+    swept = np.array([w["defocus"] for w in apparatus.writes[plan.prescan_points :]])
+    near = np.abs(swept - apparatus.optimum_v) < 4.0
+    assert near.sum() >= 6  # still 1 V steps around the focus, faults or not
+    assert record.n_failed >= 1
+
+
+def test_a_narrow_knob_interval_is_swept_on_a_fine_grid() -> None:
+    apparatus = lens()
+    apparatus.knobs = {"defocus": (0.0, 0.01)}
+    plan = sweep_plan(apparatus.knobs, step="adaptive")
+    record = sweep(apparatus, plan, scenario=0, seed=1)
+    assert record.voltages[0] == 0.0 and record.voltages[-1] == 0.01
+    assert np.all(np.diff(record.voltages) > 0)
+    assert len(record.voltages) <= plan.max_pairs
+
+
+def test_record_skips_unmeasurable_scenarios_and_keeps_json_clean(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "partly.csv"
+    code = record_cli(
+        out, "--scenarios", "12", "--json", "--apparatus-args", '{"blind_beyond_v": 4.5}'
+    )
+    captured = capsys.readouterr()
+    report = json.loads(captured.out)  # the skip notices go to stderr, not into the JSON
+    assert code == 0
+    assert report["scenarios_skipped"] > 0 and report["scenarios_written"] > 0
+    assert report["scenarios_skipped"] + report["scenarios_written"] == 12
+    assert "not written" in captured.err
+    assert len(read_scenarios(out)) == report["scenarios_written"]
+
+
+def test_record_with_nothing_measurable_fails_and_leaves_no_file(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "blind.csv"
+    code = record_cli(out, "--scenarios", "3", "--apparatus-args", '{"blind_beyond_v": 1}')
+    assert code == 2
+    assert "measurable points" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_append_with_another_seed_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "lens.csv"
+    assert record_cli(out, "--scenarios", "2", "--seed", "1") == 0
+    before = out.read_bytes()
+    assert record_cli(out, "--scenarios", "4", "--seed", "2", "--append") == 2
+    assert "another --seed" in capsys.readouterr().err
+    assert out.read_bytes() == before

@@ -95,3 +95,17 @@ def test_the_documented_example_driver_loads_and_measures() -> None:
 def test_bad_specs_are_refused_with_a_reason(spec: str, args: dict, fragment: str) -> None:
     with pytest.raises(ValueError, match=fragment):
         make_apparatus(spec, args)
+
+
+def test_a_typo_in_simulator_arguments_is_refused_with_the_accepted_ones(tmp_path: Path) -> None:
+    path = tmp_path / "three.csv"
+    _tiny_recording(path)
+    with pytest.raises(ValueError, match=r"'nois'.*it takes: noise, split"):
+        make_apparatus(f"csv:{path}", {"nois": 0.1})
+    with pytest.raises(ValueError, match="seed cannot be an apparatus argument"):
+        make_apparatus(f"csv:{path}", {"seed": 3})
+
+
+def test_a_bad_preset_override_is_named_as_an_argument() -> None:
+    with pytest.raises(ValueError, match="apparatus argument dose: Extra inputs"):
+        make_apparatus("synthetic", {"dose": 3})

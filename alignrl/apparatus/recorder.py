@@ -8,12 +8,12 @@ pair (voltage, edge width) and raise the voltage by a margin, until the interval
 * `adaptive` margin: finer near the focus minimum. A coarse pre-scan (default 9 acquisitions,
   not stored) finds the sharpest edge width w_min; the recorded sweep then steps by
   min_step * (w / w_min)^2, clipped to [min_step, max_step], so the points crowd where the
-  image is sharp and thin out where it is hopelessly blurred. On the `synthetic` preset about
-  25 acquisitions are stored per scenario.
+  image is sharp and thin out where it is hopelessly blurred. On the `synthetic` preset a
+  median of 26 acquisitions is stored per scenario (20 to 34).
 
 An acquisition that fails (no edges far out of focus, a driver fault) is not stored; a driver
-fault is retried first. The row counts failures in `n_failed`. A scenario with fewer than 5
-measurable points is skipped and reported.
+fault is retried first (and does not coarsen the steps). The row counts failures in
+`n_failed`. A scenario with fewer than 5 measurable points is not written, and is reported.
 """
 
 from __future__ import annotations
@@ -32,7 +32,8 @@ from alignrl.apparatus.scenarios import MIN_PAIRS, ScenarioRecord
 __all__ = ["SweepPlan", "scenario_seed", "sweep", "sweep_plan"]
 
 DRIVER_RETRIES = 2  # extra attempts after a driver fault, per acquisition
-VOLTAGE_RESOLUTION_V = 1e-3  # sweep voltages are set on a 1 mV grid, like a lens supply's DAC
+RESOLUTION_PER_SPAN = 1e-5  # sweep voltages sit on a grid of 1e-5 of the interval (1 mV on
+# 100 V), like the DAC of a lens supply; it keeps the stored numbers short
 WIDTH_DECIMALS = 4  # edge widths are stored to 1e-4 px, far below their noise
 
 StepRule = Literal["constant", "adaptive"]
@@ -61,8 +62,24 @@ class SweepPlan:
                 raise ValueError(f"sweep of {self.knob!r}: {name} must be positive")
         if self.min_step_v > self.max_step_v:
             raise ValueError("min_step_v must not exceed max_step_v")
+        smallest = self.constant_step_v if self.step == "constant" else self.min_step_v
+        if smallest < 10 * self.resolution:
+            raise ValueError(
+                f"sweep of {self.knob!r}: a step of {smallest:g} is below 10 grid steps "
+                f"({self.resolution:g}) of the interval"
+            )
         if self.prescan_points < 3:
             raise ValueError("prescan_points must be at least 3")
+
+    @property
+    def resolution(self) -> float:
+        """Grid of the set voltages, volts."""
+        return (self.high - self.low) * RESOLUTION_PER_SPAN
+
+    def on_grid(self, voltage: float) -> float:
+        steps = round((voltage - self.low) / self.resolution)
+        # round(.., 12) drops the float dust of the multiplication (47.30000000000001).
+        return float(min(round(self.low + steps * self.resolution, 12), self.high))
 
     @property
     def max_pairs(self) -> int:
@@ -95,24 +112,23 @@ def scenario_seed(base_seed: int, scenario: int) -> int:
     return int(np.random.SeedSequence([base_seed, scenario]).generate_state(1)[0])
 
 
-def _on_grid(voltage: float) -> float:
-    return round(round(voltage / VOLTAGE_RESOLUTION_V) * VOLTAGE_RESOLUTION_V, 9)
+def _acquire(apparatus: Apparatus) -> tuple[float | None, bool]:
+    """One measurement: (edge width or None, whether the frame had no edges).
 
-
-def _acquire(apparatus: Apparatus) -> float | None:
-    """One measurement; None where it fails (after retrying driver faults)."""
+    A driver fault is retried; no edges is a property of the setting, so it is not.
+    """
     for _ in range(1 + DRIVER_RETRIES):
         try:
-            return float(apparatus.measure())
+            return float(apparatus.measure()), False
         except MeasurementError:
-            return None  # no edges: a property of this setting, retrying will not help
+            return None, True
         except ApparatusError:
             continue
-    return None
+    return None, False
 
 
-def sweep(apparatus: Apparatus, plan: SweepPlan, scenario: int, seed: int) -> ScenarioRecord | None:
-    """Record one scenario; None where fewer than 5 points could be measured."""
+def sweep(apparatus: Apparatus, plan: SweepPlan, scenario: int, seed: int) -> ScenarioRecord:
+    """Record one scenario. The record may hold fewer than MIN_PAIRS points (`usable`)."""
     apparatus.reset(seed)
     failed = 0
     w_min = None
@@ -121,16 +137,17 @@ def sweep(apparatus: Apparatus, plan: SweepPlan, scenario: int, seed: int) -> Sc
         widths = []
         for voltage in scan:
             apparatus.write({plan.knob: float(voltage)})
-            width = _acquire(apparatus)
+            width, _ = _acquire(apparatus)
             if width is not None:
                 widths.append(width)
         w_min = min(widths) if widths else None
     voltages: list[float] = []
     edge_widths: list[float] = []
     voltage = plan.low
+    step = plan.constant_step_v if plan.step == "constant" else plan.min_step_v
     while True:
         apparatus.write({plan.knob: voltage})
-        width = _acquire(apparatus)
+        width, no_edges = _acquire(apparatus)
         if width is None:
             failed += 1
         else:
@@ -140,16 +157,15 @@ def sweep(apparatus: Apparatus, plan: SweepPlan, scenario: int, seed: int) -> Sc
             break
         if plan.step == "constant":
             step = plan.constant_step_v
-        elif w_min is None or width is None:
-            step = plan.max_step_v  # nothing to measure here: cross it quickly
-        else:
-            step = min(
-                max(plan.min_step_v * (width / w_min) ** 2, plan.min_step_v), plan.max_step_v
-            )
-        # On the supply's grid, and exactly on the upper bound rather than short of it.
-        voltage = min(_on_grid(voltage + step), plan.high)
-    if len(voltages) < MIN_PAIRS:
-        return None
+        elif width is not None and w_min is not None:
+            step = plan.min_step_v * (width / w_min) ** 2
+        elif no_edges or w_min is None:
+            step = plan.max_step_v  # nothing to see here: cross it quickly
+        # else: a driver fault; keep the last step, the region may be the one that matters
+        if plan.step == "adaptive":
+            step = min(max(step, plan.min_step_v), plan.max_step_v)
+        # On the supply's grid, at least one grid step on, and exactly on the upper bound.
+        voltage = min(max(plan.on_grid(voltage + step), voltage + plan.resolution), plan.high)
     return ScenarioRecord(
         scenario=scenario,
         seed=seed,
@@ -171,7 +187,7 @@ def _worker_init(factory: Callable[[], Apparatus], plan: SweepPlan, base_seed: i
     _worker_state.update(apparatus=factory(), plan=plan, base_seed=base_seed)
 
 
-def _worker_sweep(scenario: int) -> tuple[int, ScenarioRecord | None]:
+def _worker_sweep(scenario: int) -> tuple[int, ScenarioRecord]:
     state = _worker_state
     seed = scenario_seed(state["base_seed"], scenario)
     return scenario, sweep(state["apparatus"], state["plan"], scenario, seed)
@@ -183,14 +199,16 @@ def sweep_many(
     scenarios: range,
     base_seed: int,
     workers: int = 1,
-) -> Iterator[tuple[int, ScenarioRecord | None]]:
-    """Sweep scenarios in order, yielding (scenario, record or None) as each finishes.
+    apparatus: Apparatus | None = None,
+) -> Iterator[tuple[int, ScenarioRecord]]:
+    """Sweep scenarios in order, yielding (scenario, record) as each finishes.
 
+    Serially, `apparatus` is used if given (a real column is opened once), else `factory()`.
     With workers > 1 each process builds its own apparatus with `factory` (which must be
     picklable); rows still come back in scenario order.
     """
     if workers <= 1:
-        apparatus = factory()
+        apparatus = apparatus if apparatus is not None else factory()
         for scenario in scenarios:
             yield scenario, sweep(apparatus, plan, scenario, scenario_seed(base_seed, scenario))
         return

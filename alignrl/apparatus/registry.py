@@ -56,6 +56,30 @@ def _check_protocol(obj: object, spec: str) -> Apparatus:
     return obj  # type: ignore[return-value]
 
 
+def _construct(target: Any, spec: str, args: Mapping[str, Any], **fixed: Any) -> Any:
+    """Call `target(**args, **fixed)`, refusing arguments it does not take with a clear error
+    (a typo in --apparatus-args must not surface as a traceback)."""
+    clash = sorted(set(args) & set(fixed))
+    if clash:
+        raise ValueError(f"apparatus {spec!r}: {', '.join(clash)} cannot be an apparatus argument")
+    try:
+        signature = inspect.signature(target)
+    except (TypeError, ValueError):
+        signature = None  # no signature to check (a builtin): let the call speak
+    if signature is not None:
+        try:
+            signature.bind(**args, **fixed)
+        except TypeError as error:
+            accepted = ", ".join(
+                name for name in signature.parameters if name not in fixed and name != "self"
+            )
+            raise ValueError(
+                f"apparatus {spec!r} does not accept the arguments {dict(args)}: {error} "
+                f"(it takes: {accepted or 'no arguments'})"
+            ) from None
+    return target(**args, **fixed)
+
+
 def _import_driver(spec: str, args: Mapping[str, Any]) -> Apparatus:
     module_name, _, attribute = spec.partition(":")
     try:
@@ -72,15 +96,7 @@ def _import_driver(spec: str, args: Mapping[str, Any]) -> Apparatus:
         ) from None
     if not callable(target):
         raise ValueError(f"apparatus {spec!r}: {attribute!r} is not a class or factory")
-    try:
-        inspect.signature(target).bind(**args)
-    except TypeError as error:
-        raise ValueError(
-            f"apparatus {spec!r} does not accept the arguments {dict(args)}: {error}"
-        ) from None
-    except ValueError:
-        pass  # no signature to check (a builtin): let the call speak
-    return _check_protocol(target(**args), spec)
+    return _check_protocol(_construct(target, spec, args), spec)
 
 
 def make_apparatus(
@@ -93,7 +109,7 @@ def make_apparatus(
     if spec.startswith("csv:"):
         location = spec[len("csv:") :]
         path = default_scenarios_path() if location == "default" else Path(location)
-        return ScenarioSimulator(path, seed=seed, **args)
+        return _construct(ScenarioSimulator, spec, args, path=path, seed=seed)
     if spec.startswith("sem:"):
         return SyntheticSEM(load_sem_config(spec[len("sem:") :], **args), seed=seed)
     if spec in preset_names():

@@ -66,6 +66,11 @@ class ScenarioRecord:
     edge_widths: np.ndarray
     n_failed: int = 0
 
+    @property
+    def usable(self) -> bool:
+        """Enough points to locate a focus minimum (and to be written)."""
+        return len(self.voltages) >= MIN_PAIRS
+
     def to_cells(self) -> list[str]:
         cells = [
             str(self.scenario),

@@ -124,11 +124,13 @@ def load_sem_config(path: str | Path, **overrides: Any) -> SEMConfig:
     try:
         return SEMConfig(**data)
     except ValidationError as error:
-        problems = "; ".join(
-            f"{'.'.join(str(part) for part in item['loc']) or '(top)'}: {item['msg']}"
-            for item in error.errors()
-        )
-        raise ValueError(f"{path}: {problems}") from None
+        problems = []
+        for item in error.errors():
+            key = ".".join(str(part) for part in item["loc"]) or "(top)"
+            # Say where the bad value came from: the file, or the caller's overrides.
+            origin = "apparatus argument " if item["loc"] and item["loc"][0] in overrides else ""
+            problems.append(f"{origin}{key}: {item['msg']}")
+        raise ValueError(f"{path}: {'; '.join(problems)}") from None
 
 
 class SyntheticSEM:
