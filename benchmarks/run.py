@@ -25,6 +25,7 @@ import alignrl
 from alignrl.apparatus import NoEdgesError, ScenarioSimulator, edge_width, make_apparatus
 from alignrl.apparatus.quality import TEN_NINETY_PER_SIGMA
 from alignrl.apparatus.recorder import sweep_many, sweep_plan
+from alignrl.envs.vector import VectorAlignmentEnv, make_apparatus_copies
 
 
 @dataclass(frozen=True)
@@ -84,6 +85,23 @@ def bench_query(million: int) -> Figure:
         f"scenario simulator: batched query of {n:,} (scenario, voltage) pairs",
         f"{n / seconds / 1e6:.2f} M queries/s",
         ">= 1 M queries/s on one core",
+    )
+
+
+def bench_vector_env(num_envs: int, steps: int) -> Figure:
+    """Env steps per second of the vectorized env on the scenario simulator, random actions."""
+    env = VectorAlignmentEnv(make_apparatus_copies("csv:default", {"noise": 0.02}, num_envs))
+    env.reset(seed=0)
+    actions = np.random.default_rng(0).uniform(-1.0, 1.0, (steps, num_envs, 2))
+    start = time.perf_counter()
+    for action in actions:
+        env.step(action)
+    seconds = time.perf_counter() - start
+    return Figure(
+        f"VectorAlignmentEnv, {num_envs} x `csv:default` (2 % noise), random actions",
+        f"{steps * num_envs / seconds / 1e3:.0f} k env steps/s",
+        ">= 50 k env steps/s on one core",
+        "episodes end and reset inside the loop, as in training",
     )
 
 
@@ -183,6 +201,7 @@ def main(argv: list[str] | None = None) -> int:
     repeats = 20 if args.quick else 200
     figures = [bench_render(repeats), *bench_edge_width(repeats // 2)]
     figures.append(bench_query(1 if args.quick else 2))
+    figures.append(bench_vector_env(64, 300 if args.quick else 3000))
     figures.append(bench_record(4 if args.quick else 20, 1))
     figures.append(bench_record(4 if args.quick else 20, 2))
 

@@ -77,6 +77,11 @@ class SimulatedApparatus(Apparatus, Protocol):
         """The secret: the best knob settings now."""
         ...
 
+    def best_quality(self) -> float:
+        """The edge width (px) the apparatus reaches at its optimum now: the reference of
+        relative success thresholds."""
+        ...
+
 
 APPARATUS_METHODS = ("reset", "read", "write", "measure", "image")
 

@@ -20,7 +20,13 @@ import numpy as np
 from alignrl.apparatus.base import NoEdgesError, check_write
 from alignrl.apparatus.scenarios import ScenarioSet, read_scenarios
 
-__all__ = ["DEFAULT_SCENARIOS", "ScenarioSimulator", "default_scenarios_path", "split_indices"]
+__all__ = [
+    "DEFAULT_SCENARIOS",
+    "ScenarioSimulator",
+    "default_scenarios_path",
+    "measure_batch",
+    "split_indices",
+]
 
 DEFAULT_SCENARIOS = Path(__file__).resolve().parent.parent / "data" / "scenarios-synthetic.csv.gz"
 HELD_OUT_EVERY = 10  # split "test" holds out every 10th scenario; "train" keeps the rest
@@ -162,7 +168,7 @@ class ScenarioSimulator:
         if seed is None:
             seed = int(self._seeds.spawn(1)[0].generate_state(1)[0])
         self._rng = np.random.default_rng(seed)
-        self.row = int(self._rng.choice(self.indices))
+        self.row = int(self.indices[self._rng.integers(self.indices.size)])
         low, high = self.knobs[self.knob]
         self._voltage = 0.5 * (low + high)
 
@@ -192,3 +198,38 @@ class ScenarioSimulator:
 
     def optimum(self) -> dict[str, float]:
         return {self.knob: float(self.optima[self.row])}
+
+    def best_quality(self) -> float:
+        """The recorded curve's edge width (px) at the optimum, without re-measurement noise."""
+        return float(self.query(np.array([self.row]), np.array([self.optima[self.row]]))[0])
+
+    def reset_to(self, row: int, seed: int | None = None) -> None:
+        """Start scenario `row` (a row index of the file), e.g. to walk a held-out split."""
+        if not 0 <= row < len(self.scenarios):
+            raise ValueError(
+                f"row {row} is not in {self.scenarios.path} (0..{len(self.scenarios) - 1})"
+            )
+        self.reset(seed)
+        self.row = int(row)
+
+
+def measure_batch(simulators: list[ScenarioSimulator], voltages: np.ndarray) -> np.ndarray:
+    """Set each simulator's knob and measure, all in one query; NaN where there are no edges.
+
+    Equivalent to `write` + `measure` on each simulator in turn (same values, same noise
+    draws from each simulator's own generator), without the per-call overhead. All
+    simulators must replay the same recording.
+    """
+    first = simulators[0]
+    rows = np.array([simulator.row for simulator in simulators])
+    volts = np.asarray(voltages, dtype=np.float64)
+    widths = first.query(rows, volts)
+    for position, simulator in enumerate(simulators):
+        check_write(simulator.knobs, {simulator.knob: volts[position]})
+        simulator._voltage = float(volts[position])
+        simulator.acquisitions += 1
+        if simulator.noise > 0 and np.isfinite(widths[position]):
+            widths[position] *= max(
+                0.05, 1.0 + simulator.noise * float(simulator._rng.standard_normal())
+            )
+    return widths

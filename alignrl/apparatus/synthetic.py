@@ -34,7 +34,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from alignrl.apparatus.base import ApparatusError, check_write
-from alignrl.apparatus.quality import edge_width
+from alignrl.apparatus.quality import TEN_NINETY_PER_SIGMA, edge_width
 
 __all__ = ["PRESET_DIR", "SEMConfig", "SyntheticSEM", "load_sem_config"]
 
@@ -196,6 +196,12 @@ class SyntheticSEM:
         """
         side = 1.0 if self._defocus_v <= self._optimum_v else -1.0
         return {"defocus": self._optimum_v + self.config.hysteresis_v * side}
+
+    def best_quality(self) -> float:
+        """Edge width (px) of a noise-free frame at the optimum: 2.563 x the probe sigma there."""
+        cfg = self.config
+        sigma = np.hypot(cfg.probe_sigma0_px, 0.5 * cfg.gain_px_per_v * self._astigmatism_v)
+        return float(TEN_NINETY_PER_SIGMA * sigma)
 
     # --- physics ------------------------------------------------------------------------
 

@@ -1,0 +1,20 @@
+"""Alignment environments: tasks, rewards, curriculum, AlignmentEnv (Gymnasium), DuelEnv
+(PettingZoo AEC), and a vectorized form over many microscopes."""
+
+from alignrl.envs.alignment import AlignmentEnv
+from alignrl.envs.curriculum import Curriculum
+from alignrl.envs.duel import DuelEnv
+from alignrl.envs.task import TASKS, SuccessRule, Task, get_task
+from alignrl.envs.vector import VectorAlignmentEnv, make_apparatus_copies
+
+__all__ = [
+    "TASKS",
+    "AlignmentEnv",
+    "Curriculum",
+    "DuelEnv",
+    "SuccessRule",
+    "Task",
+    "VectorAlignmentEnv",
+    "get_task",
+    "make_apparatus_copies",
+]

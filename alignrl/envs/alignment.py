@@ -1,0 +1,128 @@
+"""AlignmentEnv: one aligner against the built-in misalignment (Gymnasium).
+
+Card
+----
+* Apparatus: any (default: the scenario simulator on the shipped 2000 scenarios, `csv:default`).
+* Task: default `focus` (knob `defocus`, 10 steps, maximum change 1/4 of the interval).
+* Start: each reset picks a new scenario and misaligns it uniformly within the complexity
+  window (complexity 1: anywhere in the interval), or as a given misalignment policy says.
+* Observation: Box (history, features) of float32, see alignrl/envs/core.py for the columns.
+* Action: Box (-1, 1)^(knobs + 1): knob changes scaled by the task's maximum step, then stop.
+* Reward: 0 per step inside the interval, -penalty per step that hits a bound, and at the end
+  scale x (edge width before - edge width after) in pixels (seed section 4.3).
+* Termination: stop (> 0) or the step limit. info: secret (optimum - setting per knob, as a
+  fraction of the interval: for critics only), acquisitions, edge_width_px, threshold_px,
+  and at the end success.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from alignrl.apparatus.base import Apparatus
+from alignrl.apparatus.registry import make_apparatus
+from alignrl.envs.core import AlignmentEpisodes, observation_bounds
+from alignrl.envs.task import Task, get_task
+
+__all__ = ["AlignmentEnv", "MisalignmentPolicy"]
+
+MisalignmentPolicy = Callable[[np.ndarray], np.ndarray]  # misaligner observation -> action
+
+
+def resolve_apparatus(apparatus: Apparatus | str | None, args: dict | None, seed: int | None):
+    if apparatus is None:
+        apparatus = "csv:default"
+    if isinstance(apparatus, str):
+        return make_apparatus(apparatus, args, seed=seed)
+    return apparatus
+
+
+def resolve_task(task: Task | str) -> Task:
+    return get_task(task) if isinstance(task, str) else task
+
+
+def episode_info(episodes: AlignmentEpisodes, index: int, done: bool) -> dict[str, Any]:
+    """The info dict both environments report."""
+    record = episodes.info[index]
+    info: dict[str, Any] = {
+        "secret": episodes.secret(index),
+        "acquisitions": record.acquisitions,
+        "edge_width_px": record.width_px,
+        "threshold_px": record.threshold_px,
+        "out_of_bounds": record.out_of_bounds,
+        "failed_measurements": record.failed_measurements,
+    }
+    if done:
+        info["success"] = episodes.success(index)
+        info["edge_width_before_px"] = record.width_before_px
+    return info
+
+
+class AlignmentEnv(gym.Env):
+    """One aligner, one apparatus (see the module docstring for the card)."""
+
+    metadata = {"render_modes": []}  # noqa: RUF012 (gymnasium reads a class attribute)
+
+    def __init__(
+        self,
+        apparatus: Apparatus | str | None = None,
+        task: Task | str = "focus",
+        history: int = 8,
+        complexity: float = 1.0,
+        misalignment: MisalignmentPolicy | None = None,
+        apparatus_args: dict | None = None,
+    ) -> None:
+        super().__init__()
+        self.task = resolve_task(task)
+        self.apparatus = resolve_apparatus(apparatus, apparatus_args, seed=None)
+        self.episodes = AlignmentEpisodes([self.apparatus], self.task, history)
+        self.set_complexity(complexity)
+        self.misalignment = misalignment
+        low, high = observation_bounds(self.episodes.k)
+        self.observation_space = spaces.Box(
+            np.tile(low, (history, 1)), np.tile(high, (history, 1)), dtype=np.float32
+        )
+        self.action_space = spaces.Box(-1.0, 1.0, (self.episodes.k + 1,), dtype=np.float32)
+        self.misaligner_observation_space = spaces.Box(
+            np.append(np.full(self.episodes.k, -1.0), 0.0).astype(np.float32),
+            np.ones(self.episodes.k + 1, np.float32),
+            dtype=np.float32,
+        )
+        self._index = np.array([0])
+
+    @property
+    def complexity(self) -> float:
+        return self.episodes.complexity
+
+    def set_complexity(self, level: float) -> None:
+        """Width of the misalignment window as a fraction of the interval, in (0, 1]."""
+        if not 0.0 < level <= 1.0:
+            raise ValueError(f"complexity level must be in (0, 1], got {level}")
+        self.episodes.complexity = float(level)
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        super().reset(seed=seed)
+        # Every random choice of the episode comes from the env's own generator.
+        scenario_seed = int(self.np_random.integers(2**31 - 1))
+        self.episodes.begin(self._index, [scenario_seed])
+        if options and "misalignment" in options:
+            action = np.asarray(options["misalignment"], float)
+        elif self.misalignment is not None:
+            action = np.asarray(self.misalignment(self.episodes.misaligner_observation(0)))
+        else:
+            action = self.np_random.uniform(-1.0, 1.0, self.episodes.k)
+        self.episodes.misalign(self._index, action)
+        return self.episodes.observation(0), episode_info(self.episodes, 0, done=False)
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        reward, done = self.episodes.step(self._index, np.asarray(action)[None])
+        terminated = bool(done[0])
+        info = episode_info(self.episodes, 0, done=terminated)
+        return self.episodes.observation(0), float(reward[0]), terminated, False, info

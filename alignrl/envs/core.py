@@ -1,0 +1,291 @@
+"""Alignment episodes over N apparatus at once: the engine behind AlignmentEnv, DuelEnv and
+VectorAlignmentEnv (one code path, so the three agree step for step).
+
+An episode (seed section 4.3):
+1. `begin`: the apparatus is reset (new scenario) and the success threshold fixed;
+2. `misalign`: an action in (-1, 1)^k places each knob within the complexity window around
+   the aligned setting, and the first image is acquired (acquisition 1);
+3. `step`: each aligner action in (-1, 1)^(k+1) is k knob changes (scaled by the task's
+   maximum step) and a stop component (stop when > 0). A change that would leave the
+   interval is clipped at the bound and penalised. Each non-stop step acquires one image.
+   The episode ends on stop or after `episode_steps` steps; the final reward
+   scale x (edge width before - edge width after) is paid then.
+
+Observations are histories of H steps, oldest first, zero-padded at the front; each row is
+FEATURES: [valid, knob settings (k, in [-1, 1]), log(width / ref), measured, last action
+(k + 1), steps left (fraction)]. The secret (optimum - setting, as a fraction of the
+interval) goes to info["secret"], never into an observation.
+
+A measurement that fails (no edges, a driver fault) is a defined outcome: the row is marked
+unmeasured, its width counts as the task's `no_edges_px`, and the episode goes on.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from alignrl.apparatus.base import Apparatus, ApparatusError, MeasurementError
+from alignrl.apparatus.simulator import ScenarioSimulator, measure_batch
+from alignrl.envs import rewards
+from alignrl.envs.task import Task
+
+__all__ = ["AlignmentEpisodes", "EpisodeInfo", "feature_layout"]
+
+QUALITY_LOG_RANGE = (-2.0, 4.0)  # log(width / ref) is clipped here: 0.35x to 55x the reference
+
+
+def feature_layout(n_knobs: int) -> dict[str, slice]:
+    """Column slices of one history row."""
+    k = n_knobs
+    return {
+        "valid": slice(0, 1),
+        "knobs": slice(1, 1 + k),
+        "quality": slice(1 + k, 2 + k),
+        "measured": slice(2 + k, 3 + k),
+        "action": slice(3 + k, 4 + 2 * k),
+        "steps_left": slice(4 + 2 * k, 5 + 2 * k),
+    }
+
+
+def observation_bounds(n_knobs: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per-feature (low, high) of a history row."""
+    layout = feature_layout(n_knobs)
+    width = 5 + 2 * n_knobs
+    low, high = np.full(width, -1.0, np.float32), np.ones(width, np.float32)
+    for name in ("valid", "measured", "steps_left"):
+        low[layout[name]] = 0.0
+    low[layout["quality"]], high[layout["quality"]] = QUALITY_LOG_RANGE
+    return low, high
+
+
+@dataclass
+class EpisodeInfo:
+    """What happened in one episode so far (per apparatus)."""
+
+    acquisitions: int = 0
+    steps: int = 0
+    width_before_px: float = float("nan")
+    width_px: float = float("nan")
+    threshold_px: float = float("nan")
+    out_of_bounds: int = 0
+    failed_measurements: int = 0
+    last_error: str = ""
+
+
+class AlignmentEpisodes:
+    """N alignment episodes over N apparatus, stepped together (numpy over the batch)."""
+
+    def __init__(self, apparatus: Sequence[Apparatus], task: Task, history: int = 8) -> None:
+        if not apparatus:
+            raise ValueError("AlignmentEpisodes needs at least one apparatus")
+        if history < 1:
+            raise ValueError(f"history length must be at least 1, got {history}")
+        for unit in apparatus:
+            task.check_apparatus(unit.knobs)
+        self.apparatus = list(apparatus)
+        self.task = task
+        self.n = len(self.apparatus)
+        self.k = len(task.knobs)
+        self.history_length = history
+        self.layout = feature_layout(self.k)
+        self.n_features = 5 + 2 * self.k
+        intervals = np.array([[a.knobs[k] for k in task.knobs] for a in self.apparatus], float)
+        self.low, self.high = intervals[..., 0], intervals[..., 1]  # (N, k)
+        self.span = self.high - self.low
+        self.max_step = np.array([task.step_sizes(a.knobs) for a in self.apparatus])  # (N, k)
+        # Scenario simulators sharing one recording answer a whole batch in one numpy query.
+        self._batched = all(isinstance(a, ScenarioSimulator) for a in self.apparatus) and (
+            len({id(a.scenarios) for a in self.apparatus}) == 1
+        )
+        self.history = np.zeros((self.n, history, self.n_features), np.float32)
+        self.setting = np.zeros((self.n, self.k))  # knob values the env wrote, units
+        self.aligned = np.zeros((self.n, self.k))
+        self.width_before = np.full(self.n, np.nan)
+        self.width = np.full(self.n, np.nan)
+        self.threshold = np.full(self.n, np.nan)
+        self.steps = np.zeros(self.n, np.int64)
+        self.acquisitions = np.zeros(self.n, np.int64)
+        self.active = np.zeros(self.n, bool)
+        self.info = [EpisodeInfo() for _ in range(self.n)]
+        self.complexity = 1.0
+
+    # --- episode start ------------------------------------------------------------------
+
+    def begin(self, indices: np.ndarray, seeds: Sequence[int | None]) -> None:
+        """Reset the apparatus of `indices` to new scenarios; remember their aligned settings
+        and fix their success thresholds."""
+        indices = np.asarray(indices, dtype=np.int64)
+        for index, seed in zip(indices, seeds, strict=True):
+            self.apparatus[index].reset(seed)
+        if self._batched:
+            rows = np.array([self.apparatus[i].row for i in indices])  # type: ignore[attr-defined]
+            simulator = self.apparatus[indices[0]]
+            optima = simulator.optima[rows]  # type: ignore[attr-defined]
+            self.aligned[indices, 0] = optima
+            best = simulator.query(rows, optima)  # type: ignore[attr-defined]
+        else:
+            best = np.full(len(indices), np.nan)
+            for position, index in enumerate(indices):
+                unit = self.apparatus[index]
+                optimum = getattr(unit, "optimum", None)
+                # A real column has no secret: its setting as found counts as aligned.
+                reference = optimum() if callable(optimum) else unit.read()
+                self.aligned[index] = [reference[k] for k in self.task.knobs]
+                best_quality = getattr(unit, "best_quality", None)
+                if callable(best_quality):
+                    best[position] = float(best_quality())
+        rule = self.task.success
+        self.threshold[indices] = [
+            rule.threshold_px(None if np.isnan(value) else float(value)) for value in best
+        ]
+        self.history[indices] = 0.0
+        self.steps[indices] = 0
+        self.acquisitions[indices] = 0
+        for index in indices:
+            self.info[index] = EpisodeInfo(threshold_px=float(self.threshold[index]))
+        self.active[indices] = False
+
+    def misaligner_observation(self, index: int) -> np.ndarray:
+        """What a misaligner may know: aligned settings (in [-1, 1]) and the complexity."""
+        aligned = 2.0 * (self.aligned[index] - self.low[index]) / self.span[index] - 1.0
+        return np.append(np.clip(aligned, -1, 1), self.complexity).astype(np.float32)
+
+    def misalign(self, indices: np.ndarray, actions: np.ndarray) -> None:
+        """Place the knobs within the complexity window and acquire the first images."""
+        indices = np.asarray(indices, dtype=np.int64)
+        actions = np.clip(np.asarray(actions, float).reshape(len(indices), self.k), -1.0, 1.0)
+        reach = self.complexity * self.span[indices]
+        window_low = np.maximum(self.low[indices], self.aligned[indices] - reach)
+        window_high = np.minimum(self.high[indices], self.aligned[indices] + reach)
+        start = window_low + 0.5 * (actions + 1.0) * (window_high - window_low)
+        self.setting[indices] = np.clip(start, self.low[indices], self.high[indices])
+        widths = self._measure(indices)
+        self.width_before[indices] = self.width[indices] = widths
+        for position, index in enumerate(indices):
+            info = self.info[index]
+            info.width_before_px = info.width_px = float(widths[position])
+            info.acquisitions = int(self.acquisitions[index])
+        self._record(indices, widths, np.zeros((len(indices), self.k + 1)))
+        self.active[indices] = True
+
+    # --- stepping -----------------------------------------------------------------------
+
+    def step(self, indices: np.ndarray, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Apply aligner actions to the active episodes `indices`; returns (reward, done)."""
+        task = self.task
+        actions = np.clip(np.asarray(actions, float).reshape(len(indices), self.k + 1), -1, 1)
+        if not np.all(self.active[indices]):
+            raise RuntimeError("step called on an episode that has ended: reset it first")
+        stop = actions[:, self.k] > 0
+        reward = np.zeros(len(indices))
+        moving = indices[~stop]
+        if moving.size:
+            change = actions[~stop, : self.k] * self.max_step[moving]
+            target = self.setting[moving] + change
+            clipped = np.clip(target, self.low[moving], self.high[moving])
+            hit_bound = np.any(clipped != target, axis=1)
+            reward[~stop] += rewards.bound_penalty(hit_bound, task.out_of_bounds_penalty)
+            reward[~stop] -= task.acquisition_cost
+            self.setting[moving] = clipped
+            widths = self._measure(moving)
+            self.width[moving] = widths
+            self.steps[moving] += 1
+            self._record(moving, widths, actions[~stop])
+            for position, index in enumerate(moving):
+                self.info[index].out_of_bounds += int(hit_bound[position])
+        done = stop | (self.steps[indices] >= task.episode_steps)
+        finished = indices[done]
+        reward[done] += rewards.final_reward(
+            self._scored(self.width_before[finished]),
+            self._scored(self.width[finished]),
+            task.final_reward_scale,
+        )
+        self.active[finished] = False
+        for index in indices:
+            info = self.info[index]
+            info.steps = int(self.steps[index])
+            info.acquisitions = int(self.acquisitions[index])
+            info.width_px = float(self.width[index])
+        return reward, done
+
+    def _scored(self, widths: np.ndarray) -> np.ndarray:
+        """Widths for rewards: a failed measurement counts as the task's no-edges width."""
+        return np.where(np.isfinite(widths), widths, self.task.no_edges_px)
+
+    def successes(self) -> np.ndarray:
+        """Whether each slot's latest edge width meets its threshold."""
+        with np.errstate(invalid="ignore"):
+            return np.isfinite(self.width) & (self.width <= self.threshold)
+
+    def secrets(self) -> np.ndarray:
+        """`secret` of every slot, (N, k); one array lookup for batched simulators."""
+        if self._batched:
+            rows = np.array([unit.row for unit in self.apparatus])  # type: ignore[attr-defined]
+            optima = self.apparatus[0].optima[rows][:, None]  # type: ignore[attr-defined]
+            return ((optima - self.setting) / self.span).astype(np.float32)
+        return np.stack([self.secret(index) for index in range(self.n)])
+
+    def success(self, index: int) -> bool:
+        return bool(np.isfinite(self.width[index]) and self.width[index] <= self.threshold[index])
+
+    def secret(self, index: int) -> np.ndarray:
+        """(optimum - setting) / interval width per knob: for critics, never for policies."""
+        unit = self.apparatus[index]
+        optimum = getattr(unit, "optimum", None)
+        if not callable(optimum):
+            return np.zeros(self.k, np.float32)
+        best = optimum()
+        target = np.array([best[k] for k in self.task.knobs])
+        return ((target - self.setting[index]) / self.span[index]).astype(np.float32)
+
+    def observation(self, index: int) -> np.ndarray:
+        return self.history[index].copy()
+
+    # --- measurement and history --------------------------------------------------------
+
+    def _measure(self, indices: np.ndarray) -> np.ndarray:
+        """Write the settings of `indices` and acquire one image each; NaN where it failed."""
+        self.acquisitions[indices] += 1
+        if self._batched:
+            simulators = [self.apparatus[i] for i in indices]
+            widths = measure_batch(simulators, self.setting[indices, 0])  # type: ignore[arg-type]
+            for index in indices[~np.isfinite(widths)]:
+                self.info[index].failed_measurements += 1
+                self.info[index].last_error = "no edges"
+            return widths
+        widths = np.full(len(indices), np.nan)
+        for position, index in enumerate(indices):
+            unit = self.apparatus[index]
+            values = dict(zip(self.task.knobs, self.setting[index].tolist(), strict=True))
+            try:
+                unit.write(values)
+                widths[position] = float(unit.measure())
+            except (MeasurementError, ApparatusError) as error:
+                # A defined outcome on real hardware: no edges far from focus, or a driver
+                # fault. The episode goes on with an unmeasured row.
+                self.info[index].failed_measurements += 1
+                self.info[index].last_error = str(error)
+        return widths
+
+    def _record(self, indices: np.ndarray, widths: np.ndarray, actions: np.ndarray) -> None:
+        layout = self.layout
+        rows = np.zeros((len(indices), self.n_features), np.float32)
+        rows[:, layout["valid"]] = 1.0
+        normalized = 2.0 * (self.setting[indices] - self.low[indices]) / self.span[indices] - 1.0
+        rows[:, layout["knobs"]] = np.clip(normalized, -1.0, 1.0)
+        measured = np.isfinite(widths)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            quality = np.log(np.where(measured, widths, np.nan) / self.task.quality_ref_px)
+        # Unmeasured rows read as the worst quality, flagged by measured = 0.
+        quality = np.where(measured, quality, QUALITY_LOG_RANGE[1])
+        rows[:, layout["quality"]] = np.clip(quality, *QUALITY_LOG_RANGE)[:, None]
+        rows[:, layout["measured"]] = measured[:, None]
+        rows[:, layout["action"]] = actions
+        left = 1.0 - self.steps[indices] / self.task.episode_steps
+        rows[:, layout["steps_left"]] = left[:, None]
+        # Oldest first: shift the window left by one and append the new row.
+        self.history[indices, :-1] = self.history[indices, 1:]
+        self.history[indices, -1] = rows

@@ -1,0 +1,124 @@
+"""VectorAlignmentEnv: N alignment episodes on N apparatus, stepped together (seed section 6.3:
+in practice agents train on several microscopes in parallel).
+
+Each slot may be a different instrument (different recordings, synthetic presets, drivers).
+Slot i behaves exactly like `AlignmentEnv` reset with seed `seed + i`: the same scenarios,
+misalignments, measurements and rewards, step for step (tested). Scenario simulators that
+replay one recording are answered in one batched numpy query per step.
+
+Finished episodes reset at once ("same-step" autoreset): the returned observation of such a
+slot is the first of its next episode, and `infos["final_observation"]` holds the last one,
+with `infos["_final"]` marking the slots that finished.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import gymnasium
+import numpy as np
+from gymnasium import spaces
+
+from alignrl.apparatus.base import Apparatus
+from alignrl.apparatus.registry import make_apparatus
+from alignrl.apparatus.simulator import ScenarioSimulator
+from alignrl.envs.core import AlignmentEpisodes, observation_bounds
+from alignrl.envs.task import Task, get_task
+
+__all__ = ["VectorAlignmentEnv", "make_apparatus_copies"]
+
+
+def make_apparatus_copies(spec: str, args: dict | None, count: int) -> list[Apparatus]:
+    """`count` independent instances of one spec; simulators share the parsed recording."""
+    first = make_apparatus(spec, args)
+    if isinstance(first, ScenarioSimulator):
+        extra = dict(args or {})
+        return [first] + [
+            ScenarioSimulator(scenarios=first.scenarios, **extra) for _ in range(count - 1)
+        ]
+    return [first] + [make_apparatus(spec, args) for _ in range(count - 1)]
+
+
+class VectorAlignmentEnv:
+    """N aligners on N apparatus; arrays in, arrays out."""
+
+    def __init__(
+        self,
+        apparatus: Sequence[Apparatus],
+        task: Task | str = "focus",
+        history: int = 8,
+        complexity: float = 1.0,
+    ) -> None:
+        self.task = get_task(task) if isinstance(task, str) else task
+        self.episodes = AlignmentEpisodes(list(apparatus), self.task, history)
+        self.num_envs = self.episodes.n
+        self.set_complexity(complexity)
+        k = self.episodes.k
+        low, high = observation_bounds(k)
+        self.single_observation_space = spaces.Box(
+            np.tile(low, (history, 1)), np.tile(high, (history, 1)), dtype=np.float32
+        )
+        self.single_action_space = spaces.Box(-1.0, 1.0, (k + 1,), dtype=np.float32)
+        self._generators: list[np.random.Generator] = []
+        self._returns = np.zeros(self.num_envs)
+        self._all = np.arange(self.num_envs)
+
+    def set_complexity(self, level: float) -> None:
+        if not 0.0 < level <= 1.0:
+            raise ValueError(f"complexity level must be in (0, 1], got {level}")
+        self.episodes.complexity = float(level)
+
+    def _start(self, indices: np.ndarray) -> None:
+        # The same draws, in the same order, as AlignmentEnv.reset, per slot.
+        seeds = [int(self._generators[i].integers(2**31 - 1)) for i in indices]
+        self.episodes.begin(indices, seeds)
+        actions = np.stack(
+            [self._generators[i].uniform(-1.0, 1.0, self.episodes.k) for i in indices]
+        )
+        self.episodes.misalign(indices, actions)
+        self._returns[indices] = 0.0
+
+    def reset(self, seed: int | None = None) -> tuple[np.ndarray, dict[str, Any]]:
+        """Start every slot; slot i is seeded with `seed + i` (random when seed is None)."""
+        base = seed if seed is not None else int(np.random.SeedSequence().generate_state(1)[0])
+        self._generators = [
+            gymnasium.utils.seeding.np_random(base + index)[0] for index in range(self.num_envs)
+        ]
+        self._start(self._all)
+        return self.episodes.history.copy(), self._infos(np.zeros(self.num_envs, bool))
+
+    def step(
+        self, actions: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
+        if not self._generators:
+            raise RuntimeError("call reset() before step()")
+        actions = np.asarray(actions, dtype=np.float64)
+        if actions.shape != (self.num_envs, self.episodes.k + 1):
+            raise ValueError(
+                f"actions must have shape {(self.num_envs, self.episodes.k + 1)}, "
+                f"got {actions.shape}"
+            )
+        reward, done = self.episodes.step(self._all, actions)
+        self._returns += reward
+        infos = self._infos(done)
+        if done.any():
+            infos["final_observation"] = self.episodes.history.copy()
+            infos["_final"] = done.copy()
+            infos["episode_return"] = np.where(done, self._returns, np.nan)
+            self._start(np.flatnonzero(done))
+        truncated = np.zeros(self.num_envs, bool)
+        return self.episodes.history.copy(), reward, done, truncated, infos
+
+    def _infos(self, done: np.ndarray) -> dict[str, Any]:
+        episodes = self.episodes
+        return {
+            "secret": episodes.secrets(),
+            "acquisitions": episodes.acquisitions.copy(),
+            "edge_width_px": episodes.width.copy(),
+            "threshold_px": episodes.threshold.copy(),
+            "success": episodes.successes() & done,
+        }
+
+    def close(self) -> None:
+        pass
