@@ -1,0 +1,1 @@
+"""Agents: history encoders, replay buffers and learners (SAC, PPO) in PyTorch."""
