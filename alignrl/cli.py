@@ -3,6 +3,8 @@
 
     alignrl record --apparatus SPEC --scenarios N --out FILE.csv [--seed S] [--step adaptive]
     alignrl scenarios validate FILE [--plot PNG] [--json]
+    alignrl evaluate --policy NAME --apparatus SPEC --scenarios N [--seed S] [--spec-px X]
+    alignrl baselines --apparatus SPEC --scenarios N [--seed S] [--spec-px X] [--plot-dir DIR]
 """
 
 from __future__ import annotations
@@ -257,6 +259,154 @@ def cmd_scenarios_validate(args: argparse.Namespace) -> int:
     return 0
 
 
+# --- evaluate and baselines ---------------------------------------------------------------
+
+
+def _run_evaluations(
+    args: argparse.Namespace, controllers: Sequence[Any]
+) -> tuple[list[Any], float]:
+    """Run one session per controller on the same scenarios, with a progress bar."""
+    from tqdm import tqdm
+
+    from alignrl.envs.task import get_task
+    from alignrl.evaluation.session import DEFAULT_BUDGET, run_session
+
+    budget = DEFAULT_BUDGET if args.budget is None else args.budget
+    if args.scenarios < 1:
+        raise CommandError("--scenarios must be at least 1")
+    if budget < 1:
+        raise CommandError("--budget must be at least 1 acquisition")
+    task = get_task(args.task)
+    apparatus = make_apparatus(
+        args.apparatus, _json_object(args.apparatus_args, "--apparatus-args")
+    )
+    bar = tqdm(
+        total=args.scenarios * len(controllers),
+        unit="alignment",
+        desc="evaluating",
+        disable=args.quiet,
+        file=sys.stderr,
+    )
+    results = []
+    started = time.perf_counter()
+    try:
+        for controller in controllers:
+            bar.set_description(controller.name)
+            results.append(
+                run_session(
+                    controller,
+                    apparatus,
+                    task,
+                    scenarios=args.scenarios,
+                    seed=args.seed,
+                    spec_px=args.spec_px,
+                    budget=budget,
+                    on_scenario=lambda _record: bar.update(1),
+                )
+            )
+    finally:
+        bar.close()
+    return results, time.perf_counter() - started
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    from alignrl.evaluation.baselines import BASELINES
+    from alignrl.evaluation.report import (
+        plot_trajectories,
+        session_notes,
+        session_summary,
+        summary_table,
+    )
+
+    if args.policy not in BASELINES:
+        raise CommandError(
+            f"unknown policy {args.policy!r}; known policies: {', '.join(sorted(BASELINES))}"
+        )
+    try:
+        (result,), _ = _run_evaluations(args, [BASELINES[args.policy]()])
+    except KeyboardInterrupt:
+        print("\ninterrupted: no report (a session counts only when complete)", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    payload = session_summary(result, args.apparatus)
+    lines = [
+        f"{result.controller} on {args.apparatus}: {result.successes}/{result.scenarios} "
+        f"aligned (threshold {payload['threshold_px']:.2f} px, median)",
+        "",
+        *summary_table([result]),
+        *session_notes([result]),
+    ]
+    if args.plot:
+        plot_trajectories(result, Path(args.plot), f"{result.controller} on {args.apparatus}")
+        payload["plot"] = args.plot
+        lines.append(f"plot: {args.plot}")
+    _emit(payload, args.json, lines)
+    return 0
+
+
+def cmd_baselines(args: argparse.Namespace) -> int:
+    from alignrl.evaluation.baselines import BASELINES
+    from alignrl.evaluation.report import (
+        plot_trajectories,
+        session_notes,
+        session_summary,
+        summary_table,
+    )
+
+    try:
+        results, elapsed = _run_evaluations(args, [make() for make in BASELINES.values()])
+    except KeyboardInterrupt:
+        print("\ninterrupted: no report (a session counts only when complete)", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    payload: dict[str, Any] = {
+        "apparatus": args.apparatus,
+        "scenarios": args.scenarios,
+        "seed": args.seed,
+        "controllers": {r.controller: session_summary(r, args.apparatus) for r in results},
+        "seconds": round(elapsed, 3),
+    }
+    threshold = float(np.median([r.median_threshold_px for r in results]))
+    lines = [
+        f"classical autofocus on {args.apparatus}: {args.scenarios} scenarios, seed "
+        f"{args.seed}, threshold {threshold:.2f} px (median)",
+        "",
+        *summary_table(results),
+        *session_notes(results),
+    ]
+    if args.plot_dir:
+        folder = Path(args.plot_dir)
+        for result in results:
+            out = folder / f"{result.controller}.png"
+            plot_trajectories(result, out, f"{result.controller} on {args.apparatus}")
+            payload["controllers"][result.controller]["plot"] = str(out)
+        lines.append(f"plots: {folder}/")
+    _emit(payload, args.json, lines)
+    return 0
+
+
+def _add_session_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--apparatus", required=True, help="apparatus spec, e.g. synthetic")
+    parser.add_argument("--apparatus-args", default="{}", help="JSON keyword arguments")
+    parser.add_argument("--task", default="focus", help="alignment task (default: focus)")
+    parser.add_argument(
+        "--scenarios", type=int, default=100, help="alignments in the session (default: 100)"
+    )
+    parser.add_argument("--seed", type=int, default=0, help="seed of the scenarios and starts")
+    parser.add_argument(
+        "--spec-px",
+        type=float,
+        default=None,
+        help="absolute success threshold, edge width in px (default: relative to the best "
+        "the apparatus can reach; required where it cannot say)",
+    )
+    # The default is resolved by the handler: importing the session here would load the
+    # RL environments (gymnasium) for every verb.
+    parser.add_argument(
+        "--budget", type=int, default=None, help="most acquisitions per alignment (default: 50)"
+    )
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    parser.add_argument("--json", action="store_true", help="machine-readable summary")
+
+
 # --- the parser -------------------------------------------------------------------------
 
 
@@ -295,6 +445,23 @@ def build_parser() -> argparse.ArgumentParser:
     validate.add_argument("--plot", help="write the focus curves to this PNG")
     validate.add_argument("--json", action="store_true")
     validate.set_defaults(handler=cmd_scenarios_validate)
+
+    evaluate = verbs.add_parser(
+        "evaluate", help="an evaluation session: N alignments checked against the spec"
+    )
+    evaluate.add_argument(
+        "--policy", required=True, help="controller: golden-section, hyperbola or hill-climb"
+    )
+    _add_session_options(evaluate)
+    evaluate.add_argument("--plot", help="write the trajectories to this PNG")
+    evaluate.set_defaults(handler=cmd_evaluate)
+
+    baselines = verbs.add_parser(
+        "baselines", help="classical autofocus side by side, on the same scenarios"
+    )
+    _add_session_options(baselines)
+    baselines.add_argument("--plot-dir", help="write one trajectory PNG per controller here")
+    baselines.set_defaults(handler=cmd_baselines)
     return parser
 
 
