@@ -267,11 +267,14 @@ def test_vector_env_equals_single_envs_step_by_step() -> None:
             observation, reward, terminated, _, info = env.step(actions[index])
             assert reward == pytest.approx(rewards[index], abs=1e-12)
             assert terminated == dones[index]
-            np.testing.assert_allclose(infos["secret"][index], info["secret"], atol=1e-6)
+            step_secret = infos["final_secret"] if terminated else infos["secret"]
+            np.testing.assert_allclose(step_secret[index], info["secret"], atol=1e-6)
+            assert infos["acquisitions"][index] == info["acquisitions"]
             if terminated:
                 assert info["success"] == infos["success"][index]
                 np.testing.assert_array_equal(infos["final_observation"][index], observation)
-                observation, _ = env.reset()
+                observation, info = env.reset()
+                np.testing.assert_allclose(infos["secret"][index], info["secret"], atol=1e-6)
             np.testing.assert_array_equal(batch_obs[index], observation)
 
 

@@ -191,11 +191,23 @@ class SyntheticSEM:
     def optimum(self) -> dict[str, float]:
         """The defocus setting that focuses the beam if written now.
 
-        The field lags the voltage, so the target depends on the side it is approached from:
-        V_opt + h from below (the move ends upwards), V_opt - h from above.
+        The field lags the voltage by the hysteresis h in the direction of the last change,
+        so the target depends on the side it is approached from: V_opt + h from below,
+        V_opt - h from above; the current setting itself if it is in focus already. Of the
+        reachable targets, the nearer one.
         """
-        side = 1.0 if self._defocus_v <= self._optimum_v else -1.0
-        return {"defocus": self._optimum_v + self.config.hysteresis_v * side}
+        h, setting = self.config.hysteresis_v, self._defocus_v
+        if abs(self.focus_error_v()) < 1e-9:
+            return {"defocus": setting}
+        candidates = [
+            target
+            for target, reachable in (
+                (self._optimum_v + h, self._optimum_v + h > setting),
+                (self._optimum_v - h, self._optimum_v - h < setting),
+            )
+            if reachable
+        ]
+        return {"defocus": min(candidates, key=lambda target: abs(target - setting))}
 
     def best_quality(self) -> float:
         """Edge width (px) of a noise-free frame at the optimum: 2.563 x the probe sigma there."""

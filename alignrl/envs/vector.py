@@ -7,8 +7,11 @@ misalignments, measurements and rewards, step for step (tested). Scenario simula
 replay one recording are answered in one batched numpy query per step.
 
 Finished episodes reset at once ("same-step" autoreset): the returned observation of such a
-slot is the first of its next episode, and `infos["final_observation"]` holds the last one,
-with `infos["_final"]` marking the slots that finished.
+slot is the first of its next episode, and `infos["final_observation"]` (and
+`final_secret`) hold the last one, with `infos["_final"]` marking the slots that finished.
+`acquisitions`, `edge_width_px`, `threshold_px` and `success` describe the step just taken,
+so for a finished slot they are its episode's final figures; `secret` always goes with the
+returned observation.
 """
 
 from __future__ import annotations
@@ -104,9 +107,12 @@ class VectorAlignmentEnv:
         infos = self._infos(done)
         if done.any():
             infos["final_observation"] = self.episodes.history.copy()
+            infos["final_secret"] = infos["secret"]
             infos["_final"] = done.copy()
             infos["episode_return"] = np.where(done, self._returns, np.nan)
             self._start(np.flatnonzero(done))
+            # The secret that goes with the returned observations: new episodes' where reset.
+            infos["secret"] = self.episodes.secrets()
         truncated = np.zeros(self.num_envs, bool)
         return self.episodes.history.copy(), reward, done, truncated, infos
 

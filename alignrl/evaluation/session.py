@@ -2,7 +2,8 @@
 and an image acquired after each alignment is compared with the spec threshold.
 
 Scenario i of a session with seed S:
-1. the apparatus is reset with `scenario_seed(S, i)` (a new specimen area, a new optimum);
+1. the apparatus is reset with `scenario_seed(S, i)` (a new specimen area, a new optimum;
+   a scenario simulator takes row i of its split, so the scenarios are distinct recordings);
 2. the knob starts anywhere in its interval, uniformly, drawn from a generator of the same
    scenario seed (its own stream): identical for every controller evaluated with seed S;
 3. the controller aligns through a `CountingApparatus` (its acquisitions are counted, at most
@@ -141,6 +142,23 @@ def start_setting(seed: int, scenario: int, interval: tuple[float, float]) -> fl
     return float(generator.uniform(low, high))
 
 
+def reset_scenario(apparatus: Apparatus, seed: int, index: int) -> int:
+    """Reset for scenario `index` of a session; returns the reset seed.
+
+    A scenario simulator walks the rows of its split in order (wrapping around), so a
+    session of 100 on the 200 held-out rows aligns 100 different recordings; any other
+    apparatus is reset with the scenario seed.
+    """
+    reset_seed = scenario_seed(seed, index)
+    rows = getattr(apparatus, "indices", None)
+    reset_to = getattr(apparatus, "reset_to", None)
+    if callable(reset_to) and rows is not None and len(rows):
+        reset_to(int(rows[index % len(rows)]), reset_seed)
+    else:
+        apparatus.reset(reset_seed)
+    return reset_seed
+
+
 def _best_quality(apparatus: Apparatus) -> Callable[[], float] | None:
     best = getattr(apparatus, "best_quality", None)
     return best if callable(best) else None
@@ -157,7 +175,7 @@ def _check_spec_reachable(apparatus: Apparatus, seed: int, scenarios: int, spec_
         return
     best = []
     for index in range(scenarios):
-        apparatus.reset(scenario_seed(seed, index))
+        reset_scenario(apparatus, seed, index)
         best.append(float(best_quality()))
     unreachable = sum(value > spec_px for value in best)
     if unreachable:
@@ -235,8 +253,7 @@ def _run_scenario(
     index: int,
     budget: int,
 ) -> ScenarioResult:
-    reset_seed = scenario_seed(seed, index)
-    apparatus.reset(reset_seed)
+    reset_seed = reset_scenario(apparatus, seed, index)
     best_quality = _best_quality(apparatus)
     best_px = float(best_quality()) if best_quality is not None else None
     threshold = rule.threshold_px(best_px)  # an absolute spec ignores best_px
