@@ -309,6 +309,76 @@ def _run_evaluations(
     return results, time.perf_counter() - started
 
 
+def _trained_controller(path: Path):
+    from alignrl.envs.task import get_task
+    from alignrl.evaluation.controllers import PolicyController
+    from alignrl.training import load_policy
+
+    agent, config = load_policy(path)
+    return PolicyController(
+        name=config.name,
+        act=lambda history: agent.act(history, deterministic=True),
+        task=get_task(config.task),
+        history=config.history,
+    )
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    from alignrl.agents.sac import NonFiniteError
+    from alignrl.config import load_experiment
+    from alignrl.training import Trainer
+
+    if args.resume:
+        trainer = Trainer.resume(args.resume)
+    else:
+        if not args.config:
+            raise CommandError("give an experiment config (experiments/X.yaml) or --resume RUN")
+        config = load_experiment(args.config)
+        if args.name:
+            config = config.model_copy(update={"name": args.name})
+        trainer = Trainer.create(config, args.runs_dir)
+    run_dir = trainer.run_dir
+    from tqdm import tqdm
+
+    log = None if args.quiet else (lambda line: tqdm.write(line, file=sys.stderr))
+    started = time.perf_counter()
+    try:
+        result = trainer.run(progress=not args.quiet, log=log)
+    except KeyboardInterrupt:
+        print(
+            f"\ninterrupted at {trainer.env_steps} env steps; the last checkpoint is kept: "
+            f"continue with `alignrl train --resume {run_dir}`",
+            file=sys.stderr,
+        )
+        return EXIT_INTERRUPTED
+    except NonFiniteError as error:
+        raise CommandError(
+            f"training stopped: {error}; the last checkpoint in {run_dir} is intact"
+        ) from None
+    payload = {
+        "run": str(run_dir),
+        "env_steps": trainer.env_steps,
+        "updates": trainer.agent.updates,
+        "episodes": trainer.episodes,
+        "successes": result.successes,
+        "scenarios": result.scenarios,
+        "median_acquisitions": result.median_acquisitions,
+        "p90_acquisitions": result.p90_acquisitions,
+        "best_successes": trainer.best_successes,
+        "seconds": round(time.perf_counter() - started, 1),
+    }
+    _emit(
+        payload,
+        args.json,
+        [
+            f"{run_dir}: {trainer.env_steps} env steps, {trainer.agent.updates} updates; "
+            f"held-out {result.successes}/{result.scenarios} aligned, median "
+            f"{result.median_acquisitions:g} acquisitions (best {trainer.best_successes})"
+        ],
+    )
+    return 0
+
+
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from alignrl.evaluation.baselines import BASELINES
     from alignrl.evaluation.report import (
@@ -318,12 +388,17 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         summary_table,
     )
 
-    if args.policy not in BASELINES:
+    if args.policy in BASELINES:
+        controller = BASELINES[args.policy]()
+    elif Path(args.policy).exists():
+        controller = _trained_controller(Path(args.policy))
+    else:
         raise CommandError(
-            f"unknown policy {args.policy!r}; known policies: {', '.join(sorted(BASELINES))}"
+            f"unknown policy {args.policy!r}: give a run directory, a checkpoint file, or one "
+            f"of {', '.join(sorted(BASELINES))}"
         )
     try:
-        (result,), _ = _run_evaluations(args, [BASELINES[args.policy]()])
+        (result,), _ = _run_evaluations(args, [controller])
     except KeyboardInterrupt:
         print("\ninterrupted: no report (a session counts only when complete)", file=sys.stderr)
         return EXIT_INTERRUPTED
@@ -450,7 +525,10 @@ def build_parser() -> argparse.ArgumentParser:
         "evaluate", help="an evaluation session: N alignments checked against the spec"
     )
     evaluate.add_argument(
-        "--policy", required=True, help="controller: golden-section, hyperbola or hill-climb"
+        "--policy",
+        required=True,
+        help="a run directory (its best checkpoint), a checkpoint file, or a classical "
+        "controller: golden-section, hyperbola, hill-climb",
     )
     _add_session_options(evaluate)
     evaluate.add_argument("--plot", help="write the trajectories to this PNG")
@@ -462,6 +540,17 @@ def build_parser() -> argparse.ArgumentParser:
     _add_session_options(baselines)
     baselines.add_argument("--plot-dir", help="write one trajectory PNG per controller here")
     baselines.set_defaults(handler=cmd_baselines)
+
+    train = verbs.add_parser(
+        "train", help="train one aligner against the built-in misalignment (pre-training)"
+    )
+    train.add_argument("config", nargs="?", help="experiment YAML, e.g. experiments/X.yaml")
+    train.add_argument("--name", help="run name (default: the config's name)")
+    train.add_argument("--runs-dir", default="runs", help="where run directories go")
+    train.add_argument("--resume", metavar="RUN", help="continue runs/NAME from its checkpoint")
+    train.add_argument("--quiet", action="store_true", help="no progress bar")
+    train.add_argument("--json", action="store_true", help="machine-readable summary")
+    train.set_defaults(handler=cmd_train)
     return parser
 
 
@@ -475,7 +564,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ApparatusError as error:  # before ValueError: NoEdgesError is both
         print(f"alignrl: apparatus error: {error}", file=sys.stderr)
         return EXIT_USAGE
-    except (CommandError, ValueError, FileNotFoundError, FileExistsError) as error:
+    except (CommandError, ValueError, OSError) as error:
         print(f"alignrl: error: {error}", file=sys.stderr)
         return EXIT_USAGE
 

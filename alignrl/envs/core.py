@@ -148,6 +148,25 @@ class AlignmentEpisodes:
             self.info[index] = EpisodeInfo(threshold_px=float(self.threshold[index]))
         self.active[indices] = False
 
+    def adopt(self, indices: np.ndarray) -> None:
+        """Start episodes from the apparatus as it is now (no reset, no misalignment): how a
+        trained aligner meets a column in an evaluation session or on a user's instrument.
+        The first image is acquired here; success thresholds are left to the caller."""
+        indices = np.asarray(indices, dtype=np.int64)
+        for index in indices:
+            settings = self.apparatus[index].read()
+            self.setting[index] = [settings[k] for k in self.task.knobs]
+            self.aligned[index] = self.setting[index]
+            self.info[index] = EpisodeInfo()
+        self.threshold[indices] = np.nan
+        self.history[indices] = 0.0
+        self.steps[indices] = 0
+        self.acquisitions[indices] = 0
+        widths = self._measure(indices)
+        self.width_before[indices] = self.width[indices] = widths
+        self._record(indices, widths, np.zeros((len(indices), self.k + 1)))
+        self.active[indices] = True
+
     def misaligner_observation(self, index: int) -> np.ndarray:
         """What a misaligner may know: aligned settings (in [-1, 1]) and the complexity."""
         aligned = 2.0 * (self.aligned[index] - self.low[index]) / self.span[index] - 1.0

@@ -13,19 +13,21 @@ acquisition; controllers read it as an infinitely blurred image (`measure_width`
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
 import numpy as np
 
 from alignrl.apparatus.base import Apparatus, ApparatusError
+from alignrl.envs.task import Task
 
 __all__ = [
     "Acquisition",
     "BudgetExhausted",
     "Controller",
     "CountingApparatus",
+    "PolicyController",
     "clip_to_knob",
     "measure_width",
     "probe",
@@ -155,3 +157,26 @@ def approach_from_below(apparatus: Apparatus, knob: str, target: float, margin_v
     if float(apparatus.read()[knob]) >= target and target > low:
         apparatus.write({knob: max(low, target - margin_v)})
     apparatus.write({knob: target})
+
+
+@dataclass
+class PolicyController:
+    """A trained aligner as a controller: it sees the history the environments give it and
+    acts until it stops or reaches its task's step limit (alignrl/envs/core.py)."""
+
+    name: str
+    act: Callable[[np.ndarray], np.ndarray]  # history (H, F) -> action (k + 1,)
+    task: Task
+    history: int
+
+    def align(self, apparatus: Apparatus, knob: str, budget: int) -> None:
+        from alignrl.envs.core import AlignmentEpisodes
+
+        if self.task.knobs != (knob,):
+            raise ValueError(f"policy {self.name!r} aligns {self.task.knobs}, not {knob!r}")
+        episodes = AlignmentEpisodes([apparatus], self.task, self.history)
+        slot = np.array([0])
+        episodes.adopt(slot)
+        while episodes.active[0]:
+            action = np.asarray(self.act(episodes.observation(0)), dtype=np.float64)
+            episodes.step(slot, action[None])

@@ -1,0 +1,141 @@
+"""Typed experiment configs, loaded strictly from YAML (experiments/*.yaml).
+
+Every field has a one-line doc and a default; an unknown key, a wrong type or an impossible
+value is an error naming the file, the key path and what was expected. Configs are frozen:
+code derives new values into new objects, never edits a loaded config.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+__all__ = [
+    "BudgetConfig",
+    "ConfigError",
+    "CurriculumConfig",
+    "ExperimentConfig",
+    "LearnerConfig",
+    "load_experiment",
+]
+
+
+class ConfigError(ValueError):
+    """A config file that cannot be used; the message names the file and the key."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class LearnerConfig(_Strict):
+    algorithm: Literal["sac"] = Field("sac", description="the learning algorithm")
+    encoder: Literal["mlp", "gru", "gtrxl"] = Field("mlp", description="history encoder")
+    encoder_kwargs: dict[str, Any] = Field(
+        default_factory=dict, description="encoder settings, e.g. {d_model: 32} for gtrxl"
+    )
+    hidden: tuple[int, ...] = Field(
+        (256, 256), description="hidden widths of the heads (critics join action and secret here)"
+    )
+    learning_rate: float = Field(3e-4, gt=0, lt=1, description="Adam step size")
+    gamma: float = Field(0.99, gt=0, le=1, description="discount per step")
+    tau: float = Field(0.005, gt=0, le=1, description="target network follow rate")
+    batch_size: int = Field(256, ge=1, description="transitions per update")
+    initial_alpha: float = Field(0.2, gt=0, description="initial entropy coefficient")
+    secret_critics: bool = Field(True, description="critics see optimum - setting")
+    updates_per_step: float = Field(
+        1.0, gt=0, le=16, description="gradient updates per env step (update-to-data ratio)"
+    )
+    buffer_size: int = Field(200_000, ge=1000, description="replay capacity, transitions")
+    learning_starts: int = Field(1000, ge=0, description="env steps before the first update")
+    random_steps: int = Field(2000, ge=0, description="env steps of uniform random actions")
+
+
+class CurriculumConfig(_Strict):
+    enabled: bool = Field(False, description="raise the complexity as the aligner succeeds")
+    level: float = Field(0.1, gt=0, le=1, description="starting complexity level")
+    step: float = Field(0.1, gt=0, le=1, description="change of the level per promotion")
+    window: int = Field(200, ge=1, description="episodes judged per decision")
+    raise_at: float = Field(0.8, ge=0, le=1, description="success rate that raises the level")
+    lower_at: float = Field(0.3, ge=0, le=1, description="success rate that lowers it")
+
+
+class BudgetConfig(_Strict):
+    env_steps: int = Field(30_000, ge=1, description="environment steps (acquisitions) to train")
+    eval_every: int = Field(5000, ge=1, description="env steps between evaluation sessions")
+    eval_scenarios: int = Field(100, ge=1, description="alignments per evaluation session")
+    checkpoint_every: int = Field(5000, ge=1, description="env steps between checkpoints")
+
+
+class ExperimentConfig(_Strict):
+    name: str = Field("experiment", min_length=1, description="run name (runs/<name>/)")
+    seed: int = Field(0, ge=0, description="seeds everything: networks, envs, sampling")
+    apparatus: str = Field("csv:default", description="apparatus spec trained on")
+    apparatus_args: dict[str, Any] = Field(
+        default_factory=lambda: {"noise": 0.02, "split": "train"},
+        description="arguments of the training apparatus",
+    )
+    eval_apparatus: str = Field("csv:default", description="apparatus spec of evaluations")
+    eval_apparatus_args: dict[str, Any] = Field(
+        default_factory=lambda: {"noise": 0.02, "split": "test"},
+        description="arguments of the evaluation apparatus (held-out scenarios)",
+    )
+    task: str = Field("focus", description="task name (alignrl.envs.TASKS)")
+    history: int = Field(8, ge=1, le=64, description="history rows the aligner sees")
+    envs: int = Field(8, ge=1, le=1024, description="apparatus instances stepped together")
+    complexity: float = Field(
+        1.0, gt=0, le=1, description="misalignment window (share of interval), no curriculum"
+    )
+    device: str = Field("cpu", description="torch device: cpu, cuda, cuda:1, ...")
+    learner: LearnerConfig = Field(default_factory=LearnerConfig)
+    curriculum: CurriculumConfig = Field(default_factory=CurriculumConfig)
+    budget: BudgetConfig = Field(default_factory=BudgetConfig)
+
+    @model_validator(mode="after")
+    def _check(self) -> ExperimentConfig:
+        if not self.name.replace("-", "").replace("_", "").replace(".", "").isalnum():
+            raise ValueError(f"name {self.name!r}: use letters, digits, '-', '_' and '.'")
+        if self.curriculum.lower_at >= self.curriculum.raise_at:
+            raise ValueError("curriculum.lower_at must be below curriculum.raise_at")
+        return self
+
+
+def _describe(error: ValidationError) -> str:
+    lines = []
+    for item in error.errors():
+        key = ".".join(str(part) for part in item["loc"]) or "(top level)"
+        found = item.get("input")
+        shown = "" if isinstance(found, dict) else f" (found {found!r})"
+        lines.append(f"{key}: {item['msg']}{shown}")
+    return "; ".join(lines)
+
+
+def parse_experiment(data: Any, source: str = "config") -> ExperimentConfig:
+    if not isinstance(data, dict):
+        raise ConfigError(f"{source}: expected a mapping of settings at the top level")
+    try:
+        return ExperimentConfig(**data)
+    except ValidationError as error:
+        raise ConfigError(f"{source}: {_describe(error)}") from None
+
+
+def load_experiment(path: str | Path) -> ExperimentConfig:
+    """Read an experiment YAML strictly (yaml.safe_load; unknown keys are errors)."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise ConfigError(f"experiment config {path} does not exist") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as error:
+        raise ConfigError(f"{path}: not valid YAML: {error}") from None
+    return parse_experiment(data if data is not None else {}, str(path))
+
+
+def dump_experiment(config: ExperimentConfig) -> str:
+    """The resolved config as YAML (every field, defaults included)."""
+    return yaml.safe_dump(config.model_dump(mode="json"), sort_keys=False)

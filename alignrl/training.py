@@ -1,0 +1,430 @@
+"""Training one aligner against the built-in misalignment: the seed's pre-training (4.3).
+
+(It lives beside the league rather than in agents/: it runs evaluation sessions, which sit
+above the learners.)
+
+The loop: step N apparatus together, store the transitions, update the learner (a set number
+of gradient updates per env step), adjust the curriculum, evaluate on held-out scenarios
+every so often, and checkpoint. A run lives in runs/<name>/:
+
+    config.yaml               the resolved experiment
+    checkpoints/last.pt       everything needed to continue (atomic writes)
+    checkpoints/best.pt       the learner of the best evaluation so far
+    metrics/updates.csv       losses, entropy, alpha (seed figs. 6.1.2-6.1.7)
+    metrics/episodes.csv      return, success, acquisitions, complexity per episode
+    metrics/evaluations.csv   held-out successes and acquisitions
+    tensorboard/              the same as TensorBoard events
+
+A resumed run continues from last.pt: networks, optimizers, replay, counters, curriculum and
+random generators; metrics written after that checkpoint are dropped and written again, and
+episodes in flight at the kill start over.
+"""
+
+from __future__ import annotations
+
+import csv
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from alignrl.agents.replay import ReplayBuffer
+from alignrl.agents.sac import SAC, SACConfig
+from alignrl.apparatus.registry import make_apparatus
+from alignrl.checkpoints import atomic_write_text, load_checkpoint, save_checkpoint
+from alignrl.config import ExperimentConfig, dump_experiment, parse_experiment
+from alignrl.envs import AlignmentEnv, Curriculum, VectorAlignmentEnv, make_apparatus_copies
+from alignrl.envs.task import get_task
+from alignrl.evaluation.controllers import PolicyController
+from alignrl.evaluation.session import SessionResult, run_session
+
+__all__ = ["Trainer", "evaluate_policy", "load_policy"]
+
+CHECKPOINT_FORMAT = "alignrl-train-1"
+EVALUATION_SEED = 1_000_000  # evaluation scenarios never overlap training seeds
+UPDATE_LOG_EVERY = 50  # updates between rows of updates.csv
+
+
+def evaluate_policy(
+    act: Callable[[np.ndarray], np.ndarray],
+    apparatus: str,
+    apparatus_args: dict[str, Any],
+    task: str,
+    history: int,
+    scenarios: int,
+    seed: int = EVALUATION_SEED,
+    name: str = "policy",
+) -> SessionResult:
+    """An evaluation session (alignrl/evaluation/session.py) with a deterministic policy:
+    held-out scenarios, starts anywhere in the interval, a verification image each."""
+    task_spec = get_task(task)
+    controller = PolicyController(name, act, task_spec, history)
+    return run_session(
+        controller, make_apparatus(apparatus, apparatus_args), task_spec, scenarios, seed
+    )
+
+
+class _CsvLog:
+    """Append-only CSV with a fixed header; rows past a step are dropped on resume."""
+
+    def __init__(self, path: Path, fields: list[str]) -> None:
+        self.path, self.fields = path, fields
+        path.parent.mkdir(parents=True, exist_ok=True)
+        if not path.exists():
+            with path.open("w", newline="") as handle:
+                csv.writer(handle).writerow(fields)
+
+    def truncate_after(self, env_steps: int) -> None:
+        with self.path.open(newline="") as handle:
+            rows = list(csv.DictReader(handle))
+        kept = [row for row in rows if int(row["env_steps"]) <= env_steps]
+        text = (
+            ",".join(self.fields)
+            + "\n"
+            + "".join(",".join(row[field] for field in self.fields) + "\n" for row in kept)
+        )
+        atomic_write_text(self.path, text)
+
+    def write(self, rows: list[dict[str, Any]]) -> None:
+        if not rows:
+            return
+        with self.path.open("a", newline="") as handle:
+            writer = csv.DictWriter(handle, self.fields)
+            writer.writerows(rows)
+
+
+def _sac_config(config: ExperimentConfig) -> SACConfig:
+    learner = config.learner
+    return SACConfig(
+        encoder=learner.encoder,
+        encoder_kwargs=dict(learner.encoder_kwargs),
+        hidden=tuple(learner.hidden),
+        learning_rate=learner.learning_rate,
+        gamma=learner.gamma,
+        tau=learner.tau,
+        batch_size=learner.batch_size,
+        initial_alpha=learner.initial_alpha,
+        secret_critics=learner.secret_critics,
+    )
+
+
+class Trainer:
+    """One learner, its envs, replay, curriculum and run directory."""
+
+    def __init__(self, config: ExperimentConfig, run_dir: str | Path) -> None:
+        self.config = config
+        self.run_dir = Path(run_dir)
+        torch.manual_seed(config.seed)
+        self.rng = np.random.default_rng(config.seed)
+        apparatus = make_apparatus_copies(config.apparatus, config.apparatus_args, config.envs)
+        self.curriculum = (
+            Curriculum(
+                level=config.curriculum.level,
+                minimum=min(config.curriculum.level, config.curriculum.step),
+                step=config.curriculum.step,
+                window=config.curriculum.window,
+                raise_at=config.curriculum.raise_at,
+                lower_at=config.curriculum.lower_at,
+            )
+            if config.curriculum.enabled
+            else None
+        )
+        level = self.curriculum.level if self.curriculum else config.complexity
+        self.env = VectorAlignmentEnv(apparatus, config.task, config.history, complexity=level)
+        shape = self.env.single_observation_space.shape
+        self.action_dim = self.env.single_action_space.shape[0]
+        self.secret_dim = self.env.episodes.k
+        self.agent = SAC(
+            shape, self.action_dim, self.secret_dim, _sac_config(config), config.device
+        )
+        self.replay = ReplayBuffer(
+            config.learner.buffer_size, shape, self.secret_dim, self.action_dim
+        )
+        self.env_steps = self.episodes = 0
+        self.best_successes = -1
+        self.starts = 0  # how many times this run was started (resumes change env seeds)
+        metrics = self.run_dir / "metrics"
+        self.update_log = _CsvLog(
+            metrics / "updates.csv",
+            [
+                "env_steps",
+                "updates",
+                "policy_loss",
+                "q1_loss",
+                "q2_loss",
+                "v_loss",
+                "entropy",
+                "alpha",
+            ],
+        )
+        self.episode_log = _CsvLog(
+            metrics / "episodes.csv",
+            ["env_steps", "episode", "return", "success", "acquisitions", "complexity"],
+        )
+        self.evaluation_log = _CsvLog(
+            metrics / "evaluations.csv",
+            [
+                "env_steps",
+                "successes",
+                "scenarios",
+                "median_acquisitions",
+                "p90_acquisitions",
+                "median_final_px",
+                "seconds",
+            ],
+        )
+        self._tensorboard = None
+
+    # --- run directory ------------------------------------------------------------------
+
+    @classmethod
+    def create(cls, config: ExperimentConfig, runs_root: str | Path = "runs") -> Trainer:
+        run_dir = Path(runs_root) / config.name
+        if (run_dir / "checkpoints" / "last.pt").exists() or (run_dir / "config.yaml").exists():
+            raise FileExistsError(
+                f"{run_dir} already holds a run: continue it with `alignrl train --resume "
+                f"{run_dir}` or choose another --name"
+            )
+        run_dir.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(run_dir / "config.yaml", dump_experiment(config))
+        return cls(config, run_dir)
+
+    @classmethod
+    def resume(cls, run_dir: str | Path) -> Trainer:
+        import yaml
+
+        run_dir = Path(run_dir)
+        config_path = run_dir / "config.yaml"
+        if not config_path.exists():
+            raise FileNotFoundError(f"{run_dir} is not a run directory (no config.yaml)")
+        config = parse_experiment(yaml.safe_load(config_path.read_text()), str(config_path))
+        trainer = cls(config, run_dir)
+        last = run_dir / "checkpoints" / "last.pt"
+        if last.exists():
+            trainer._restore(load_checkpoint(last, config.device))
+        return trainer
+
+    def _state(self) -> dict[str, Any]:
+        return {
+            "format": CHECKPOINT_FORMAT,
+            "agent": self.agent.state_dict(),
+            "replay": self.replay.state_dict(),
+            "env_steps": self.env_steps,
+            "episodes": self.episodes,
+            "best_successes": self.best_successes,
+            "starts": self.starts,
+            "numpy_rng": self.rng.bit_generator.state,
+            "torch_rng": torch.get_rng_state(),
+            "curriculum": self.curriculum.state_dict() if self.curriculum else {},
+            "config": dump_experiment(self.config),
+        }
+
+    def _restore(self, state: dict[str, Any]) -> None:
+        if state.get("format") != CHECKPOINT_FORMAT:
+            raise ValueError(
+                f"checkpoint format {state.get('format')!r} is not {CHECKPOINT_FORMAT}"
+            )
+        self.agent.load_state_dict(state["agent"])
+        replay = {
+            k: v.numpy() if isinstance(v, torch.Tensor) else v for k, v in state["replay"].items()
+        }
+        self.replay.load_state_dict(replay)
+        self.env_steps, self.episodes = int(state["env_steps"]), int(state["episodes"])
+        self.best_successes, self.starts = int(state["best_successes"]), int(state["starts"])
+        self.rng.bit_generator.state = state["numpy_rng"]
+        torch.set_rng_state(state["torch_rng"])
+        if self.curriculum and state["curriculum"]:
+            self.curriculum.load_state_dict(state["curriculum"])
+            self.env.set_complexity(self.curriculum.level)
+        for log in (self.update_log, self.episode_log, self.evaluation_log):
+            log.truncate_after(self.env_steps)
+
+    def checkpoint(self) -> None:
+        save_checkpoint(self.run_dir / "checkpoints" / "last.pt", self._state())
+
+    # --- the loop -----------------------------------------------------------------------
+
+    def _tensorboard_writer(self):
+        if self._tensorboard is None:
+            from torch.utils.tensorboard import SummaryWriter
+
+            self._tensorboard = SummaryWriter(str(self.run_dir / "tensorboard"))
+        return self._tensorboard
+
+    def evaluate(self) -> SessionResult:
+        cfg = self.config
+        return evaluate_policy(
+            lambda observation: self.agent.act(observation, deterministic=True),
+            cfg.eval_apparatus,
+            cfg.eval_apparatus_args,
+            cfg.task,
+            cfg.history,
+            cfg.budget.eval_scenarios,
+            name=cfg.name,
+        )
+
+    def _evaluate_and_keep_best(self) -> SessionResult:
+        result = self.evaluate()
+        median_final = result.final_width_stats()["median"]
+        summary = {
+            "successes": result.successes,
+            "scenarios": result.scenarios,
+            "median_acquisitions": result.median_acquisitions,
+            "p90_acquisitions": result.p90_acquisitions,
+            "median_final_px": round(median_final, 4) if median_final is not None else "",
+        }
+        self.evaluation_log.write(
+            [{"env_steps": self.env_steps, **summary, "seconds": round(result.seconds, 2)}]
+        )
+        board = self._tensorboard_writer()
+        board.add_scalar("evaluation/successes", result.successes, self.env_steps)
+        board.add_scalar(
+            "evaluation/median_acquisitions", result.median_acquisitions, self.env_steps
+        )
+        if result.successes > self.best_successes:
+            self.best_successes = result.successes
+            save_checkpoint(
+                self.run_dir / "checkpoints" / "best.pt",
+                {
+                    "format": CHECKPOINT_FORMAT + "-policy",
+                    "agent": self.agent.state_dict(),
+                    "env_steps": self.env_steps,
+                    "evaluation": summary,
+                    "config": dump_experiment(self.config),
+                },
+            )
+        return result
+
+    def run(self, progress: bool = True, log: Callable[[str], None] | None = None) -> SessionResult:
+        """Train to the budget; `log` receives a line per evaluation and per checkpoint."""
+        from tqdm import tqdm
+
+        cfg, learner, budget = self.config, self.config.learner, self.config.budget
+        self.starts += 1
+        observation, infos = self.env.reset(seed=cfg.seed * 1000 + self.starts)
+        secret = infos["secret"]
+        returns = np.zeros(self.env.num_envs)
+        update_debt = 0.0
+        update_rows: list[dict[str, Any]] = []
+        bar = tqdm(
+            total=budget.env_steps,
+            initial=self.env_steps,
+            unit="step",
+            disable=not progress,
+            desc=cfg.name,
+            dynamic_ncols=True,
+        )
+        result = None
+        next_eval = (self.env_steps // budget.eval_every + 1) * budget.eval_every
+        next_checkpoint = (self.env_steps // budget.checkpoint_every + 1) * budget.checkpoint_every
+        recent: list[bool] = []
+        while self.env_steps < budget.env_steps:
+            if self.env_steps < learner.random_steps:
+                action = self.rng.uniform(-1.0, 1.0, (self.env.num_envs, self.action_dim))
+            else:
+                action = self.agent.act(observation)
+            next_observation, reward, done, _, infos = self.env.step(action)
+            final = np.where(
+                done[:, None, None],
+                infos.get("final_observation", next_observation),
+                next_observation,
+            )
+            self.replay.add(
+                observation, secret, action, reward, final, infos["secret"], done.astype(np.float32)
+            )
+            returns += reward
+            episode_rows = []
+            for index in np.flatnonzero(done):
+                self.episodes += 1
+                success = bool(infos["success"][index])
+                recent.append(success)
+                episode_rows.append(
+                    {
+                        "env_steps": self.env_steps + self.env.num_envs,
+                        "episode": self.episodes,
+                        "return": round(float(returns[index]), 5),
+                        "success": int(success),
+                        "acquisitions": int(infos["acquisitions"][index]),
+                        "complexity": self.env.episodes.complexity,
+                    }
+                )
+                if self.curriculum:
+                    self.env.set_complexity(self.curriculum.record(success))
+            returns[done] = 0.0
+            self.episode_log.write(episode_rows)
+            observation, secret = next_observation, infos["secret"]
+            self.env_steps += self.env.num_envs
+            bar.update(self.env.num_envs)
+            if self.env_steps >= learner.learning_starts and self.replay.size >= learner.batch_size:
+                update_debt += self.env.num_envs * learner.updates_per_step
+                while update_debt >= 1.0:
+                    metrics = self.agent.update(
+                        self.replay.sample(learner.batch_size, self.rng), cfg.name
+                    )
+                    update_debt -= 1.0
+                    if self.agent.updates % UPDATE_LOG_EVERY == 0:
+                        update_rows.append(
+                            {
+                                "env_steps": self.env_steps,
+                                "updates": self.agent.updates,
+                                **{k: round(v, 6) for k, v in metrics.items()},
+                            }
+                        )
+                self.update_log.write(update_rows)
+                for row in update_rows:
+                    board = self._tensorboard_writer()
+                    for key in ("policy_loss", "q1_loss", "q2_loss", "v_loss", "entropy", "alpha"):
+                        board.add_scalar(f"learner/{key}", row[key], row["env_steps"])
+                update_rows = []
+            if recent:
+                bar.set_postfix(
+                    success=f"{np.mean(recent[-200:]):.2f}",
+                    level=f"{self.env.episodes.complexity:.2f}",
+                )
+            if self.env_steps >= next_eval:
+                result = self._evaluate_and_keep_best()
+                if log:
+                    log(
+                        f"{self.env_steps} steps: {result.successes}/{result.scenarios} held-out "
+                        f"alignments, median {result.median_acquisitions:g} acquisitions"
+                    )
+                next_eval += budget.eval_every
+            if self.env_steps >= next_checkpoint or self.env_steps >= budget.env_steps:
+                self.checkpoint()
+                if log:
+                    log(f"checkpoint at {self.env_steps} env steps")
+                next_checkpoint += budget.checkpoint_every
+        bar.close()
+        if result is None or self.env_steps % budget.eval_every:
+            result = self._evaluate_and_keep_best()
+            self.checkpoint()
+        if self._tensorboard is not None:
+            self._tensorboard.flush()
+        return result
+
+
+def load_policy(path: str | Path, device: str = "cpu") -> tuple[SAC, ExperimentConfig]:
+    """A trained aligner from a run directory (its best.pt) or a checkpoint file."""
+    import yaml
+
+    path = Path(path)
+    checkpoint = path / "checkpoints" / "best.pt" if path.is_dir() else path
+    state = load_checkpoint(checkpoint, device)
+    config = parse_experiment(yaml.safe_load(state["config"]), f"{checkpoint} (config)")
+    env = AlignmentEnv(
+        apparatus=config.eval_apparatus,
+        apparatus_args=config.eval_apparatus_args,
+        task=config.task,
+        history=config.history,
+    )
+    agent = SAC(
+        env.observation_space.shape,
+        env.action_space.shape[0],
+        env.episodes.k,
+        _sac_config(config),
+        device,
+    )
+    agent.load_state_dict(state["agent"])
+    return agent, config

@@ -1,0 +1,64 @@
+"""Experiment configs load strictly: every mistake names the file, the key and what was wanted."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from alignrl.config import ConfigError, dump_experiment, load_experiment, parse_experiment
+
+EXPERIMENTS = sorted(Path(__file__).resolve().parents[1].glob("experiments/*.yaml"))
+
+
+@pytest.mark.parametrize("path", EXPERIMENTS, ids=lambda path: path.name)
+def test_shipped_experiments_load(path: Path) -> None:
+    config = load_experiment(path)
+    assert config.name
+    assert parse_experiment(__import__("yaml").safe_load(dump_experiment(config))) == config
+
+
+def test_defaults_are_the_seed_setting() -> None:
+    config = parse_experiment({})
+    assert config.apparatus == "csv:default" and config.task == "focus"
+    assert config.learner.algorithm == "sac" and config.learner.secret_critics
+
+
+@pytest.mark.parametrize(
+    ("text", "fragments"),
+    [
+        ("learner:\n  lerning_rate: 0.1\n", ["learner.lerning_rate", "Extra inputs"]),
+        ("budget:\n  env_steps: many\n", ["budget.env_steps", "'many'"]),
+        ("learner:\n  learning_rate: 5\n", ["learner.learning_rate", "less than 1"]),
+        ("history: 0\n", ["history", "greater than or equal to 1"]),
+        ("learner:\n  encoder: lstm\n", ["learner.encoder", "'mlp', 'gru' or 'gtrxl'"]),
+        ("name: 'my run/../x'\n", ["name"]),
+        ("curriculum:\n  lower_at: 0.9\n  raise_at: 0.5\n", ["lower_at"]),
+        ("- 1\n- 2\n", ["mapping"]),
+        ("learner: [unclosed\n", ["not valid YAML"]),
+    ],
+)
+def test_bad_configs_name_the_file_and_the_key(
+    tmp_path: Path, text: str, fragments: list[str]
+) -> None:
+    path = tmp_path / "bad.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as caught:
+        load_experiment(path)
+    message = str(caught.value)
+    assert str(path) in message
+    for fragment in fragments:
+        assert fragment in message
+
+
+def test_a_missing_config_is_named(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match=r"nope\.yaml does not exist"):
+        load_experiment(tmp_path / "nope.yaml")
+
+
+def test_configs_are_frozen() -> None:
+    config = parse_experiment({})
+    with pytest.raises(ValueError):
+        config.seed = 3  # type: ignore[misc]
+    renamed = config.model_copy(update={"name": "other"})
+    assert renamed.name == "other" and config.name == "experiment"

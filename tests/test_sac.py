@@ -1,0 +1,156 @@
+"""SAC: asymmetric critics, exact save/load, the NaN guard, safe checkpoints, CUDA."""
+
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from alignrl.agents.replay import Batch, ReplayBuffer
+from alignrl.agents.sac import SAC, NonFiniteError, SACConfig
+from alignrl.checkpoints import CheckpointError, load_checkpoint, save_checkpoint
+
+SHAPE = (8, 7)
+SMALL = SACConfig(encoder_kwargs={"hidden": (32, 32)}, batch_size=16)
+
+
+def random_batch(size: int = 16, seed: int = 0) -> Batch:
+    rng = np.random.default_rng(seed)
+    observation = rng.uniform(-1, 1, (size, *SHAPE)).astype(np.float32)
+    observation[:, :, 0] = 1.0
+    return Batch(
+        observation=observation,
+        secret=rng.uniform(-1, 1, (size, 1)).astype(np.float32),
+        action=rng.uniform(-1, 1, (size, 2)).astype(np.float32),
+        reward=rng.normal(size=size).astype(np.float32),
+        next_observation=observation[::-1].copy(),
+        next_secret=rng.uniform(-1, 1, (size, 1)).astype(np.float32),
+        done=(rng.random(size) < 0.3).astype(np.float32),
+    )
+
+
+def agent(seed: int = 0, config: SACConfig = SMALL, device: str = "cpu") -> SAC:
+    torch.manual_seed(seed)
+    return SAC(SHAPE, 2, 1, config, device)
+
+
+def test_critics_read_the_secret_and_the_policy_cannot() -> None:
+    learner = agent()
+    batch = random_batch()
+    observation = torch.as_tensor(batch.observation)
+    action = torch.as_tensor(batch.action)
+    q_a = learner.q1(observation, torch.zeros(16, 1), action)
+    q_b = learner.q1(observation, torch.ones(16, 1), action)
+    assert not torch.allclose(q_a, q_b)  # the secret is an input of every critic
+    # The actor has no input for it: its first layer sees exactly the history.
+    first_layer = next(learner.actor.encoder.parameters())
+    assert first_layer.shape[1] == SHAPE[0] * SHAPE[1]
+    blind = agent(config=SACConfig(encoder_kwargs={"hidden": (32, 32)}, secret_critics=False))
+    assert blind.q1.head[0].in_features == learner.q1.head[0].in_features - 1
+
+
+def test_an_update_changes_every_network_and_reports_the_seed_losses() -> None:
+    learner = agent()
+    before = copy.deepcopy(learner.state_dict())
+    metrics = learner.update(random_batch())
+    assert set(metrics) == {"policy_loss", "q1_loss", "q2_loss", "v_loss", "entropy", "alpha"}
+    assert all(np.isfinite(value) for value in metrics.values())
+    after = learner.state_dict()
+    for name in ("actor", "q1", "q2", "v", "v_target"):
+        changed = any(not torch.equal(before[name][key], after[name][key]) for key in before[name])
+        assert changed, name
+
+
+def test_save_load_gives_identical_actions_and_identical_next_update(tmp_path: Path) -> None:
+    learner = agent(seed=1)
+    for seed in range(3):
+        learner.update(random_batch(seed=seed))
+    path = tmp_path / "sac.pt"
+    save_checkpoint(path, {"format": "test", "agent": learner.state_dict()})
+    restored = agent(seed=99)
+    restored.load_state_dict(load_checkpoint(path)["agent"])
+    histories = random_batch(seed=5).observation
+    np.testing.assert_array_equal(
+        learner.act(histories, deterministic=True), restored.act(histories, deterministic=True)
+    )
+    torch.manual_seed(7)
+    first = learner.update(random_batch(seed=9))
+    torch.manual_seed(7)
+    second = restored.update(random_batch(seed=9))
+    assert first == second
+    for name in ("actor", "q1", "v"):
+        for key, value in learner.state_dict()[name].items():
+            assert torch.equal(value, restored.state_dict()[name][key])
+
+
+def test_a_nan_loss_stops_the_update_and_changes_nothing() -> None:
+    learner = agent()
+    learner.update(random_batch())
+    before = copy.deepcopy(learner.state_dict())
+    poisoned = random_batch(seed=3)
+    poisoned.reward[4] = np.nan
+    with pytest.raises(NonFiniteError, match=r"member aligner-7: the q1 loss is nan"):
+        learner.update(poisoned, member="aligner-7")
+    after = learner.state_dict()
+    for name in ("actor", "q1", "q2", "v", "v_target"):
+        for key, value in before[name].items():
+            assert torch.equal(value, after[name][key])
+    assert learner.updates == before["updates"]
+
+
+def test_checkpoints_refuse_garbage_with_a_clear_error(tmp_path: Path) -> None:
+    broken = tmp_path / "broken.pt"
+    broken.write_bytes(b"not a checkpoint at all")
+    with pytest.raises(CheckpointError, match="cannot be read"):
+        load_checkpoint(broken)
+    with pytest.raises(CheckpointError, match="does not exist"):
+        load_checkpoint(tmp_path / "missing.pt")
+    truncated = tmp_path / "truncated.pt"
+    save_checkpoint(truncated, {"format": "x", "weights": torch.ones(1000)})
+    truncated.write_bytes(truncated.read_bytes()[:500])
+    with pytest.raises(CheckpointError):
+        load_checkpoint(truncated)
+
+
+def test_replay_round_trips_and_samples_reproducibly() -> None:
+    replay = ReplayBuffer(10, SHAPE, 1, 2)
+    for seed in range(3):
+        batch = random_batch(size=4, seed=seed)
+        replay.add(
+            batch.observation,
+            batch.secret,
+            batch.action,
+            batch.reward,
+            batch.next_observation,
+            batch.next_secret,
+            batch.done,
+        )
+    assert replay.size == 10 and replay.position == 2  # 12 added into a ring of 10
+    copy_of = ReplayBuffer(10, SHAPE, 1, 2)
+    copy_of.load_state_dict(replay.state_dict())
+    first = replay.sample(5, np.random.default_rng(3))
+    second = copy_of.sample(5, np.random.default_rng(3))
+    np.testing.assert_array_equal(first.observation, second.observation)
+    np.testing.assert_array_equal(first.reward, second.reward)
+
+
+@pytest.mark.parametrize("encoder", ["gru", "gtrxl"])
+def test_sequence_encoders_train_too(encoder: str) -> None:
+    learner = agent(config=SACConfig(encoder=encoder, hidden=(32,), batch_size=16))
+    metrics = learner.update(random_batch())
+    assert all(np.isfinite(value) for value in metrics.values())
+    assert learner.act(random_batch().observation[0]).shape == (2,)
+
+
+def test_sac_runs_on_cuda_where_available() -> None:
+    if not torch.cuda.is_available():
+        pytest.skip("no CUDA device on this machine")
+    learner = agent(device="cuda")
+    metrics = learner.update(random_batch())
+    assert all(np.isfinite(value) for value in metrics.values())
+    assert next(learner.actor.parameters()).is_cuda
+    action = learner.act(random_batch().observation, deterministic=True)
+    assert action.shape == (16, 2) and np.all(np.abs(action) <= 1)
