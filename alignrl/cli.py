@@ -310,7 +310,6 @@ def _run_evaluations(
 
 
 def _trained_controller(path: Path):
-    from alignrl.envs.task import get_task
     from alignrl.evaluation.controllers import PolicyController
     from alignrl.training import load_policy
 
@@ -318,7 +317,7 @@ def _trained_controller(path: Path):
     return PolicyController(
         name=config.name,
         act=lambda history: agent.act(history, deterministic=True),
-        task=get_task(config.task),
+        task=config.resolved_task(),
         history=config.history,
     )
 

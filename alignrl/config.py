@@ -19,6 +19,7 @@ __all__ = [
     "CurriculumConfig",
     "ExperimentConfig",
     "LearnerConfig",
+    "TaskOptions",
     "load_experiment",
 ]
 
@@ -54,6 +55,34 @@ class LearnerConfig(_Strict):
     random_steps: int = Field(2000, ge=0, description="env steps of uniform random actions")
 
 
+class TaskOptions(_Strict):
+    """Changes to a named task; unset fields keep the task's own values."""
+
+    episode_steps: int | None = Field(None, ge=1, description="acquisitions after the first")
+    max_step_fraction: float | None = Field(None, gt=0, le=2, description="action scale")
+    acquisition_cost: float | None = Field(None, ge=0, description="reward cost per image")
+    out_of_bounds_penalty: float | None = Field(None, ge=0, description="bound penalty")
+    final_reward_scale: float | None = Field(None, gt=0, description="final reward factor")
+    success_relative: float | None = Field(None, gt=1, description="threshold x best width")
+    success_absolute_px: float | None = Field(None, gt=0, description="absolute spec, px")
+
+    def apply(self, task: Any) -> Any:
+        """The task with these changes (a new object; the registry's task is untouched)."""
+        import dataclasses
+
+        changes = {
+            name: value
+            for name, value in self.model_dump().items()
+            if value is not None and not name.startswith("success_")
+        }
+        success = task.success
+        if self.success_relative is not None:
+            success = dataclasses.replace(success, relative=self.success_relative)
+        if self.success_absolute_px is not None:
+            success = dataclasses.replace(success, absolute_px=self.success_absolute_px)
+        return dataclasses.replace(task, success=success, **changes)
+
+
 class CurriculumConfig(_Strict):
     enabled: bool = Field(False, description="raise the complexity as the aligner succeeds")
     level: float = Field(0.1, gt=0, le=1, description="starting complexity level")
@@ -84,6 +113,9 @@ class ExperimentConfig(_Strict):
         description="arguments of the evaluation apparatus (held-out scenarios)",
     )
     task: str = Field("focus", description="task name (alignrl.envs.TASKS)")
+    task_options: TaskOptions = Field(
+        default_factory=lambda: TaskOptions(), description="changes to the named task"
+    )
     history: int = Field(8, ge=1, le=64, description="history rows the aligner sees")
     envs: int = Field(8, ge=1, le=1024, description="apparatus instances stepped together")
     complexity: float = Field(
@@ -93,6 +125,12 @@ class ExperimentConfig(_Strict):
     learner: LearnerConfig = Field(default_factory=LearnerConfig)
     curriculum: CurriculumConfig = Field(default_factory=CurriculumConfig)
     budget: BudgetConfig = Field(default_factory=BudgetConfig)
+
+    def resolved_task(self) -> Any:
+        """The Task object this experiment trains on."""
+        from alignrl.envs.task import get_task
+
+        return self.task_options.apply(get_task(self.task))
 
     @model_validator(mode="after")
     def _check(self) -> ExperimentConfig:

@@ -36,7 +36,7 @@ from alignrl.apparatus.registry import make_apparatus
 from alignrl.checkpoints import atomic_write_text, load_checkpoint, save_checkpoint
 from alignrl.config import ExperimentConfig, dump_experiment, parse_experiment
 from alignrl.envs import AlignmentEnv, Curriculum, VectorAlignmentEnv, make_apparatus_copies
-from alignrl.envs.task import get_task
+from alignrl.envs.task import Task
 from alignrl.evaluation.controllers import PolicyController
 from alignrl.evaluation.session import SessionResult, run_session
 
@@ -51,7 +51,7 @@ def evaluate_policy(
     act: Callable[[np.ndarray], np.ndarray],
     apparatus: str,
     apparatus_args: dict[str, Any],
-    task: str,
+    task: Task,
     history: int,
     scenarios: int,
     seed: int = EVALUATION_SEED,
@@ -59,11 +59,8 @@ def evaluate_policy(
 ) -> SessionResult:
     """An evaluation session (alignrl/evaluation/session.py) with a deterministic policy:
     held-out scenarios, starts anywhere in the interval, a verification image each."""
-    task_spec = get_task(task)
-    controller = PolicyController(name, act, task_spec, history)
-    return run_session(
-        controller, make_apparatus(apparatus, apparatus_args), task_spec, scenarios, seed
-    )
+    controller = PolicyController(name, act, task, history)
+    return run_session(controller, make_apparatus(apparatus, apparatus_args), task, scenarios, seed)
 
 
 class _CsvLog:
@@ -132,7 +129,8 @@ class Trainer:
             else None
         )
         level = self.curriculum.level if self.curriculum else config.complexity
-        self.env = VectorAlignmentEnv(apparatus, config.task, config.history, complexity=level)
+        self.task = config.resolved_task()
+        self.env = VectorAlignmentEnv(apparatus, self.task, config.history, complexity=level)
         shape = self.env.single_observation_space.shape
         self.action_dim = self.env.single_action_space.shape[0]
         self.secret_dim = self.env.episodes.k
@@ -259,7 +257,7 @@ class Trainer:
             lambda observation: self.agent.act(observation, deterministic=True),
             cfg.eval_apparatus,
             cfg.eval_apparatus_args,
-            cfg.task,
+            self.task,
             cfg.history,
             cfg.budget.eval_scenarios,
             name=cfg.name,
@@ -416,7 +414,7 @@ def load_policy(path: str | Path, device: str = "cpu") -> tuple[SAC, ExperimentC
     env = AlignmentEnv(
         apparatus=config.eval_apparatus,
         apparatus_args=config.eval_apparatus_args,
-        task=config.task,
+        task=config.resolved_task(),
         history=config.history,
     )
     agent = SAC(
