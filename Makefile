@@ -17,12 +17,23 @@ $(STAMP): pyproject.toml
 install: $(STAMP)
 
 # The most complete end-to-end job so far: record a small scenario set on the synthetic SEM,
-# validate it strictly, print its summary and plot its focus curves.
+# validate it strictly and plot its focus curves; run the classical autofocus baselines on a
+# simulator replaying it; train a SAC aligner briefly and evaluate it on held-out scenarios
+# beside the baselines. Everything lands in runs/make-run/ (replaced on every `make run`).
 RUN_DIR := runs/make-run
 run: $(STAMP)
-	$(BIN)/alignrl record --apparatus synthetic --scenarios 40 --seed 0 --force \
+	rm -rf $(RUN_DIR)
+	$(BIN)/alignrl record --apparatus synthetic --scenarios 40 --seed 0 \
 		--out $(RUN_DIR)/scenarios.csv
 	$(BIN)/alignrl scenarios validate $(RUN_DIR)/scenarios.csv --plot $(RUN_DIR)/focus-curves.png
+	$(BIN)/alignrl baselines --apparatus csv:$(RUN_DIR)/scenarios.csv --scenarios 40 \
+		--plot-dir $(RUN_DIR)/baselines
+	$(BIN)/alignrl train experiments/make-run.yaml --runs-dir $(RUN_DIR)
+	$(BIN)/alignrl evaluate --policy $(RUN_DIR)/make-run --apparatus csv:default \
+		--apparatus-args '{"noise": 0.02, "split": "test"}' --scenarios 100 \
+		--plot $(RUN_DIR)/trained-aligner.png
+	$(BIN)/alignrl baselines --apparatus csv:default \
+		--apparatus-args '{"noise": 0.02, "split": "test"}' --scenarios 100
 
 test: $(STAMP)
 	$(BIN)/ruff check alignrl tests benchmarks docs/examples

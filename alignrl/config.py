@@ -63,6 +63,7 @@ class TaskOptions(_Strict):
     acquisition_cost: float | None = Field(None, ge=0, description="reward cost per image")
     out_of_bounds_penalty: float | None = Field(None, ge=0, description="bound penalty")
     final_reward_scale: float | None = Field(None, gt=0, description="final reward factor")
+    success_bonus: float | None = Field(None, ge=0, description="optional shaping at success")
     success_relative: float | None = Field(None, gt=1, description="threshold x best width")
     success_absolute_px: float | None = Field(None, gt=0, description="absolute spec, px")
 
@@ -73,7 +74,7 @@ class TaskOptions(_Strict):
         changes = {
             name: value
             for name, value in self.model_dump().items()
-            if value is not None and not name.startswith("success_")
+            if value is not None and name not in ("success_relative", "success_absolute_px")
         }
         success = task.success
         if self.success_relative is not None:

@@ -26,6 +26,7 @@ from alignrl.apparatus import NoEdgesError, ScenarioSimulator, edge_width, make_
 from alignrl.apparatus.quality import TEN_NINETY_PER_SIGMA
 from alignrl.apparatus.recorder import sweep_many, sweep_plan
 from alignrl.envs.vector import VectorAlignmentEnv, make_apparatus_copies
+from benchmarks.baselines import bench_baselines
 
 
 @dataclass(frozen=True)
@@ -223,6 +224,7 @@ def main(argv: list[str] | None = None) -> int:
     lines.append("")
     for preset in ("synthetic", "synthetic-b"):
         lines += bench_fidelity(preset, 200 if args.quick else 1500)
+    lines += bench_baselines(20 if args.quick else 100)
     manual = Path(__file__).with_name("manual.md")
     if manual.exists():
         lines += ["", manual.read_text().rstrip(), ""]

@@ -68,10 +68,18 @@ def test_task_options_change_a_copy_of_the_named_task() -> None:
     from alignrl.envs.task import get_task
 
     config = parse_experiment(
-        {"task_options": {"acquisition_cost": 0.1, "success_absolute_px": 3.0, "episode_steps": 6}}
+        {
+            "task_options": {
+                "acquisition_cost": 0.1,
+                "success_absolute_px": 3.0,
+                "episode_steps": 6,
+                "success_bonus": 2.0,
+            }
+        }
     )
     task = config.resolved_task()
     assert task.acquisition_cost == 0.1 and task.episode_steps == 6
+    assert task.success_bonus == 2.0
     assert task.success.absolute_px == 3.0 and task.success.relative == 1.15
     assert get_task("focus").acquisition_cost == 0.0  # the registry's task is untouched
     with pytest.raises(ConfigError, match=r"task_options\.cost"):

@@ -307,3 +307,21 @@ def test_bad_configurations_are_refused_with_a_reason(build, fragment: str) -> N
         env = build()
         if isinstance(env, AlignmentEnv):
             env.reset(seed=0)
+
+
+def test_the_optional_success_bonus_is_paid_only_within_spec() -> None:
+    task = Task(
+        name="bonus", knobs=("defocus",), success_bonus=5.0, success=SuccessRule(absolute_px=3.0)
+    )
+    env = _lens_env(task=task)
+    env.reset(seed=0, options={"misalignment": [0.0]})
+    lens = env.apparatus
+    before = lens_width(lens.voltage - lens.optimum_v)
+    to_focus = (lens.optimum_v - lens.voltage) / 25.0
+    env.step(np.array([to_focus, -1.0]))
+    _, reward, terminated, _, info = env.step(np.array([0.0, 1.0]))
+    assert terminated and info["success"]
+    assert reward == pytest.approx(before - lens_width(0.0) + 5.0)
+    env.reset(seed=1, options={"misalignment": [-1.0]})  # far out, then stop at once
+    _, reward, _, _, info = env.step(np.array([0.0, 1.0]))
+    assert not info["success"] and reward == 0.0

@@ -222,6 +222,8 @@ class AlignmentEpisodes:
             self._scored(self.width[finished]),
             task.final_reward_scale,
         )
+        if task.success_bonus:
+            reward[done] += rewards.success_bonus(self.successes()[finished], task.success_bonus)
         self.active[finished] = False
         for index in indices:
             info = self.info[index]

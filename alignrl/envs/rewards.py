@@ -5,14 +5,15 @@
 * at the final step, scale x (edge width before - edge width after), widths in pixels.
 
 The misaligner receives the negative of every aligner reward, so each episode sums to zero.
-No shaping is hidden here; an optional per-acquisition cost is a named task field.
+No shaping is hidden here; an optional per-acquisition cost and an optional success bonus
+(both 0 by default) are named task fields.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["bound_penalty", "final_reward"]
+__all__ = ["bound_penalty", "final_reward", "success_bonus"]
 
 
 def bound_penalty(hit_bound: np.ndarray, penalty: float) -> np.ndarray:
@@ -25,3 +26,8 @@ def final_reward(
 ) -> np.ndarray:
     """scale x (before - after): positive when the alignment sharpened the image."""
     return float(scale) * (np.asarray(width_before_px) - np.asarray(width_after_px))
+
+
+def success_bonus(succeeded: np.ndarray, bonus: float) -> np.ndarray:
+    """Optional shaping: +bonus for an alignment that ends within spec (off by default)."""
+    return np.where(succeeded, float(bonus), 0.0)
