@@ -46,6 +46,40 @@ def resolve_task(task: Task | str) -> Task:
     return get_task(task) if isinstance(task, str) else task
 
 
+def aligner_spaces(n_knobs: int, history: int) -> tuple[spaces.Box, spaces.Box]:
+    """(observation, action) spaces of an aligner: a history, and knob changes plus stop."""
+    low, high = observation_bounds(n_knobs)
+    observation = spaces.Box(
+        np.tile(low, (history, 1)), np.tile(high, (history, 1)), dtype=np.float32
+    )
+    return observation, spaces.Box(-1.0, 1.0, (n_knobs + 1,), dtype=np.float32)
+
+
+def misaligner_spaces(n_knobs: int) -> tuple[spaces.Box, spaces.Box]:
+    """(observation, action) spaces of a misaligner: aligned settings and the complexity in,
+    a place in the complexity window per knob out."""
+    observation = spaces.Box(
+        np.append(np.full(n_knobs, -1.0), 0.0).astype(np.float32),
+        np.ones(n_knobs + 1, np.float32),
+        dtype=np.float32,
+    )
+    return observation, spaces.Box(-1.0, 1.0, (n_knobs,), dtype=np.float32)
+
+
+def single_episode(
+    apparatus: Apparatus | str | None,
+    task: Task | str,
+    history: int,
+    complexity: float,
+    apparatus_args: dict | None,
+) -> AlignmentEpisodes:
+    """The one-apparatus engine of AlignmentEnv and DuelEnv."""
+    unit = resolve_apparatus(apparatus, apparatus_args, seed=None)
+    episodes = AlignmentEpisodes([unit], resolve_task(task), history)
+    episodes.set_complexity(complexity)
+    return episodes
+
+
 def episode_info(episodes: AlignmentEpisodes, index: int, done: bool) -> dict[str, Any]:
     """The info dict both environments report."""
     record = episodes.info[index]
@@ -78,21 +112,11 @@ class AlignmentEnv(gym.Env):
         apparatus_args: dict | None = None,
     ) -> None:
         super().__init__()
-        self.task = resolve_task(task)
-        self.apparatus = resolve_apparatus(apparatus, apparatus_args, seed=None)
-        self.episodes = AlignmentEpisodes([self.apparatus], self.task, history)
-        self.set_complexity(complexity)
+        self.episodes = single_episode(apparatus, task, history, complexity, apparatus_args)
+        self.task, self.apparatus = self.episodes.task, self.episodes.apparatus[0]
         self.misalignment = misalignment
-        low, high = observation_bounds(self.episodes.k)
-        self.observation_space = spaces.Box(
-            np.tile(low, (history, 1)), np.tile(high, (history, 1)), dtype=np.float32
-        )
-        self.action_space = spaces.Box(-1.0, 1.0, (self.episodes.k + 1,), dtype=np.float32)
-        self.misaligner_observation_space = spaces.Box(
-            np.append(np.full(self.episodes.k, -1.0), 0.0).astype(np.float32),
-            np.ones(self.episodes.k + 1, np.float32),
-            dtype=np.float32,
-        )
+        self.observation_space, self.action_space = aligner_spaces(self.episodes.k, history)
+        self.misaligner_observation_space, _ = misaligner_spaces(self.episodes.k)
         self._index = np.array([0])
 
     @property
@@ -101,9 +125,7 @@ class AlignmentEnv(gym.Env):
 
     def set_complexity(self, level: float) -> None:
         """Width of the misalignment window as a fraction of the interval, in (0, 1]."""
-        if not 0.0 < level <= 1.0:
-            raise ValueError(f"complexity level must be in (0, 1], got {level}")
-        self.episodes.complexity = float(level)
+        self.episodes.set_complexity(level)
 
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None

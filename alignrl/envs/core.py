@@ -112,6 +112,12 @@ class AlignmentEpisodes:
         self.info = [EpisodeInfo() for _ in range(self.n)]
         self.complexity = 1.0
 
+    def set_complexity(self, level: float) -> None:
+        """Width of the misalignment window as a fraction of the interval, in (0, 1]."""
+        if not 0.0 < level <= 1.0:
+            raise ValueError(f"complexity level must be in (0, 1], got {level}")
+        self.complexity = float(level)
+
     # --- episode start ------------------------------------------------------------------
 
     def begin(self, indices: np.ndarray, seeds: Sequence[int | None]) -> None:

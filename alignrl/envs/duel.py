@@ -30,8 +30,7 @@ from pettingzoo import AECEnv
 from pettingzoo.utils import wrappers
 
 from alignrl.apparatus.base import Apparatus
-from alignrl.envs.alignment import episode_info, resolve_apparatus, resolve_task
-from alignrl.envs.core import AlignmentEpisodes, observation_bounds
+from alignrl.envs.alignment import aligner_spaces, episode_info, misaligner_spaces, single_episode
 from alignrl.envs.task import Task
 
 __all__ = ["ALIGNER", "MISALIGNER", "DuelEnv", "env", "raw_env"]
@@ -53,37 +52,21 @@ class raw_env(AECEnv):
         apparatus_args: dict | None = None,
     ) -> None:
         super().__init__()
-        self.task = resolve_task(task)
-        self.apparatus = resolve_apparatus(apparatus, apparatus_args, seed=None)
-        self.episodes = AlignmentEpisodes([self.apparatus], self.task, history)
-        if not 0.0 < complexity <= 1.0:
-            raise ValueError(f"complexity level must be in (0, 1], got {complexity}")
-        self.episodes.complexity = float(complexity)
-        k = self.episodes.k
-        low, high = observation_bounds(k)
-        self._observation_spaces = {
-            MISALIGNER: spaces.Box(
-                np.append(np.full(k, -1.0), 0.0).astype(np.float32),
-                np.ones(k + 1, np.float32),
-                dtype=np.float32,
-            ),
-            ALIGNER: spaces.Box(
-                np.tile(low, (history, 1)), np.tile(high, (history, 1)), dtype=np.float32
-            ),
+        self.episodes = single_episode(apparatus, task, history, complexity, apparatus_args)
+        self.task, self.apparatus = self.episodes.task, self.episodes.apparatus[0]
+        spaces_of = {
+            MISALIGNER: misaligner_spaces(self.episodes.k),
+            ALIGNER: aligner_spaces(self.episodes.k, history),
         }
-        self._action_spaces = {
-            MISALIGNER: spaces.Box(-1.0, 1.0, (k,), dtype=np.float32),
-            ALIGNER: spaces.Box(-1.0, 1.0, (k + 1,), dtype=np.float32),
-        }
+        self._observation_spaces = {agent: pair[0] for agent, pair in spaces_of.items()}
+        self._action_spaces = {agent: pair[1] for agent, pair in spaces_of.items()}
         self.possible_agents = [MISALIGNER, ALIGNER]
         self.agents: list[str] = []
         self._index = np.array([0])
         self.np_random, _ = gymnasium.utils.seeding.np_random(None)
 
     def set_complexity(self, level: float) -> None:
-        if not 0.0 < level <= 1.0:
-            raise ValueError(f"complexity level must be in (0, 1], got {level}")
-        self.episodes.complexity = float(level)
+        self.episodes.set_complexity(level)
 
     @functools.cache  # noqa: B019 (spaces are fixed per env)
     def observation_space(self, agent: str) -> spaces.Space:

@@ -21,12 +21,12 @@ from typing import Any
 
 import gymnasium
 import numpy as np
-from gymnasium import spaces
 
 from alignrl.apparatus.base import Apparatus
 from alignrl.apparatus.registry import make_apparatus
 from alignrl.apparatus.simulator import ScenarioSimulator
-from alignrl.envs.core import AlignmentEpisodes, observation_bounds
+from alignrl.envs.alignment import aligner_spaces
+from alignrl.envs.core import AlignmentEpisodes
 from alignrl.envs.task import Task, get_task
 
 __all__ = ["VectorAlignmentEnv", "make_apparatus_copies"]
@@ -57,20 +57,15 @@ class VectorAlignmentEnv:
         self.episodes = AlignmentEpisodes(list(apparatus), self.task, history)
         self.num_envs = self.episodes.n
         self.set_complexity(complexity)
-        k = self.episodes.k
-        low, high = observation_bounds(k)
-        self.single_observation_space = spaces.Box(
-            np.tile(low, (history, 1)), np.tile(high, (history, 1)), dtype=np.float32
+        self.single_observation_space, self.single_action_space = aligner_spaces(
+            self.episodes.k, history
         )
-        self.single_action_space = spaces.Box(-1.0, 1.0, (k + 1,), dtype=np.float32)
         self._generators: list[np.random.Generator] = []
         self._returns = np.zeros(self.num_envs)
         self._all = np.arange(self.num_envs)
 
     def set_complexity(self, level: float) -> None:
-        if not 0.0 < level <= 1.0:
-            raise ValueError(f"complexity level must be in (0, 1], got {level}")
-        self.episodes.complexity = float(level)
+        self.episodes.set_complexity(level)
 
     def _start(self, indices: np.ndarray) -> None:
         # The same draws, in the same order, as AlignmentEnv.reset, per slot.
