@@ -116,7 +116,7 @@ def cmd_record(args: argparse.Namespace) -> int:
                 else:
                     skipped += 1
                     bar.write(
-                        f"scenario {scenario}: only {len(record.voltages)} measurable points "
+                        f"scenario {scenario}: only {len(record.voltages)} measurable point(s) "
                         f"({record.n_failed} failed acquisitions), not written",
                         file=sys.stderr,
                     )
@@ -130,11 +130,11 @@ def cmd_record(args: argparse.Namespace) -> int:
             )
             return EXIT_INTERRUPTED
         bar.close()
-    if written == 0 and skipped > 0 and (not existed or mode != "append"):
-        out.unlink()  # only the header we wrote: a file no reader would accept
+    if written == 0 and skipped > 0:
+        # The writer only gives a file its name with its first row: nothing was replaced.
         raise CommandError(
             f"no scenario had {MIN_PAIRS} measurable points ({failed} failed acquisitions): "
-            f"check that {args.apparatus} shows edges over its interval; {out} not written"
+            f"check that {args.apparatus} shows edges over its interval; {out} was not written"
         )
     elapsed = time.perf_counter() - started
     payload = {

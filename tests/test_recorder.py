@@ -300,3 +300,28 @@ def test_append_with_another_seed_is_refused(
     assert record_cli(out, "--scenarios", "4", "--seed", "2", "--append") == 2
     assert "another --seed" in capsys.readouterr().err
     assert out.read_bytes() == before
+
+
+def test_force_keeps_the_old_file_when_nothing_could_be_recorded(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "precious.csv"
+    assert record_cli(out, "--scenarios", "2") == 0
+    before = out.read_bytes()
+    blind = '{"blind_beyond_v": 1}'
+    assert record_cli(out, "--scenarios", "2", "--force", "--apparatus-args", blind) == 2
+    assert "was not written" in capsys.readouterr().err
+    assert out.read_bytes() == before
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["precious.csv"]
+
+
+def test_an_interrupt_before_the_first_row_leaves_no_file(tmp_path: Path) -> None:
+    out = tmp_path / "early.csv"
+    code = record_cli(out, "--scenarios", "3", "--apparatus-args", '{"interrupt_at_reset": 1}')
+    assert code == 130
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_folder_as_output_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert record_cli(tmp_path, "--scenarios", "1") == 2
+    assert "is a folder" in capsys.readouterr().err

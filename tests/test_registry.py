@@ -109,3 +109,14 @@ def test_a_typo_in_simulator_arguments_is_refused_with_the_accepted_ones(tmp_pat
 def test_a_bad_preset_override_is_named_as_an_argument() -> None:
     with pytest.raises(ValueError, match="apparatus argument dose: Extra inputs"):
         make_apparatus("synthetic", {"dose": 3})
+
+
+@pytest.mark.parametrize(
+    ("args", "fragment"),
+    [({"scenarios": 3}, "scenarios cannot be an apparatus argument"), ({"noise": "abc"}, "number")],
+)
+def test_simulator_arguments_are_checked(tmp_path: Path, args: dict, fragment: str) -> None:
+    path = tmp_path / "three.csv"
+    _tiny_recording(path)
+    with pytest.raises(ValueError, match=fragment):
+        make_apparatus(f"csv:{path}", args)

@@ -109,7 +109,7 @@ def make_apparatus(
     if spec.startswith("csv:"):
         location = spec[len("csv:") :]
         path = default_scenarios_path() if location == "default" else Path(location)
-        return _construct(ScenarioSimulator, spec, args, path=path, seed=seed)
+        return _construct(ScenarioSimulator, spec, args, path=path, seed=seed, scenarios=None)
     if spec.startswith("sem:"):
         return SyntheticSEM(load_sem_config(spec[len("sem:") :], **args), seed=seed)
     if spec in preset_names():

@@ -149,7 +149,16 @@ def _read_text(path: Path) -> str:
     except FileNotFoundError:
         raise FileNotFoundError(f"scenario file {path} does not exist") from None
     except (EOFError, gzip.BadGzipFile, UnicodeDecodeError) as error:
-        raise ScenarioFormatError(f"{path}: cannot be read as a (gzipped) CSV: {error}") from None
+        hint = ""
+        if isinstance(error, EOFError):
+            hint = (
+                "; the last row was cut while being written (a killed recorder): decompress "
+                "what is readable (zcat FILE > FILE.csv, ignoring the error), delete the last, "
+                "incomplete line, and continue with --append"
+            )
+        raise ScenarioFormatError(
+            f"{path}: cannot be read as a (gzipped) CSV: {error}{hint}"
+        ) from None
 
 
 class _Where:
@@ -359,7 +368,10 @@ class ScenarioWriter:
     of its own (a multi-member gzip file is standard), so the file is complete after each row.
 
     mode "new" refuses an existing file, "force" replaces it, "append" continues it (its header
-    must declare the same number of pair columns).
+    must declare the same number of pair columns). A new file is written under a temporary
+    name and takes its real name with its first row: a recording that fails or is stopped
+    before any row leaves no header-only file, and `force` replaces the old file only once
+    there is something to replace it with.
     """
 
     def __init__(self, path: str | Path, max_pairs: int, mode: str = "new") -> None:
@@ -368,6 +380,8 @@ class ScenarioWriter:
         if mode not in ("new", "force", "append"):
             raise ValueError(f"mode must be new, force or append, not {mode!r}")
         exists = self.path.exists()
+        if self.path.is_dir():
+            raise IsADirectoryError(f"{self.path} is a folder: give a file name such as x.csv")
         if mode == "new" and exists:
             raise FileExistsError(
                 f"{self.path} already exists: pass --force to replace it or --append to continue it"
@@ -380,9 +394,13 @@ class ScenarioWriter:
                     f"{max_pairs}; append only with the same sweep settings"
                 )
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        write_header = not (mode == "append" and exists)
-        self._handle = open(self.path, "ab" if mode == "append" else "wb")
-        if write_header:
+        self.rows = 0
+        if mode == "append" and exists:
+            self._pending: Path | None = None
+            self._handle = open(self.path, "ab")
+        else:
+            self._pending = self.path.with_name(f".{self.path.name}.recording")
+            self._handle = open(self._pending, "wb")
             self._write_line(header(max_pairs))
 
     def _write_line(self, cells: list[str]) -> None:
@@ -402,9 +420,17 @@ class ScenarioWriter:
                 f"{self.max_pairs}"
             )
         self._write_line(record.to_cells())
+        self.rows += 1
+        if self._pending is not None:
+            # The open handle follows the file across the rename: later rows land in place.
+            os.replace(self._pending, self.path)
+            self._pending = None
 
     def close(self) -> None:
         self._handle.close()
+        if self._pending is not None:
+            self._pending.unlink(missing_ok=True)  # no row: nothing to show, nothing replaced
+            self._pending = None
 
     def __enter__(self) -> ScenarioWriter:
         return self

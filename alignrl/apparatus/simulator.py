@@ -109,6 +109,8 @@ class ScenarioSimulator:
         seed: int | None = None,
         scenarios: ScenarioSet | None = None,
     ) -> None:
+        if isinstance(noise, bool) or not isinstance(noise, int | float):
+            raise ValueError(f"noise must be a number (relative std, e.g. 0.02), got {noise!r}")
         if not 0.0 <= noise < 1.0:
             raise ValueError(f"noise must be a relative std in [0, 1), got {noise}")
         self.scenarios = (
