@@ -35,7 +35,8 @@ from alignrl.agents.sac import SAC, SACConfig
 from alignrl.apparatus.registry import make_apparatus
 from alignrl.checkpoints import atomic_write_text, load_checkpoint, save_checkpoint
 from alignrl.config import ExperimentConfig, dump_experiment, parse_experiment
-from alignrl.envs import AlignmentEnv, Curriculum, VectorAlignmentEnv, make_apparatus_copies
+from alignrl.envs import Curriculum, VectorAlignmentEnv, make_apparatus_copies
+from alignrl.envs.alignment import aligner_spaces
 from alignrl.envs.task import Task
 from alignrl.evaluation.controllers import PolicyController
 from alignrl.evaluation.session import SessionResult, run_session
@@ -411,18 +412,9 @@ def load_policy(path: str | Path, device: str = "cpu") -> tuple[SAC, ExperimentC
     checkpoint = path / "checkpoints" / "best.pt" if path.is_dir() else path
     state = load_checkpoint(checkpoint, device)
     config = parse_experiment(yaml.safe_load(state["config"]), f"{checkpoint} (config)")
-    env = AlignmentEnv(
-        apparatus=config.eval_apparatus,
-        apparatus_args=config.eval_apparatus_args,
-        task=config.resolved_task(),
-        history=config.history,
-    )
-    agent = SAC(
-        env.observation_space.shape,
-        env.action_space.shape[0],
-        env.episodes.k,
-        _sac_config(config),
-        device,
-    )
+    # The shapes follow from the task and history alone: no apparatus needs to be opened.
+    knobs = len(config.resolved_task().knobs)
+    observation_space, action_space = aligner_spaces(knobs, config.history)
+    agent = SAC(observation_space.shape, action_space.shape[0], knobs, _sac_config(config), device)
     agent.load_state_dict(state["agent"])
     return agent, config

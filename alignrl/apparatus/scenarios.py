@@ -132,10 +132,10 @@ class ScenarioSet:
         )
 
 
-def _open_text(path: Path, mode: str) -> IO[str]:
-    if path.suffix == ".gz":
-        return io.TextIOWrapper(gzip.open(path, mode + "b"), encoding="utf-8", newline="")
-    return open(path, mode, encoding="utf-8", newline="")
+def _open_for_reading(path: Path) -> IO[str]:
+    if _is_gzip(path):
+        return io.TextIOWrapper(gzip.open(path, "rb"), encoding="utf-8", newline="")
+    return open(path, encoding="utf-8", newline="")
 
 
 def _is_gzip(path: Path) -> bool:
@@ -144,7 +144,7 @@ def _is_gzip(path: Path) -> bool:
 
 def _read_text(path: Path) -> str:
     try:
-        with _open_text(path, "r") as handle:
+        with _open_for_reading(path) as handle:
             return handle.read()
     except FileNotFoundError:
         raise FileNotFoundError(f"scenario file {path} does not exist") from None
@@ -326,7 +326,7 @@ def iter_records(path: str | Path) -> Iterator[ScenarioRecord]:
 def read_header_pairs(path: str | Path) -> int:
     """Number of pair columns declared by an existing file's header."""
     path = Path(path)
-    with _open_text(path, "r") as handle:
+    with _open_for_reading(path) as handle:
         names = next(csv.reader(handle), [])
     return _check_header(names, path)
 

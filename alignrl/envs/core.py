@@ -256,7 +256,7 @@ class AlignmentEpisodes:
         return np.stack([self.secret(index) for index in range(self.n)])
 
     def success(self, index: int) -> bool:
-        return bool(np.isfinite(self.width[index]) and self.width[index] <= self.threshold[index])
+        return bool(self.successes()[index])
 
     def secret(self, index: int) -> np.ndarray:
         """(optimum - setting) / interval width per knob: for critics, never for policies."""
