@@ -16,7 +16,13 @@ from typing import Any
 import numpy as np
 import torch
 
-__all__ = ["CheckpointError", "atomic_write_text", "load_checkpoint", "save_checkpoint"]
+__all__ = [
+    "CheckpointError",
+    "atomic_write",
+    "atomic_write_text",
+    "load_checkpoint",
+    "save_checkpoint",
+]
 
 
 class CheckpointError(ValueError):
@@ -34,7 +40,15 @@ def _fsync_directory(folder: Path) -> None:
         os.close(descriptor)
 
 
-def _atomic_write(path: Path, write: Any) -> None:
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def atomic_write(path: Path, write: Any) -> None:
+    """Create or replace `path` with what `write(handle)` writes to a binary handle, so that
+    a reader (or a crash) sees the old file or the new one, never part of either."""
     path.parent.mkdir(parents=True, exist_ok=True)
     handle = tempfile.NamedTemporaryFile(dir=path.parent, prefix=f".{path.name}.", delete=False)
     try:
@@ -42,6 +56,7 @@ def _atomic_write(path: Path, write: Any) -> None:
             write(handle)
             handle.flush()
             os.fsync(handle.fileno())
+        os.chmod(handle.name, 0o666 & ~_umask())  # as open() would make it, not 0600
         os.replace(handle.name, path)
         _fsync_directory(path.parent)
     except BaseException:
@@ -50,7 +65,7 @@ def _atomic_write(path: Path, write: Any) -> None:
 
 
 def atomic_write_text(path: str | Path, text: str) -> None:
-    _atomic_write(Path(path), lambda handle: handle.write(text.encode("utf-8")))
+    atomic_write(Path(path), lambda handle: handle.write(text.encode("utf-8")))
 
 
 def to_tensors(value: Any) -> Any:
@@ -65,7 +80,7 @@ def to_tensors(value: Any) -> Any:
 
 
 def save_checkpoint(path: str | Path, state: dict[str, Any]) -> None:
-    _atomic_write(Path(path), lambda handle: torch.save(to_tensors(state), handle))
+    atomic_write(Path(path), lambda handle: torch.save(to_tensors(state), handle))
 
 
 def load_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> dict[str, Any]:

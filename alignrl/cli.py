@@ -5,6 +5,7 @@
     alignrl scenarios validate FILE [--plot PNG] [--json]
     alignrl evaluate --policy NAME --apparatus SPEC --scenarios N [--seed S] [--spec-px X]
     alignrl baselines --apparatus SPEC --scenarios N [--seed S] [--spec-px X] [--plot-dir DIR]
+    alignrl report RUN [--out DIR] [--json]
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ from alignrl.apparatus.scenarios import (
     read_scenarios,
 )
 
+EXIT_FAILURE = 1  # the work itself failed (a diverged learner): the message says why
 EXIT_USAGE = 2  # bad input: a clear message, nothing written
 EXIT_INTERRUPTED = 130
 
@@ -457,6 +459,26 @@ def cmd_baselines(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_report(args: argparse.Namespace) -> int:
+    from alignrl.plots import write_run_report
+
+    report = write_run_report(Path(args.run), Path(args.out) if args.out else None)
+    figures = report.figures
+    payload = {
+        "run": args.run,
+        "report": str(report.markdown),
+        "figures": [str(path) for path in figures.written],
+        "skipped": figures.skipped,
+    }
+    lines = [
+        f"{args.run}: report in {report.markdown}",
+        *(f"  {path}" for path in figures.written),
+        *(f"  not plotted: {name} ({why})" for name, why in figures.skipped.items()),
+    ]
+    _emit(payload, args.json, lines)
+    return 0
+
+
 def _add_session_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--apparatus", required=True, help="apparatus spec, e.g. synthetic")
     parser.add_argument("--apparatus-args", default="{}", help="JSON keyword arguments")
@@ -550,6 +572,12 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--quiet", action="store_true", help="no progress bar")
     train.add_argument("--json", action="store_true", help="machine-readable summary")
     train.set_defaults(handler=cmd_train)
+
+    report = verbs.add_parser("report", help="training figures and a Markdown report of a run")
+    report.add_argument("run", metavar="RUN", help="a run directory of `alignrl train`")
+    report.add_argument("--out", metavar="DIR", help="where to write (default: RUN/report)")
+    report.add_argument("--json", action="store_true", help="machine-readable summary")
+    report.set_defaults(handler=cmd_report)
     return parser
 
 
@@ -566,6 +594,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (CommandError, ValueError, OSError) as error:
         print(f"alignrl: error: {error}", file=sys.stderr)
         return EXIT_USAGE
+    except FloatingPointError as error:  # a learner's NonFiniteError: the run diverged
+        print(
+            f"alignrl: training stopped: {error}. The checkpoints on disk are the last good "
+            "state; resume with a lower learning rate or another seed.",
+            file=sys.stderr,
+        )
+        return EXIT_FAILURE
 
 
 if __name__ == "__main__":

@@ -32,8 +32,17 @@ class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
+SAC_ONLY = ("tau", "initial_alpha", "updates_per_step", "buffer_size", "learning_starts",
+            "random_steps")  # fmt: skip
+PPO_ONLY = ("gae_lambda", "clip_range", "entropy_coef", "value_coef", "epochs", "rollout_steps",
+            "initial_log_std")  # fmt: skip
+
+
 class LearnerConfig(_Strict):
-    algorithm: Literal["sac"] = Field("sac", description="the learning algorithm")
+    """One member's learner. Fields marked (SAC) or (PPO) belong to that algorithm alone;
+    left unset (null) they take the learner's default (docs/learners.md)."""
+
+    algorithm: Literal["sac", "ppo"] = Field("sac", description="the learning algorithm")
     encoder: Literal["mlp", "gru", "gtrxl"] = Field("mlp", description="history encoder")
     encoder_kwargs: dict[str, Any] = Field(
         default_factory=dict, description="encoder settings, e.g. {d_model: 32} for gtrxl"
@@ -43,16 +52,46 @@ class LearnerConfig(_Strict):
     )
     learning_rate: float = Field(3e-4, gt=0, lt=1, description="Adam step size")
     gamma: float = Field(0.99, gt=0, le=1, description="discount per step")
-    tau: float = Field(0.005, gt=0, le=1, description="target network follow rate")
-    batch_size: int = Field(256, ge=1, description="transitions per update")
-    initial_alpha: float = Field(0.2, gt=0, description="initial entropy coefficient")
+    batch_size: int = Field(256, ge=1, description="transitions per gradient step (PPO: minibatch)")
     secret_critics: bool = Field(True, description="critics see optimum - setting")
-    updates_per_step: float = Field(
-        1.0, gt=0, le=16, description="gradient updates per env step (update-to-data ratio)"
+    tau: float | None = Field(None, gt=0, le=1, description="(SAC) target follow rate, 0.005")
+    initial_alpha: float | None = Field(None, gt=0, description="(SAC) initial entropy coef, 0.2")
+    updates_per_step: float | None = Field(
+        None, gt=0, le=16, description="(SAC) gradient updates per env step, 1"
     )
-    buffer_size: int = Field(200_000, ge=1000, description="replay capacity, transitions")
-    learning_starts: int = Field(1000, ge=0, description="env steps before the first update")
-    random_steps: int = Field(2000, ge=0, description="env steps of uniform random actions")
+    buffer_size: int | None = Field(None, ge=1000, description="(SAC) replay capacity, 200000")
+    learning_starts: int | None = Field(None, ge=0, description="(SAC) steps before updates, 1000")
+    random_steps: int | None = Field(None, ge=0, description="(SAC) uniform random steps, 2000")
+    gae_lambda: float | None = Field(None, ge=0, le=1, description="(PPO) GAE lambda, 0.95")
+    clip_range: float | None = Field(None, gt=0, lt=1, description="(PPO) ratio clip, 0.2")
+    entropy_coef: float | None = Field(None, ge=0, description="(PPO) entropy bonus, 0")
+    value_coef: float | None = Field(None, gt=0, description="(PPO) value loss weight, 0.5")
+    epochs: int | None = Field(None, ge=1, le=100, description="(PPO) passes per rollout, 10")
+    rollout_steps: int | None = Field(None, ge=1, description="(PPO) steps per env slot, 64")
+    initial_log_std: float | None = Field(
+        None, ge=-5, le=1, description="(PPO) initial policy log-std, -0.5"
+    )
+
+    @model_validator(mode="after")
+    def _fields_of_the_algorithm(self) -> LearnerConfig:
+        foreign = PPO_ONLY if self.algorithm == "sac" else SAC_ONLY
+        wrong = [name for name in foreign if getattr(self, name) is not None]
+        if wrong:
+            raise ValueError(
+                f"{', '.join(wrong)} {'does' if len(wrong) == 1 else 'do'} not apply to "
+                f"algorithm {self.algorithm}"
+            )
+        return self
+
+    def hyperparameters(self) -> dict[str, Any]:
+        """The settings a member of this algorithm takes (alignrl.agents.MemberSpec)."""
+        own = SAC_ONLY if self.algorithm == "sac" else PPO_ONLY
+        shared = ("encoder", "encoder_kwargs", "hidden", "learning_rate", "gamma", "batch_size",
+                  "secret_critics")  # fmt: skip
+        values = {name: getattr(self, name) for name in (*shared, *own)}
+        values["hidden"] = list(values["hidden"])
+        values["encoder_kwargs"] = dict(values["encoder_kwargs"])
+        return {name: value for name, value in values.items() if value is not None}
 
 
 class TaskOptions(_Strict):
@@ -123,6 +162,9 @@ class ExperimentConfig(_Strict):
         1.0, gt=0, le=1, description="misalignment window (share of interval), no curriculum"
     )
     device: str = Field("cpu", description="torch device: cpu, cuda, cuda:1, ...")
+    threads: int = Field(
+        1, ge=1, le=256, description="torch CPU threads (small networks: 1 is fastest)"
+    )
     learner: LearnerConfig = Field(default_factory=LearnerConfig)
     curriculum: CurriculumConfig = Field(default_factory=CurriculumConfig)
     budget: BudgetConfig = Field(default_factory=BudgetConfig)

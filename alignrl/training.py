@@ -30,8 +30,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from alignrl.agents.replay import ReplayBuffer
-from alignrl.agents.sac import SAC, SACConfig
+from alignrl.agents.agent import Agent, MemberSpec
 from alignrl.apparatus.registry import make_apparatus
 from alignrl.checkpoints import atomic_write_text, load_checkpoint, save_checkpoint
 from alignrl.config import ExperimentConfig, dump_experiment, parse_experiment
@@ -43,7 +42,7 @@ from alignrl.evaluation.session import SessionResult, run_session
 
 __all__ = ["Trainer", "evaluate_policy", "load_policy"]
 
-CHECKPOINT_FORMAT = "alignrl-train-1"
+CHECKPOINT_FORMAT = "alignrl-train-2"  # -1: a bare SAC state (policies still load)
 EVALUATION_SEED = 1_000_000  # evaluation scenarios never overlap training seeds
 UPDATE_LOG_EVERY = 50  # updates between rows of updates.csv
 
@@ -93,18 +92,19 @@ class _CsvLog:
             writer.writerows(rows)
 
 
-def _sac_config(config: ExperimentConfig) -> SACConfig:
-    learner = config.learner
-    return SACConfig(
-        encoder=learner.encoder,
-        encoder_kwargs=dict(learner.encoder_kwargs),
-        hidden=tuple(learner.hidden),
-        learning_rate=learner.learning_rate,
-        gamma=learner.gamma,
-        tau=learner.tau,
-        batch_size=learner.batch_size,
-        initial_alpha=learner.initial_alpha,
-        secret_critics=learner.secret_critics,
+def member_spec(config: ExperimentConfig, member_id: str | None = None) -> MemberSpec:
+    """The aligner an experiment trains. Its shapes follow from the task and the history
+    alone, so no apparatus needs to be opened to build or load it."""
+    knobs = len(config.resolved_task().knobs)
+    observation_space, action_space = aligner_spaces(knobs, config.history)
+    return MemberSpec(
+        id=member_id or config.name,
+        team="aligner",
+        algorithm=config.learner.algorithm,
+        observation_shape=observation_space.shape,
+        action_dim=action_space.shape[0],
+        secret_dim=knobs,
+        hyperparameters=config.learner.hyperparameters(),
     )
 
 
@@ -114,6 +114,7 @@ class Trainer:
     def __init__(self, config: ExperimentConfig, run_dir: str | Path) -> None:
         self.config = config
         self.run_dir = Path(run_dir)
+        torch.set_num_threads(config.threads)
         torch.manual_seed(config.seed)
         self.rng = np.random.default_rng(config.seed)
         apparatus = make_apparatus_copies(config.apparatus, config.apparatus_args, config.envs)
@@ -132,31 +133,19 @@ class Trainer:
         level = self.curriculum.level if self.curriculum else config.complexity
         self.task = config.resolved_task()
         self.env = VectorAlignmentEnv(apparatus, self.task, config.history, complexity=level)
-        shape = self.env.single_observation_space.shape
-        self.action_dim = self.env.single_action_space.shape[0]
-        self.secret_dim = self.env.episodes.k
-        self.agent = SAC(
-            shape, self.action_dim, self.secret_dim, _sac_config(config), config.device
-        )
-        self.replay = ReplayBuffer(
-            config.learner.buffer_size, shape, self.secret_dim, self.action_dim
-        )
+        self.agent = Agent(member_spec(config), config.envs, config.device)
+        if self.agent.spec.observation_shape != self.env.single_observation_space.shape:
+            raise ValueError(
+                f"{config.name}: the env's observations are "
+                f"{self.env.single_observation_space.shape}, the aligner expects "
+                f"{self.agent.spec.observation_shape}"
+            )
         self.env_steps = self.episodes = 0
         self.best_successes = -1
         self.starts = 0  # how many times this run was started (resumes change env seeds)
         metrics = self.run_dir / "metrics"
         self.update_log = _CsvLog(
-            metrics / "updates.csv",
-            [
-                "env_steps",
-                "updates",
-                "policy_loss",
-                "q1_loss",
-                "q2_loss",
-                "v_loss",
-                "entropy",
-                "alpha",
-            ],
+            metrics / "updates.csv", ["env_steps", "updates", *self.agent.metric_names]
         )
         self.episode_log = _CsvLog(
             metrics / "episodes.csv",
@@ -208,8 +197,7 @@ class Trainer:
     def _state(self) -> dict[str, Any]:
         return {
             "format": CHECKPOINT_FORMAT,
-            "agent": self.agent.state_dict(),
-            "replay": self.replay.state_dict(),
+            "agent": self.agent.state_dict(replay=True),
             "env_steps": self.env_steps,
             "episodes": self.episodes,
             "best_successes": self.best_successes,
@@ -226,10 +214,6 @@ class Trainer:
                 f"checkpoint format {state.get('format')!r} is not {CHECKPOINT_FORMAT}"
             )
         self.agent.load_state_dict(state["agent"])
-        replay = {
-            k: v.numpy() if isinstance(v, torch.Tensor) else v for k, v in state["replay"].items()
-        }
-        self.replay.load_state_dict(replay)
         self.env_steps, self.episodes = int(state["env_steps"]), int(state["episodes"])
         self.best_successes, self.starts = int(state["best_successes"]), int(state["starts"])
         self.rng.bit_generator.state = state["numpy_rng"]
@@ -300,12 +284,11 @@ class Trainer:
         """Train to the budget; `log` receives a line per evaluation and per checkpoint."""
         from tqdm import tqdm
 
-        cfg, learner, budget = self.config, self.config.learner, self.config.budget
+        cfg, budget = self.config, self.config.budget
         self.starts += 1
         observation, infos = self.env.reset(seed=cfg.seed * 1000 + self.starts)
         secret = infos["secret"]
         returns = np.zeros(self.env.num_envs)
-        update_debt = 0.0
         update_rows: list[dict[str, Any]] = []
         bar = tqdm(
             total=budget.env_steps,
@@ -320,19 +303,14 @@ class Trainer:
         next_checkpoint = (self.env_steps // budget.checkpoint_every + 1) * budget.checkpoint_every
         recent: list[bool] = []
         while self.env_steps < budget.env_steps:
-            if self.env_steps < learner.random_steps:
-                action = self.rng.uniform(-1.0, 1.0, (self.env.num_envs, self.action_dim))
-            else:
-                action = self.agent.act(observation)
+            action = self.agent.explore(observation, self.rng)
             next_observation, reward, done, _, infos = self.env.step(action)
             final = np.where(
                 done[:, None, None],
                 infos.get("final_observation", next_observation),
                 next_observation,
             )
-            self.replay.add(
-                observation, secret, action, reward, final, infos["secret"], done.astype(np.float32)
-            )
+            self.agent.observe(observation, secret, action, reward, final, infos["secret"], done)
             returns += reward
             episode_rows = []
             for index in np.flatnonzero(done):
@@ -356,25 +334,21 @@ class Trainer:
             observation, secret = next_observation, infos["secret"]
             self.env_steps += self.env.num_envs
             bar.update(self.env.num_envs)
-            if self.env_steps >= learner.learning_starts and self.replay.size >= learner.batch_size:
-                update_debt += self.env.num_envs * learner.updates_per_step
-                while update_debt >= 1.0:
-                    metrics = self.agent.update(
-                        self.replay.sample(learner.batch_size, self.rng), cfg.name
+            for metrics in self.agent.learn(self.rng):
+                # SAC logs every UPDATE_LOG_EVERY-th gradient step; PPO each rollout's update.
+                if self.agent.spec.algorithm == "ppo" or self.agent.updates % UPDATE_LOG_EVERY == 0:
+                    update_rows.append(
+                        {
+                            "env_steps": self.env_steps,
+                            "updates": self.agent.updates,
+                            **{k: round(v, 6) for k, v in metrics.items()},
+                        }
                     )
-                    update_debt -= 1.0
-                    if self.agent.updates % UPDATE_LOG_EVERY == 0:
-                        update_rows.append(
-                            {
-                                "env_steps": self.env_steps,
-                                "updates": self.agent.updates,
-                                **{k: round(v, 6) for k, v in metrics.items()},
-                            }
-                        )
+            if update_rows:
                 self.update_log.write(update_rows)
+                board = self._tensorboard_writer()
                 for row in update_rows:
-                    board = self._tensorboard_writer()
-                    for key in ("policy_loss", "q1_loss", "q2_loss", "v_loss", "entropy", "alpha"):
+                    for key in self.agent.metric_names:
                         board.add_scalar(f"learner/{key}", row[key], row["env_steps"])
                 update_rows = []
             if recent:
@@ -404,7 +378,7 @@ class Trainer:
         return result
 
 
-def load_policy(path: str | Path, device: str = "cpu") -> tuple[SAC, ExperimentConfig]:
+def load_policy(path: str | Path, device: str = "cpu") -> tuple[Agent, ExperimentConfig]:
     """A trained aligner from a run directory (its best.pt) or a checkpoint file."""
     import yaml
 
@@ -412,9 +386,11 @@ def load_policy(path: str | Path, device: str = "cpu") -> tuple[SAC, ExperimentC
     checkpoint = path / "checkpoints" / "best.pt" if path.is_dir() else path
     state = load_checkpoint(checkpoint, device)
     config = parse_experiment(yaml.safe_load(state["config"]), f"{checkpoint} (config)")
-    # The shapes follow from the task and history alone: no apparatus needs to be opened.
-    knobs = len(config.resolved_task().knobs)
-    observation_space, action_space = aligner_spaces(knobs, config.history)
-    agent = SAC(observation_space.shape, action_space.shape[0], knobs, _sac_config(config), device)
-    agent.load_state_dict(state["agent"])
+    spec = member_spec(config)
+    agent = Agent(spec, device=device)
+    saved = state["agent"]
+    if saved.get("format") is None and "actor" in saved:  # alignrl-train-1: a bare SAC state
+        saved = {"format": "alignrl-member-1", "spec": spec.to_dict(), "learner": saved,
+                 "steps_seen": 0, "update_debt": 0.0}  # fmt: skip
+    agent.load_state_dict(saved)
     return agent, config

@@ -125,8 +125,8 @@ def test_kill_minus_nine_then_resume_loses_nothing(tmp_path: Path) -> None:
     assert report["env_steps"] == 600
     final = load_checkpoint(checkpoint)
     assert final["env_steps"] == 600 and final["starts"] == killed_at["starts"] + 1
-    assert final["agent"]["updates"] > killed_at["agent"]["updates"]
-    assert int(final["replay"]["size"]) >= int(killed_at["replay"]["size"])
+    assert final["agent"]["learner"]["updates"] > killed_at["agent"]["learner"]["updates"]
+    assert int(final["agent"]["replay"]["size"]) >= int(killed_at["agent"]["replay"]["size"])
     # Every episode is logged once, in order: none lost, none doubled by the resume.
     episodes = [int(row["episode"]) for row in read_csv(run / "metrics" / "episodes.csv")]
     assert episodes == list(range(1, len(episodes) + 1))

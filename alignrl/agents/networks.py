@@ -32,6 +32,7 @@ __all__ = [
     "MLPEncoder",
     "Memory",
     "make_encoder",
+    "mlp",
     "valid_rows",
 ]
 
@@ -460,6 +461,16 @@ ENCODERS: dict[str, type[HistoryEncoder]] = {
     "gru": GRUEncoder,
     "gtrxl": GTrXLEncoder,
 }
+
+
+def mlp(inputs: int, hidden: Sequence[int], outputs: int) -> nn.Sequential:
+    """Linear + ReLU per hidden width, then a linear output layer: the learners' heads."""
+    layers: list[nn.Module] = []
+    for width in hidden:
+        layers += [nn.Linear(inputs, width), nn.ReLU()]
+        inputs = width
+    layers.append(nn.Linear(inputs, outputs))
+    return nn.Sequential(*layers)
 
 
 def make_encoder(name: str, history: int, features: int, **kwargs: Any) -> HistoryEncoder:

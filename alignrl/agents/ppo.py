@@ -1,0 +1,336 @@
+"""Proximal Policy Optimization (Schulman et al. 2017) with the same history encoders as SAC.
+
+* Policy: a Gaussian over pre-squash actions u with a learned, state-independent log-std;
+  the env receives tanh(u), in (-1, 1). Ratios are taken on u, where the tanh correction of
+  the two log-probabilities cancels, so the stored u (never atanh of a clipped action) is the
+  sample of record.
+* Value: V(history, secret) with its own encoder; the secret (optimum - setting) is an extra
+  input at training time, as in SAC's critics. The policy never reads it.
+* Update: generalized advantage estimation over a rollout of whole env steps, the clipped
+  surrogate objective, an entropy bonus, minibatch epochs, gradient clipping.
+
+An update that meets a NaN/inf loss or gradient raises NonFiniteError and leaves the networks
+and the optimizer exactly as they were before the update began.
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from alignrl.agents.networks import make_encoder, mlp
+from alignrl.agents.sac import NonFiniteError
+
+__all__ = ["PPO", "PPOConfig", "Rollout", "RolloutBuffer"]
+
+
+@dataclass(frozen=True)
+class PPOConfig:
+    encoder: str = "gru"  # history encoder of the policy and the value network
+    encoder_kwargs: dict[str, Any] = field(default_factory=dict)
+    hidden: tuple[int, ...] = (128, 128)  # hidden widths of the heads
+    learning_rate: float = 3e-4
+    gamma: float = 0.99
+    gae_lambda: float = 0.95
+    clip_range: float = 0.2  # the surrogate's ratio is clipped to 1 +- clip_range
+    entropy_coef: float = 0.0
+    value_coef: float = 0.5
+    epochs: int = 10  # passes over each rollout
+    batch_size: int = 256  # transitions per minibatch
+    rollout_steps: int = 64  # env steps per env slot between updates
+    initial_log_std: float = -0.5
+    secret_critics: bool = True  # the value network sees optimum - setting (training only)
+    max_grad_norm: float = 0.5
+
+
+@dataclass(frozen=True)
+class Rollout:
+    """`steps` env steps of `envs` slots, time-major, plus what follows the last step."""
+
+    observation: np.ndarray  # (T, N, H, F)
+    secret: np.ndarray  # (T, N, k)
+    pre_tanh: np.ndarray  # (T, N, A) the Gaussian sample u; the env got tanh(u)
+    reward: np.ndarray  # (T, N)
+    done: np.ndarray  # (T, N) 1.0 where the episode ended with this step
+    last_observation: np.ndarray  # (N, H, F) the history after the last step
+    last_secret: np.ndarray  # (N, k)
+
+
+class RolloutBuffer:
+    """Collects one rollout for an on-policy update; filled step by step, then emptied."""
+
+    def __init__(
+        self,
+        steps: int,
+        envs: int,
+        observation_shape: tuple[int, ...],
+        secret_dim: int,
+        action_dim: int,
+    ) -> None:
+        if steps < 1 or envs < 1:
+            raise ValueError(f"a rollout needs steps >= 1 and envs >= 1, got {steps}, {envs}")
+        self.steps, self.envs = steps, envs
+        self.observation = np.zeros((steps, envs, *observation_shape), np.float32)
+        self.secret = np.zeros((steps, envs, secret_dim), np.float32)
+        self.pre_tanh = np.zeros((steps, envs, action_dim), np.float32)
+        self.reward = np.zeros((steps, envs), np.float32)
+        self.done = np.zeros((steps, envs), np.float32)
+        self.last_observation = np.zeros((envs, *observation_shape), np.float32)
+        self.last_secret = np.zeros((envs, secret_dim), np.float32)
+        self.size = 0
+
+    @property
+    def full(self) -> bool:
+        return self.size == self.steps
+
+    def add(
+        self,
+        observation: np.ndarray,
+        secret: np.ndarray,
+        pre_tanh: np.ndarray,
+        reward: np.ndarray,
+        next_observation: np.ndarray,
+        next_secret: np.ndarray,
+        done: np.ndarray,
+    ) -> None:
+        if self.full:
+            raise ValueError("the rollout is full: update on it, then clear it")
+        if len(reward) != self.envs:
+            raise ValueError(f"a rollout step needs {self.envs} env slots, got {len(reward)}")
+        t = self.size
+        self.observation[t], self.secret[t], self.pre_tanh[t] = observation, secret, pre_tanh
+        self.reward[t], self.done[t] = reward, done
+        self.last_observation[:], self.last_secret[:] = next_observation, next_secret
+        self.size += 1
+
+    def rollout(self) -> Rollout:
+        if not self.full:
+            raise ValueError(f"the rollout holds {self.size} of {self.steps} steps")
+        return Rollout(
+            self.observation.copy(),
+            self.secret.copy(),
+            self.pre_tanh.copy(),
+            self.reward.copy(),
+            self.done.copy(),
+            self.last_observation.copy(),
+            self.last_secret.copy(),
+        )
+
+    def clear(self) -> None:
+        self.size = 0
+
+
+def generalized_advantages(
+    reward: Tensor, done: Tensor, value: Tensor, last_value: Tensor, gamma: float, lam: float
+) -> Tensor:
+    """GAE over time-major (T, N) tensors. A done step does not bootstrap: the slot's next
+    history already belongs to a new episode (the envs reset in the same step)."""
+    advantage = torch.zeros_like(reward)
+    running = torch.zeros_like(last_value)
+    next_value = last_value
+    for t in range(reward.shape[0] - 1, -1, -1):
+        keep = 1.0 - done[t]
+        delta = reward[t] + gamma * keep * next_value - value[t]
+        running = delta + gamma * lam * keep * running
+        advantage[t] = running
+        next_value = value[t]
+    return advantage
+
+
+class PolicyNet(nn.Module):
+    def __init__(self, history: int, features: int, action_dim: int, config: PPOConfig) -> None:
+        super().__init__()
+        self.encoder = make_encoder(config.encoder, history, features, **config.encoder_kwargs)
+        self.head = mlp(self.encoder.output_dim, config.hidden, action_dim)
+        self.log_std = nn.Parameter(torch.full((action_dim,), float(config.initial_log_std)))
+
+    def forward(self, observation: Tensor) -> torch.distributions.Normal:
+        encoded, _ = self.encoder(observation)
+        std = self.log_std.clamp(-5.0, 1.0).exp().expand(encoded.shape[0], -1)
+        return torch.distributions.Normal(self.head(encoded), std)
+
+
+class ValueNet(nn.Module):
+    def __init__(self, history: int, features: int, secret_in: int, config: PPOConfig) -> None:
+        super().__init__()
+        self.encoder = make_encoder(config.encoder, history, features, **config.encoder_kwargs)
+        self.head = mlp(self.encoder.output_dim + secret_in, config.hidden, 1)
+
+    def forward(self, observation: Tensor, *extra: Tensor) -> Tensor:
+        encoded, _ = self.encoder(observation)
+        return self.head(torch.cat([encoded, *extra], dim=-1)).squeeze(-1)
+
+
+class PPO:
+    """One PPO learner: policy and value networks and their optimizer."""
+
+    def __init__(
+        self,
+        observation_shape: tuple[int, int],
+        action_dim: int,
+        secret_dim: int,
+        config: PPOConfig | None = None,
+        device: str | torch.device = "cpu",
+    ) -> None:
+        self.config = config or PPOConfig()
+        cfg = self.config
+        self.device = torch.device(device)
+        history, features = observation_shape
+        self.action_dim, self.secret_dim = action_dim, secret_dim
+        self.policy = PolicyNet(history, features, action_dim, cfg).to(self.device)
+        secret_in = secret_dim if cfg.secret_critics else 0
+        self.value = ValueNet(history, features, secret_in, cfg).to(self.device)
+        self.optimizer = torch.optim.Adam(
+            [*self.policy.parameters(), *self.value.parameters()], lr=cfg.learning_rate
+        )
+        self.updates = 0  # rollouts learned from
+
+    # --- acting -------------------------------------------------------------------------
+
+    def _tensor(self, array: np.ndarray) -> Tensor:
+        return torch.as_tensor(array, dtype=torch.float32, device=self.device)
+
+    @torch.no_grad()
+    def act(self, observation: np.ndarray, deterministic: bool = False) -> np.ndarray:
+        """Actions in (-1, 1) for a batch of histories (B, H, F) or one history (H, F)."""
+        return np.tanh(self.sample(observation, deterministic))
+
+    @torch.no_grad()
+    def sample(self, observation: np.ndarray, deterministic: bool = False) -> np.ndarray:
+        """Pre-squash actions u (the env takes tanh(u)); the mean when deterministic."""
+        single = observation.ndim == 2
+        batch = self._tensor(observation)
+        if single:
+            batch = batch[None]
+        distribution = self.policy(batch)
+        u = distribution.mean if deterministic else distribution.sample()
+        result = u.cpu().numpy()
+        return result[0] if single else result
+
+    # --- learning -----------------------------------------------------------------------
+
+    def _extra(self, secret: Tensor) -> list[Tensor]:
+        return [secret] if self.config.secret_critics else []
+
+    def update(
+        self, rollout: Rollout, rng: np.random.Generator, member: str = "ppo"
+    ) -> dict[str, float]:
+        """Epochs of clipped-surrogate minibatch steps on one rollout; returns their means."""
+        snapshot = (
+            copy.deepcopy(self.policy.state_dict()),
+            copy.deepcopy(self.value.state_dict()),
+            copy.deepcopy(self.optimizer.state_dict()),
+        )
+        try:
+            return self._update(rollout, rng, member)
+        except NonFiniteError:
+            self.policy.load_state_dict(snapshot[0])
+            self.value.load_state_dict(snapshot[1])
+            self.optimizer.load_state_dict(snapshot[2])
+            raise
+
+    def _update(self, rollout: Rollout, rng: np.random.Generator, member: str) -> dict[str, float]:
+        cfg = self.config
+        steps, envs = rollout.reward.shape
+        observation = self._tensor(rollout.observation).flatten(0, 1)  # (T*N, H, F)
+        secret = self._tensor(rollout.secret).flatten(0, 1)  # (T*N, k)
+        pre_tanh = self._tensor(rollout.pre_tanh).flatten(0, 1)  # (T*N, A)
+        with torch.no_grad():
+            old_log_prob = self.policy(observation).log_prob(pre_tanh).sum(-1)
+            value = self.value(observation, *self._extra(secret))
+            last_value = self.value(
+                self._tensor(rollout.last_observation),
+                *self._extra(self._tensor(rollout.last_secret)),
+            )
+            advantage = generalized_advantages(
+                self._tensor(rollout.reward),
+                self._tensor(rollout.done),
+                value.view(steps, envs),
+                last_value,
+                cfg.gamma,
+                cfg.gae_lambda,
+            ).flatten()
+            returns = advantage + value
+        self._check_finite(member, {"value": value, "advantage": advantage})
+
+        count = steps * envs
+        batch = min(cfg.batch_size, count)
+        sums = dict.fromkeys(
+            ("policy_loss", "value_loss", "entropy", "approx_kl", "clip_fraction"), 0.0
+        )
+        minibatches = 0
+        parameters = [*self.policy.parameters(), *self.value.parameters()]
+        for _ in range(cfg.epochs):
+            order = torch.as_tensor(rng.permutation(count), device=self.device)
+            for start in range(0, count - batch + 1, batch):
+                index = order[start : start + batch]
+                distribution = self.policy(observation[index])
+                log_prob = distribution.log_prob(pre_tanh[index]).sum(-1)
+                log_ratio = log_prob - old_log_prob[index]
+                ratio = log_ratio.exp()
+                adv = advantage[index]
+                adv = (adv - adv.mean()) / (adv.std() + 1e-8)
+                surrogate = torch.min(
+                    ratio * adv, ratio.clamp(1 - cfg.clip_range, 1 + cfg.clip_range) * adv
+                )
+                policy_loss = -surrogate.mean()
+                value_loss = (
+                    0.5
+                    * (self.value(observation[index], *self._extra(secret[index])) - returns[index])
+                    .pow(2)
+                    .mean()
+                )
+                entropy = distribution.entropy().sum(-1).mean()
+                self._check_finite(
+                    member, {"policy": policy_loss, "value": value_loss, "entropy": entropy}
+                )
+                loss = policy_loss + cfg.value_coef * value_loss - cfg.entropy_coef * entropy
+                self.optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                norm = nn.utils.clip_grad_norm_(parameters, cfg.max_grad_norm)
+                self._check_finite(member, {"gradient": norm})
+                self.optimizer.step()
+                with torch.no_grad():
+                    sums["policy_loss"] += policy_loss.item()
+                    sums["value_loss"] += value_loss.item()
+                    sums["entropy"] += entropy.item()
+                    # The (r - 1) - log r estimator of KL(old || new): unbiased, never negative.
+                    sums["approx_kl"] += ((ratio - 1) - log_ratio).mean().item()
+                    sums["clip_fraction"] += (
+                        ((ratio - 1).abs() > cfg.clip_range).float().mean().item()
+                    )
+                minibatches += 1
+        self.updates += 1
+        return {name: total / max(minibatches, 1) for name, total in sums.items()}
+
+    def _check_finite(self, member: str, values: dict[str, Tensor]) -> None:
+        for name, value in values.items():
+            if not torch.isfinite(value).all():
+                raise NonFiniteError(
+                    f"member {member}: the {name} {'is' if value.numel() == 1 else 'holds'} "
+                    f"non-finite values at update {self.updates}; the update was refused and "
+                    "the networks are unchanged"
+                )
+
+    # --- state --------------------------------------------------------------------------
+
+    def state_dict(self) -> dict[str, Any]:
+        """Tensors and plain numbers only: loadable with torch.load(weights_only=True)."""
+        return {
+            "policy": self.policy.state_dict(),
+            "value": self.value.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "updates": self.updates,
+            "config": asdict(self.config),
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.policy.load_state_dict(state["policy"])
+        self.value.load_state_dict(state["value"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.updates = int(state["updates"])
