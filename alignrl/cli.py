@@ -33,7 +33,6 @@ from alignrl.apparatus.scenarios import (
     read_scenarios,
 )
 
-EXIT_FAILURE = 1  # the work itself failed (a diverged learner): the message says why
 EXIT_USAGE = 2  # bad input: a clear message, nothing written
 EXIT_INTERRUPTED = 130
 
@@ -479,6 +478,115 @@ def cmd_report(args: argparse.Namespace) -> int:
     return 0
 
 
+def _leaderboard_lines(rows: list[dict[str, Any]]) -> list[str]:
+    header = (
+        f"{'member':28} {'team':10} {'architecture':36} {'learner':7} {'rating':>7} "
+        f"{'eval':>7} {'median acq':>10}  parent"
+    )
+    lines = [header, "-" * len(header)]
+    for row in rows:
+        evaluation = (
+            f"{row['successes']}/{row['scenarios']}" if row["successes"] is not None else "-"
+        )
+        median = row["median_acquisitions"]
+        lines.append(
+            f"{row['member']:28} {row['team']:10} {row['architecture'][:36]:36} "
+            f"{row['learner']:7} {row['rating']:7.1f} {evaluation:>7} "
+            f"{'-' if median is None else f'{median:g}':>10}  {row['parent'] or ''}"
+        )
+    return lines
+
+
+def _run_league(league: Any, args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from alignrl.agents.sac import NonFiniteError
+    from alignrl.league.loop import leaderboard
+
+    log = None if args.quiet else (lambda line: tqdm.write(line, file=sys.stderr))
+    started = time.perf_counter()
+    try:
+        league.run(progress=not args.quiet, log=log)
+    except KeyboardInterrupt:
+        print(
+            f"\ninterrupted at iteration {league.iteration}; the last checkpoint is kept: "
+            f"continue with `alignrl league resume {league.run_dir}`",
+            file=sys.stderr,
+        )
+        return EXIT_INTERRUPTED
+    except NonFiniteError as error:
+        raise CommandError(
+            f"league stopped: {error}; the last checkpoint in {league.run_dir} is intact"
+        ) from None
+    rows = leaderboard(league)
+    payload = {
+        "run": str(league.run_dir),
+        "iterations": league.iteration,
+        "env_steps": league.env_steps,
+        "seconds": round(time.perf_counter() - started, 1),
+        "leaderboard": rows,
+    }
+    _emit(payload, args.json, _leaderboard_lines(rows))
+    return 0
+
+
+def cmd_league_run(args: argparse.Namespace) -> int:
+    from alignrl.league.config import load_league
+    from alignrl.league.loop import League
+
+    config, aligners, misaligners = load_league(args.config)
+    if args.name:
+        config = config.model_copy(update={"name": args.name})
+    return _run_league(League.create(config, aligners, misaligners, args.runs_dir), args)
+
+
+def cmd_league_resume(args: argparse.Namespace) -> int:
+    from alignrl.league.loop import League
+
+    return _run_league(League.resume(args.run), args)
+
+
+def cmd_league_status(args: argparse.Namespace) -> int:
+    from alignrl.league.loop import League
+
+    league = League.resume(args.run)
+    schedule = league.config.schedule
+    payload = {
+        "run": args.run,
+        "iteration": league.iteration,
+        "iterations": schedule.iterations,
+        "env_steps": league.env_steps,
+        "complexity": league.backend.episodes.complexity,
+        "members": {team: league.pool.active(team) for team in ("aligner", "misaligner")},
+        "snapshots": {
+            team: [snapshot.id for snapshot in league.pool.snapshots(team)]
+            for team in ("aligner", "misaligner")
+        },
+        "best": list(league.best.values()),
+    }
+    lines = [
+        f"{args.run}: iteration {league.iteration} of {schedule.iterations}, "
+        f"{league.env_steps} env steps, complexity {payload['complexity']:g}",
+        *(f"  {team}s: {', '.join(ids)}" for team, ids in payload["members"].items()),
+        *(
+            f"  best: {row['member']} {row['successes']}/{row['scenarios']} at iteration "
+            f"{row['iteration']}"
+            for row in payload["best"]
+        ),
+    ]
+    _emit(payload, args.json, lines)
+    return 0
+
+
+def cmd_leaderboard(args: argparse.Namespace) -> int:
+    from alignrl.league.loop import League, leaderboard
+
+    league = League.resume(args.run)
+    rows = leaderboard(league)
+    _emit({"run": args.run, "leaderboard": rows}, args.json, _leaderboard_lines(rows))
+    return 0
+
+
 def _add_session_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--apparatus", required=True, help="apparatus spec, e.g. synthetic")
     parser.add_argument("--apparatus-args", default="{}", help="JSON keyword arguments")
@@ -578,6 +686,29 @@ def build_parser() -> argparse.ArgumentParser:
     report.add_argument("--out", metavar="DIR", help="where to write (default: RUN/report)")
     report.add_argument("--json", action="store_true", help="machine-readable summary")
     report.set_defaults(handler=cmd_report)
+
+    league = verbs.add_parser("league", help="the two-team league: run, resume, status")
+    league_verbs = league.add_subparsers(dest="league_verb", required=True)
+    league_run = league_verbs.add_parser("run", help="start a league from an experiment")
+    league_run.add_argument("config", help="league experiment YAML, e.g. experiments/X.yaml")
+    league_run.add_argument("--name", help="run name (default: the config's name)")
+    league_run.add_argument("--runs-dir", default="runs", help="where run directories go")
+    league_resume = league_verbs.add_parser("resume", help="continue a league from its checkpoint")
+    league_resume.add_argument("run", metavar="RUN", help="a league run directory")
+    for parser_ in (league_run, league_resume):
+        parser_.add_argument("--quiet", action="store_true", help="no progress bar")
+        parser_.add_argument("--json", action="store_true", help="machine-readable summary")
+    league_run.set_defaults(handler=cmd_league_run)
+    league_resume.set_defaults(handler=cmd_league_resume)
+    league_status = league_verbs.add_parser("status", help="where a league run stands")
+    league_status.add_argument("run", metavar="RUN", help="a league run directory")
+    league_status.add_argument("--json", action="store_true", help="machine-readable summary")
+    league_status.set_defaults(handler=cmd_league_status)
+
+    board = verbs.add_parser("leaderboard", help="the members of a league run, best first")
+    board.add_argument("run", metavar="RUN", help="a league run directory")
+    board.add_argument("--json", action="store_true", help="machine-readable summary")
+    board.set_defaults(handler=cmd_leaderboard)
     return parser
 
 
@@ -594,13 +725,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (CommandError, ValueError, OSError) as error:
         print(f"alignrl: error: {error}", file=sys.stderr)
         return EXIT_USAGE
-    except FloatingPointError as error:  # a learner's NonFiniteError: the run diverged
-        print(
-            f"alignrl: training stopped: {error}. The checkpoints on disk are the last good "
-            "state; resume with a lower learning rate or another seed.",
-            file=sys.stderr,
-        )
-        return EXIT_FAILURE
 
 
 if __name__ == "__main__":

@@ -33,7 +33,7 @@ class _Strict(BaseModel):
 
 
 SAC_ONLY = ("tau", "initial_alpha", "updates_per_step", "buffer_size", "learning_starts",
-            "random_steps")  # fmt: skip
+            "random_steps", "shared_critic_encoder")  # fmt: skip
 PPO_ONLY = ("gae_lambda", "clip_range", "entropy_coef", "value_coef", "epochs", "rollout_steps",
             "initial_log_std")  # fmt: skip
 
@@ -62,6 +62,9 @@ class LearnerConfig(_Strict):
     buffer_size: int | None = Field(None, ge=1000, description="(SAC) replay capacity, 200000")
     learning_starts: int | None = Field(None, ge=0, description="(SAC) steps before updates, 1000")
     random_steps: int | None = Field(None, ge=0, description="(SAC) uniform random steps, 2000")
+    shared_critic_encoder: bool | None = Field(
+        None, description="(SAC) Q1, Q2 and V read one history encoder, false"
+    )
     gae_lambda: float | None = Field(None, ge=0, le=1, description="(PPO) GAE lambda, 0.95")
     clip_range: float | None = Field(None, gt=0, lt=1, description="(PPO) ratio clip, 0.2")
     entropy_coef: float | None = Field(None, ge=0, description="(PPO) entropy bonus, 0")

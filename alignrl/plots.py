@@ -233,8 +233,19 @@ def _legend(run: str | None, what: str) -> str:
     return what if run is None else f"{run}: {what}"
 
 
+def _steps_tick(value: float, _position: int) -> str:
+    """200000 -> '200k', 1500000 -> '1.5M': six-digit step counts overlap on a shared axis."""
+    for scale, suffix in ((1e6, "M"), (1e3, "k")):
+        if abs(value) >= scale:
+            return f"{value / scale:g}{suffix}"
+    return f"{value:g}"
+
+
 def _finish(axes: Axes, title: str, y_label: str) -> None:
+    from matplotlib.ticker import FuncFormatter
+
     axes.set_title(title)
+    axes.xaxis.set_major_formatter(FuncFormatter(_steps_tick))
     axes.set_xlabel(ENV_STEPS_LABEL)
     axes.set_ylabel(y_label)
     axes.grid(True, alpha=0.3)

@@ -40,7 +40,7 @@ from alignrl.envs.task import Task
 from alignrl.evaluation.controllers import PolicyController
 from alignrl.evaluation.session import SessionResult, run_session
 
-__all__ = ["Trainer", "evaluate_policy", "load_policy"]
+__all__ = ["CsvLog", "Trainer", "evaluate_policy", "load_policy", "member_spec"]
 
 CHECKPOINT_FORMAT = "alignrl-train-2"  # -1: a bare SAC state (policies still load)
 EVALUATION_SEED = 1_000_000  # evaluation scenarios never overlap training seeds
@@ -63,20 +63,21 @@ def evaluate_policy(
     return run_session(controller, make_apparatus(apparatus, apparatus_args), task, scenarios, seed)
 
 
-class _CsvLog:
-    """Append-only CSV with a fixed header; rows past a step are dropped on resume."""
+class CsvLog:
+    """Append-only CSV with a fixed header; rows past a checkpoint's count of `key` (env
+    steps, league iterations) are dropped on resume."""
 
-    def __init__(self, path: Path, fields: list[str]) -> None:
-        self.path, self.fields = path, fields
+    def __init__(self, path: Path, fields: list[str], key: str = "env_steps") -> None:
+        self.path, self.fields, self.key = path, fields, key
         path.parent.mkdir(parents=True, exist_ok=True)
         if not path.exists():
             with path.open("w", newline="") as handle:
                 csv.writer(handle).writerow(fields)
 
-    def truncate_after(self, env_steps: int) -> None:
+    def truncate_after(self, count: int) -> None:
         with self.path.open(newline="") as handle:
             rows = list(csv.DictReader(handle))
-        kept = [row for row in rows if int(row["env_steps"]) <= env_steps]
+        kept = [row for row in rows if int(row[self.key]) <= count]
         text = (
             ",".join(self.fields)
             + "\n"
@@ -144,14 +145,14 @@ class Trainer:
         self.best_successes = -1
         self.starts = 0  # how many times this run was started (resumes change env seeds)
         metrics = self.run_dir / "metrics"
-        self.update_log = _CsvLog(
+        self.update_log = CsvLog(
             metrics / "updates.csv", ["env_steps", "updates", *self.agent.metric_names]
         )
-        self.episode_log = _CsvLog(
+        self.episode_log = CsvLog(
             metrics / "episodes.csv",
             ["env_steps", "episode", "return", "success", "acquisitions", "complexity"],
         )
-        self.evaluation_log = _CsvLog(
+        self.evaluation_log = CsvLog(
             metrics / "evaluations.csv",
             [
                 "env_steps",

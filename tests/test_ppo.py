@@ -21,38 +21,70 @@ def learner(seed: int = 0, config: PPOConfig = SMALL) -> PPO:
 
 
 def random_rollout(steps: int = 16, envs: int = 4, seed: int = 0) -> Rollout:
+    """`steps` steps of `envs` slots through the buffer, as the trainer stores them."""
     rng = np.random.default_rng(seed)
-    observation = rng.uniform(-1, 1, (steps, envs, *SHAPE)).astype(np.float32)
-    observation[..., 0] = 1.0  # every row valid
-    return Rollout(
-        observation=observation,
-        secret=rng.uniform(-1, 1, (steps, envs, 1)).astype(np.float32),
-        pre_tanh=rng.normal(size=(steps, envs, 2)).astype(np.float32),
-        reward=rng.normal(size=(steps, envs)).astype(np.float32),
-        done=(rng.random((steps, envs)) < 0.2).astype(np.float32),
-        last_observation=observation[-1],
-        last_secret=rng.uniform(-1, 1, (envs, 1)).astype(np.float32),
-    )
+    buffer = RolloutBuffer(steps, envs, SHAPE, 1, 2)
+    observation = rng.uniform(-1, 1, (envs, *SHAPE)).astype(np.float32)
+    for _ in range(steps):
+        observation[..., 0] = 1.0  # every row valid
+        following = rng.uniform(-1, 1, (envs, *SHAPE)).astype(np.float32)
+        buffer.add(
+            observation,
+            rng.uniform(-1, 1, (envs, 1)),
+            rng.normal(size=(envs, 2)),
+            rng.normal(size=envs),
+            following,
+            rng.uniform(-1, 1, (envs, 1)),
+            (rng.random(envs) < 0.2).astype(np.float32),
+        )
+        observation = following
+    return buffer.rollout()
 
 
 def test_generalized_advantages_match_the_recursion_by_hand() -> None:
-    reward = torch.tensor([[1.0], [0.0], [2.0]])
-    done = torch.tensor([[0.0], [1.0], [0.0]])
-    value = torch.tensor([[0.5], [0.2], [0.1]])
-    last = torch.tensor([0.3])
+    # One slot: transitions 0 -> 1 (episode ends at 1), then 2, whose episode goes on past
+    # the rollout (bootstrapped from V of its next history).
+    reward = np.array([1.0, 0.0, 2.0])
+    done = np.array([0.0, 1.0, 0.0])
+    value = np.array([0.5, 0.2, 0.1])
+    next_value = np.array([0.2, 9.9, 0.3])  # V(next) of a done transition must not count
+    follows = np.array([1, -1, -1])
     gamma, lam = 0.9, 0.8
-    # t=2 bootstraps from `last`; t=1 ends its episode (no bootstrap, no carry-over);
-    # t=0 bootstraps from V(t=1) and carries t=1's advantage.
     a2 = 2.0 + gamma * 0.3 - 0.1
     a1 = 0.0 - 0.2
     a0 = (1.0 + gamma * 0.2 - 0.5) + gamma * lam * a1
-    got = generalized_advantages(reward, done, value, last, gamma, lam)
-    torch.testing.assert_close(got, torch.tensor([[a0], [a1], [a2]]))
+    got = generalized_advantages(reward, done, value, next_value, follows, gamma, lam)
+    np.testing.assert_allclose(got, [a0, a1, a2])
+
+
+def test_the_buffer_links_each_slot_to_its_next_step_also_when_slots_wait() -> None:
+    buffer = RolloutBuffer(steps=3, envs=2, observation_shape=SHAPE, secret_dim=1, action_dim=2)
+    zeros = np.zeros((2, *SHAPE), np.float32)
+
+    def step(slots: list[int], done: list[float]) -> None:
+        n = len(slots)
+        buffer.add(zeros[:n], np.zeros((n, 1)), np.zeros((n, 2)), np.ones(n), zeros[:n],
+                   np.zeros((n, 1)), np.array(done), slots=np.array(slots))  # fmt: skip
+
+    step([0, 1], [0.0, 1.0])  # transitions 0 (slot 0) and 1 (slot 1, its episode ends)
+    step([0], [0.0])  # 2: slot 0 alone (slot 1 waits for the round to finish)
+    step([1, 0], [0.0, 1.0])  # 3: slot 1's new episode, 4: slot 0 ends
+    rollout = buffer.rollout()
+    assert rollout.follows.tolist() == [2, -1, 4, -1, -1]
+    step([1], [0.0])
+    assert buffer.full and buffer.rollout().follows.tolist() == [2, -1, 4, 5, -1, -1]
+    with pytest.raises(ValueError, match="full"):
+        step([0], [0.0])
+    buffer.clear()
+    with pytest.raises(ValueError, match="0 of 6"):
+        buffer.rollout()
+    with pytest.raises(ValueError, match="slot numbers below 2"):
+        step([2], [0.0])
 
 
 def test_the_value_network_reads_the_secret_and_the_policy_cannot() -> None:
     ppo = learner()
-    observation = torch.as_tensor(random_rollout().observation[0])
+    observation = torch.as_tensor(random_rollout().observation[:4])
     v_a = ppo.value(observation, torch.zeros(4, 1))
     v_b = ppo.value(observation, torch.ones(4, 1))
     assert not torch.allclose(v_a, v_b)
@@ -81,7 +113,7 @@ def test_save_load_gives_identical_actions_and_identical_next_update() -> None:
     state = copy.deepcopy(ppo.state_dict())
     restored = learner(seed=99)
     restored.load_state_dict(state)
-    observation = random_rollout(seed=2).observation[0]
+    observation = random_rollout(seed=2).observation[:4]
     np.testing.assert_array_equal(
         ppo.act(observation, deterministic=True), restored.act(observation, deterministic=True)
     )
@@ -97,7 +129,7 @@ def test_a_nan_stops_the_update_names_the_member_and_changes_nothing() -> None:
     ppo = learner()
     before = copy.deepcopy(ppo.state_dict())
     broken = random_rollout()
-    broken.reward[3, 1] = np.nan
+    broken.reward[13] = np.nan
     with pytest.raises(NonFiniteError, match=r"member aligner-7: the advantage"):
         ppo.update(broken, np.random.default_rng(0), member="aligner-7")
     after = ppo.state_dict()
@@ -126,25 +158,6 @@ def test_a_nan_stops_the_update_names_the_member_and_changes_nothing() -> None:
     assert after["optimizer"]["state"] == {}  # Adam never stepped: its moments are gone
 
 
-def test_the_rollout_buffer_fills_in_order_and_refuses_overflow() -> None:
-    buffer = RolloutBuffer(steps=2, envs=3, observation_shape=SHAPE, secret_dim=1, action_dim=2)
-    zeros = np.zeros((3, *SHAPE), np.float32)
-    for step in range(2):
-        buffer.add(
-            zeros + step, np.zeros((3, 1)), np.zeros((3, 2)), np.full(3, step), zeros + step + 1,
-            np.ones((3, 1)), np.zeros(3),
-        )  # fmt: skip
-    rollout = buffer.rollout()
-    assert rollout.reward.tolist() == [[0, 0, 0], [1, 1, 1]]
-    assert rollout.last_observation.max() == 2.0  # the history after the last step
-    with pytest.raises(ValueError, match="full"):
-        buffer.add(zeros, np.zeros((3, 1)), np.zeros((3, 2)), np.zeros(3), zeros, np.ones((3, 1)),
-                   np.zeros(3))  # fmt: skip
-    buffer.clear()
-    with pytest.raises(ValueError, match="0 of 2"):
-        buffer.rollout()
-
-
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device here")
 def test_ppo_runs_on_cuda_where_available() -> None:
     torch.manual_seed(0)
@@ -152,4 +165,4 @@ def test_ppo_runs_on_cuda_where_available() -> None:
     metrics = ppo.update(random_rollout(), np.random.default_rng(0))
     assert all(np.isfinite(value) for value in metrics.values())
     assert next(ppo.policy.parameters()).is_cuda
-    assert ppo.act(random_rollout().observation[0]).shape == (4, 2)
+    assert ppo.act(random_rollout().observation[:4]).shape == (4, 2)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -62,6 +63,49 @@ def test_an_update_changes_every_network_and_reports_the_seed_losses() -> None:
     for name in ("actor", "q1", "q2", "v", "v_target"):
         changed = any(not torch.equal(before[name][key], after[name][key]) for key in before[name])
         assert changed, name
+
+
+def test_each_network_learns_from_its_own_loss_alone() -> None:
+    """update() takes one backward pass of all losses together: the gradients must be those
+    of the seed's separate passes (critics: their regression losses; policy: the policy loss
+    through min Q; alpha: its own loss)."""
+    # lr 0 keeps the networks as they were; the gradients stay in .grad after the update.
+    config = SACConfig(encoder_kwargs={"hidden": (32,)}, learning_rate=0.0, max_grad_norm=1e9)
+    learner = agent(config=config)
+    batch = random_batch()
+    torch.manual_seed(3)
+    learner.update(batch)
+
+    given = {name: torch.as_tensor(array) for name, array in vars(batch).items()}
+    observation, secret, action = given["observation"], given["secret"], given["action"]
+    torch.manual_seed(3)  # the same policy noise as inside update()
+    new_action, log_prob, _ = learner.actor.sample(observation)
+    alpha = learner.log_alpha.detach().exp()
+    with torch.no_grad():
+        v_next = learner.v_target(given["next_observation"], given["next_secret"])
+        q_target = given["reward"] + config.gamma * (1 - given["done"]) * v_next
+    min_q_new = torch.min(
+        learner.q1(observation, secret, new_action), learner.q2(observation, secret, new_action)
+    )
+    v_target = (min_q_new - alpha * log_prob).detach()
+    critic_loss = sum(
+        0.5 * (prediction - target).pow(2).mean()
+        for prediction, target in (
+            (learner.q1(observation, secret, action), q_target),
+            (learner.q2(observation, secret, action), q_target),
+            (learner.v(observation, secret), v_target),
+        )
+    )
+    policy_loss = (alpha * log_prob - min_q_new).mean()
+    critics = [*learner.q1.parameters(), *learner.q2.parameters(), *learner.v.parameters()]
+    actor = list(learner.actor.parameters())
+    expected = [
+        *torch.autograd.grad(critic_loss, critics),
+        *torch.autograd.grad(policy_loss, actor),
+        -(log_prob.detach() + learner.target_entropy).mean(),
+    ]
+    for parameter, gradient in zip([*critics, *actor, learner.log_alpha], expected, strict=True):
+        torch.testing.assert_close(parameter.grad, gradient, rtol=1e-4, atol=1e-6)
 
 
 def test_save_load_gives_identical_actions_and_identical_next_update(tmp_path: Path) -> None:
@@ -154,3 +198,31 @@ def test_sac_runs_on_cuda_where_available() -> None:
     assert next(learner.actor.parameters()).is_cuda
     action = learner.act(random_batch().observation, deterministic=True)
     assert action.shape == (16, 2) and np.all(np.abs(action) <= 1)
+
+
+def test_a_shared_critic_encoder_is_one_module_trained_by_all_critics(tmp_path: Path) -> None:
+    shared = agent(config=dataclasses.replace(SMALL, shared_critic_encoder=True))
+    assert shared.q1.encoder is shared.q2.encoder is shared.v.encoder
+    assert shared.v_target.encoder is not shared.v.encoder  # the target keeps its own copy
+    assert shared.actor.encoder is not shared.q1.encoder  # the policy never shares
+    separate = agent()
+    count = lambda sac: sum(p.numel() for p in sac._critic_parameters)  # noqa: E731
+    assert count(shared) == count(separate) - 2 * sum(
+        p.numel() for p in separate.q1.encoder.parameters()
+    )
+    before = copy.deepcopy(shared.q1.encoder.state_dict())
+    metrics = shared.update(random_batch())
+    assert all(np.isfinite(value) for value in metrics.values())
+    changed = [not torch.equal(before[k], v) for k, v in shared.q1.encoder.state_dict().items()]
+    assert all(changed)
+    # Saved and loaded, the encoder is still one module, with the trained weights.
+    path = tmp_path / "shared.pt"
+    save_checkpoint(path, {"format": "test", "agent": shared.state_dict()})
+    restored = agent(seed=5, config=dataclasses.replace(SMALL, shared_critic_encoder=True))
+    restored.load_state_dict(load_checkpoint(path)["agent"])
+    assert restored.q1.encoder is restored.v.encoder
+    batch = random_batch(seed=4)
+    torch.manual_seed(3)
+    first = shared.update(batch)
+    torch.manual_seed(3)
+    assert restored.update(batch) == first

@@ -190,9 +190,11 @@ class Agent:
         next_observation: np.ndarray,
         next_secret: np.ndarray,
         done: np.ndarray,
+        slots: np.ndarray | None = None,
     ) -> None:
-        """Store one env step of every slot (next_observation of a done slot: the episode's
-        last history, not the reset one)."""
+        """Store one env step of every slot, or of the env slots `slots` where only some
+        moved (next_observation of a done slot: the episode's last history, not the reset
+        one)."""
         done = done.astype(np.float32)
         if isinstance(self.learner, SAC):
             self.replay.add(
@@ -209,6 +211,7 @@ class Agent:
                 next_observation,
                 next_secret,
                 done,
+                slots,
             )
             self._pending_pre_tanh = None
         self.steps_seen += len(reward)
@@ -241,6 +244,20 @@ class Agent:
                 raise TypeError(f"member {self.id}: SAC updates on a replay Batch")
             return self.learner.update(batch, self.id)
         return self.learner.update(batch, rng or np.random.default_rng(self.updates), self.id)
+
+    def set_learning_rate(self, learning_rate: float) -> None:
+        """Every optimizer of the learner steps at `learning_rate` from now on (PBT)."""
+        if isinstance(self.learner, SAC):
+            optimizers = [
+                self.learner.actor_optimizer,
+                self.learner.critic_optimizer,
+                self.learner.alpha_optimizer,
+            ]
+        else:
+            optimizers = [self.learner.optimizer]
+        for optimizer in optimizers:
+            for group in optimizer.param_groups:
+                group["lr"] = learning_rate
 
     # --- state --------------------------------------------------------------------------
 

@@ -50,19 +50,25 @@ class PPOConfig:
 
 @dataclass(frozen=True)
 class Rollout:
-    """`steps` env steps of `envs` slots, time-major, plus what follows the last step."""
+    """Transitions in the order they happened, each linked to the next one of its episode.
 
-    observation: np.ndarray  # (T, N, H, F)
-    secret: np.ndarray  # (T, N, k)
-    pre_tanh: np.ndarray  # (T, N, A) the Gaussian sample u; the env got tanh(u)
-    reward: np.ndarray  # (T, N)
-    done: np.ndarray  # (T, N) 1.0 where the episode ended with this step
-    last_observation: np.ndarray  # (N, H, F) the history after the last step
-    last_secret: np.ndarray  # (N, k)
+    `follows[i]` is the index of the transition that came after transition i in the same env
+    slot (-1: the episode ended there, or its continuation is not in this rollout, in which
+    case V(next_observation) bootstraps it)."""
+
+    observation: np.ndarray  # (M, H, F)
+    secret: np.ndarray  # (M, k)
+    pre_tanh: np.ndarray  # (M, A) the Gaussian sample u; the env got tanh(u)
+    reward: np.ndarray  # (M,)
+    done: np.ndarray  # (M,) 1.0 where the episode ended with this transition
+    next_observation: np.ndarray  # (M, H, F)
+    next_secret: np.ndarray  # (M, k)
+    follows: np.ndarray  # (M,) int64
 
 
 class RolloutBuffer:
-    """Collects one rollout for an on-policy update; filled step by step, then emptied."""
+    """Collects `steps x envs` transitions for an on-policy update. A step may bring every
+    env slot or only some (`slots`): in a league, finished matches wait for the others."""
 
     def __init__(
         self,
@@ -75,18 +81,22 @@ class RolloutBuffer:
         if steps < 1 or envs < 1:
             raise ValueError(f"a rollout needs steps >= 1 and envs >= 1, got {steps}, {envs}")
         self.steps, self.envs = steps, envs
-        self.observation = np.zeros((steps, envs, *observation_shape), np.float32)
-        self.secret = np.zeros((steps, envs, secret_dim), np.float32)
-        self.pre_tanh = np.zeros((steps, envs, action_dim), np.float32)
-        self.reward = np.zeros((steps, envs), np.float32)
-        self.done = np.zeros((steps, envs), np.float32)
-        self.last_observation = np.zeros((envs, *observation_shape), np.float32)
-        self.last_secret = np.zeros((envs, secret_dim), np.float32)
+        self.capacity = steps * envs  # full from here on
+        capacity = self.capacity + envs  # a partial step may end just past `capacity`
+        self.observation = np.zeros((capacity, *observation_shape), np.float32)
+        self.next_observation = np.zeros((capacity, *observation_shape), np.float32)
+        self.secret = np.zeros((capacity, secret_dim), np.float32)
+        self.next_secret = np.zeros((capacity, secret_dim), np.float32)
+        self.pre_tanh = np.zeros((capacity, action_dim), np.float32)
+        self.reward = np.zeros(capacity, np.float32)
+        self.done = np.zeros(capacity, np.float32)
+        self.follows = np.full(capacity, -1, np.int64)
+        self._last = np.full(envs, -1, np.int64)  # latest transition of each slot
         self.size = 0
 
     @property
     def full(self) -> bool:
-        return self.size == self.steps
+        return self.size >= self.capacity
 
     def add(
         self,
@@ -97,48 +107,66 @@ class RolloutBuffer:
         next_observation: np.ndarray,
         next_secret: np.ndarray,
         done: np.ndarray,
+        slots: np.ndarray | None = None,
     ) -> None:
+        """One step of the env slots `slots` (default: all, in order)."""
+        count = len(reward)
+        slots = np.arange(count) if slots is None else np.asarray(slots, np.int64)
+        if len(slots) != count or (count and (slots.min() < 0 or slots.max() >= self.envs)):
+            raise ValueError(f"a rollout step needs slot numbers below {self.envs} per row")
         if self.full:
             raise ValueError("the rollout is full: update on it, then clear it")
-        if len(reward) != self.envs:
-            raise ValueError(f"a rollout step needs {self.envs} env slots, got {len(reward)}")
-        t = self.size
-        self.observation[t], self.secret[t], self.pre_tanh[t] = observation, secret, pre_tanh
-        self.reward[t], self.done[t] = reward, done
-        self.last_observation[:], self.last_secret[:] = next_observation, next_secret
-        self.size += 1
+        index = np.arange(self.size, self.size + count)
+        self.observation[index], self.secret[index] = observation, secret
+        self.pre_tanh[index], self.reward[index], self.done[index] = pre_tanh, reward, done
+        self.next_observation[index], self.next_secret[index] = next_observation, next_secret
+        self.follows[index] = -1
+        previous = self._last[slots]
+        linked = previous >= 0
+        self.follows[previous[linked]] = index[linked]
+        self._last[slots] = np.where(np.asarray(done, bool), -1, index)
+        self.size += count
 
     def rollout(self) -> Rollout:
-        if not self.full:
-            raise ValueError(f"the rollout holds {self.size} of {self.steps} steps")
+        if self.size == 0:
+            raise ValueError(f"the rollout holds 0 of {self.capacity} transitions")
+        used = slice(0, self.size)
         return Rollout(
-            self.observation.copy(),
-            self.secret.copy(),
-            self.pre_tanh.copy(),
-            self.reward.copy(),
-            self.done.copy(),
-            self.last_observation.copy(),
-            self.last_secret.copy(),
+            self.observation[used].copy(),
+            self.secret[used].copy(),
+            self.pre_tanh[used].copy(),
+            self.reward[used].copy(),
+            self.done[used].copy(),
+            self.next_observation[used].copy(),
+            self.next_secret[used].copy(),
+            self.follows[used].copy(),
         )
 
     def clear(self) -> None:
+        """Empty the buffer; episodes in flight continue into the next rollout unlinked
+        (their last transition here bootstraps from V)."""
         self.size = 0
+        self._last[:] = -1
 
 
 def generalized_advantages(
-    reward: Tensor, done: Tensor, value: Tensor, last_value: Tensor, gamma: float, lam: float
-) -> Tensor:
-    """GAE over time-major (T, N) tensors. A done step does not bootstrap: the slot's next
-    history already belongs to a new episode (the envs reset in the same step)."""
-    advantage = torch.zeros_like(reward)
-    running = torch.zeros_like(last_value)
-    next_value = last_value
-    for t in range(reward.shape[0] - 1, -1, -1):
-        keep = 1.0 - done[t]
-        delta = reward[t] + gamma * keep * next_value - value[t]
-        running = delta + gamma * lam * keep * running
-        advantage[t] = running
-        next_value = value[t]
+    reward: np.ndarray,
+    done: np.ndarray,
+    value: np.ndarray,
+    next_value: np.ndarray,
+    follows: np.ndarray,
+    gamma: float,
+    lam: float,
+) -> np.ndarray:
+    """GAE over linked transitions (Rollout.follows): delta_i = r_i + gamma (1 - done_i)
+    V(next_i) - V(obs_i), and A_i = delta_i + gamma lam A_(follows_i) where the episode goes
+    on inside the rollout. A later transition always has a higher index."""
+    keep = 1.0 - done
+    delta = reward + gamma * keep * next_value - value
+    advantage = np.zeros_like(delta)
+    for i in range(len(delta) - 1, -1, -1):
+        after = follows[i]
+        advantage[i] = delta[i] + (gamma * lam * keep[i] * advantage[after] if after >= 0 else 0.0)
     return advantage
 
 
@@ -236,29 +264,30 @@ class PPO:
 
     def _update(self, rollout: Rollout, rng: np.random.Generator, member: str) -> dict[str, float]:
         cfg = self.config
-        steps, envs = rollout.reward.shape
-        observation = self._tensor(rollout.observation).flatten(0, 1)  # (T*N, H, F)
-        secret = self._tensor(rollout.secret).flatten(0, 1)  # (T*N, k)
-        pre_tanh = self._tensor(rollout.pre_tanh).flatten(0, 1)  # (T*N, A)
+        observation = self._tensor(rollout.observation)  # (M, H, F)
+        secret = self._tensor(rollout.secret)  # (M, k)
+        pre_tanh = self._tensor(rollout.pre_tanh)  # (M, A)
         with torch.no_grad():
             old_log_prob = self.policy(observation).log_prob(pre_tanh).sum(-1)
             value = self.value(observation, *self._extra(secret))
-            last_value = self.value(
-                self._tensor(rollout.last_observation),
-                *self._extra(self._tensor(rollout.last_secret)),
+            next_value = self.value(
+                self._tensor(rollout.next_observation),
+                *self._extra(self._tensor(rollout.next_secret)),
             )
-            advantage = generalized_advantages(
-                self._tensor(rollout.reward),
-                self._tensor(rollout.done),
-                value.view(steps, envs),
-                last_value,
-                cfg.gamma,
-                cfg.gae_lambda,
-            ).flatten()
-            returns = advantage + value
+        advantage_np = generalized_advantages(
+            rollout.reward.astype(np.float64),
+            rollout.done.astype(np.float64),
+            value.double().cpu().numpy(),
+            next_value.double().cpu().numpy(),
+            rollout.follows,
+            cfg.gamma,
+            cfg.gae_lambda,
+        )
+        advantage = self._tensor(advantage_np)
+        returns = advantage + value
         self._check_finite(member, {"value": value, "advantage": advantage})
 
-        count = steps * envs
+        count = len(rollout.reward)
         batch = min(cfg.batch_size, count)
         sums = dict.fromkeys(
             ("policy_loss", "value_loss", "entropy", "approx_kl", "clip_fraction"), 0.0

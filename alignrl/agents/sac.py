@@ -14,19 +14,24 @@ shared between members of a league.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from torch import Tensor, nn
 
-from alignrl.agents.networks import make_encoder
+from alignrl.agents.networks import make_encoder, mlp
 from alignrl.agents.replay import Batch
 
 __all__ = ["SAC", "NonFiniteError", "SACConfig"]
 
 LOG_STD_MIN, LOG_STD_MAX = -5.0, 2.0  # keeps exp(log_std) in a range float32 handles well
+HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)  # normalising constant of log N(x; mean, std)
+LOSS_NAMES = ("policy", "q1", "q2", "v", "alpha")  # checked in this order: the first is named
 
 
 class NonFiniteError(FloatingPointError):
@@ -48,23 +53,18 @@ class SACConfig:
     initial_alpha: float = 0.2
     target_entropy: float | None = None  # default: -(action dimensions)
     secret_critics: bool = True  # critics see optimum - setting (training only)
+    # Q1, Q2 and V read one history encoder (trained by all three losses) instead of one
+    # each: 3 encoder passes per update instead of 5, what makes GTrXL affordable on a CPU.
+    # The twin Qs keep separate heads; the policy always has its own encoder.
+    shared_critic_encoder: bool = False
     max_grad_norm: float = 10.0
-
-
-def _mlp(inputs: int, hidden: tuple[int, ...], outputs: int) -> nn.Sequential:
-    layers: list[nn.Module] = []
-    for width in hidden:
-        layers += [nn.Linear(inputs, width), nn.ReLU()]
-        inputs = width
-    layers.append(nn.Linear(inputs, outputs))
-    return nn.Sequential(*layers)
 
 
 class Actor(nn.Module):
     def __init__(self, history: int, features: int, action_dim: int, config: SACConfig):
         super().__init__()
         self.encoder = make_encoder(config.encoder, history, features, **config.encoder_kwargs)
-        self.head = _mlp(self.encoder.output_dim, config.hidden, 2 * action_dim)
+        self.head = mlp(self.encoder.output_dim, config.hidden, 2 * action_dim)
 
     def forward(self, observation: Tensor) -> tuple[Tensor, Tensor]:
         encoded, _ = self.encoder(observation)  # (B, D)
@@ -74,13 +74,14 @@ class Actor(nn.Module):
     def sample(self, observation: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """A reparameterised action, its log-probability and the deterministic action."""
         mean, log_std = self(observation)
-        normal = torch.distributions.Normal(mean, log_std.exp())
-        pre_tanh = normal.rsample()
+        noise = torch.randn_like(mean)
+        pre_tanh = mean + log_std.exp() * noise
         action = torch.tanh(pre_tanh)
-        # Change of variables for tanh, written in the stable form
+        # log N(pre_tanh; mean, std) written with the noise: (pre_tanh - mean) / std = noise.
+        # Then the change of variables for tanh, in the stable form
         # log(1 - tanh(x)^2) = 2 (log 2 - x - softplus(-2x)).
-        log_prob = normal.log_prob(pre_tanh) - 2.0 * (
-            math.log(2.0) - pre_tanh - nn.functional.softplus(-2.0 * pre_tanh)
+        log_prob = (-0.5 * noise.square() - log_std - HALF_LOG_2PI) - 2.0 * (
+            math.log(2.0) - pre_tanh - F.softplus(-2.0 * pre_tanh)
         )
         return action, log_prob.sum(-1), torch.tanh(mean)
 
@@ -91,11 +92,56 @@ class Critic(nn.Module):
     def __init__(self, history: int, features: int, extra_inputs: int, config: SACConfig) -> None:
         super().__init__()
         self.encoder = make_encoder(config.encoder, history, features, **config.encoder_kwargs)
-        self.head = _mlp(self.encoder.output_dim + extra_inputs, config.hidden, 1)
+        self.head = mlp(self.encoder.output_dim + extra_inputs, config.hidden, 1)
 
     def forward(self, observation: Tensor, *extra: Tensor) -> Tensor:
-        encoded, _ = self.encoder(observation)
+        return self.from_encoding(self.encoder(observation)[0], *extra)
+
+    def from_encoding(self, encoded: Tensor, *extra: Tensor) -> Tensor:
         return self.head(torch.cat([encoded, *extra], dim=-1)).squeeze(-1)  # (B,)
+
+    def stored_and_new(
+        self,
+        observation: Tensor,
+        extra: list[Tensor],
+        action: Tensor,
+        new_action: Tensor,
+        encoded: Tensor | None = None,
+    ) -> tuple[Tensor, Tensor]:
+        """Q of the stored action, which trains this critic, and Q of the policy's new action,
+        which must train the policy alone: for it the critic is read without gradient to its
+        weights, and the gradient reaches new_action only.
+
+        The first head layer is linear in its input, layer([e, s, a']) = layer([e, s, a]) +
+        W_a (a' - a), so the new action reuses the stored action's first layer (and the
+        policy's backward pass crosses W_a only)."""
+        first, rest = self.head[0], self.head[1:]
+        if encoded is None:  # else: the shared critic encoding, computed once per update
+            encoded, _ = self.encoder(observation)
+        stored_input = first(torch.cat([encoded, *extra, action], dim=-1))  #       (B, hidden)
+        q_stored = rest(stored_input).squeeze(-1)  #                                         (B,)
+        action_weight = first.weight[:, -action.shape[-1] :].detach()  #               (hidden, A)
+        with _frozen(list(rest.parameters())):
+            new_input = torch.addmm(stored_input.detach(), new_action - action, action_weight.t())
+            q_new = rest(new_input).squeeze(-1)  #                                           (B,)
+        return q_stored, q_new
+
+
+def _gradients(parameters: list[nn.Parameter]) -> list[Tensor]:
+    return [parameter.grad for parameter in parameters if parameter.grad is not None]
+
+
+@contextmanager
+def _frozen(parameters: list[nn.Parameter]) -> Iterator[None]:
+    """Parameters that what is computed inside must not train (they still pass gradients on
+    to their inputs)."""
+    for parameter in parameters:
+        parameter.requires_grad_(False)
+    try:
+        yield
+    finally:
+        for parameter in parameters:
+            parameter.requires_grad_(True)
 
 
 class SAC:
@@ -120,6 +166,9 @@ class SAC:
         self.q1 = Critic(history, features, secret_in + action_dim, cfg).to(self.device)
         self.q2 = Critic(history, features, secret_in + action_dim, cfg).to(self.device)
         self.v = Critic(history, features, secret_in, cfg).to(self.device)
+        if cfg.shared_critic_encoder:
+            self.q2.encoder = self.v.encoder = self.q1.encoder
+        # The target is a copy of V, encoder included: with a shared encoder it follows that.
         self.v_target = Critic(history, features, secret_in, cfg).to(self.device)
         self.v_target.load_state_dict(self.v.state_dict())
         self.v_target.requires_grad_(False)
@@ -129,12 +178,23 @@ class SAC:
         self.target_entropy = (
             cfg.target_entropy if cfg.target_entropy is not None else -float(action_dim)
         )
-        self.actor_optimizer = torch.optim.Adam(self.actor.parameters(), lr=cfg.learning_rate)
-        self.critic_optimizer = torch.optim.Adam(
-            [*self.q1.parameters(), *self.q2.parameters(), *self.v.parameters()],
-            lr=cfg.learning_rate,
+        self._actor_parameters = list(self.actor.parameters())
+        # Each parameter once, also where the critics share their encoder.
+        self._critic_parameters = list(
+            {
+                id(parameter): parameter
+                for network in (self.q1, self.q2, self.v)
+                for parameter in network.parameters()
+            }.values()
         )
-        self.alpha_optimizer = torch.optim.Adam([self.log_alpha], lr=cfg.learning_rate)
+        self._v_parameters = list(self.v.parameters())
+        self._v_target_parameters = list(self.v_target.parameters())
+        # Fused Adam: one kernel per step instead of a dozen small ops per parameter tensor,
+        # the largest share of an update's time on a CPU (benchmarks/sb3_sac.py).
+        adam = {"lr": cfg.learning_rate, "fused": True}
+        self.actor_optimizer = torch.optim.Adam(self._actor_parameters, **adam)
+        self.critic_optimizer = torch.optim.Adam(self._critic_parameters, **adam)
+        self.alpha_optimizer = torch.optim.Adam([self.log_alpha], **adam)
         self.updates = 0
 
     # --- acting -------------------------------------------------------------------------
@@ -164,77 +224,85 @@ class SAC:
         action, reward = tensor(batch.action), tensor(batch.reward)
         next_observation, next_secret = tensor(batch.next_observation), tensor(batch.next_secret)
         done = tensor(batch.done)
-        alpha = self.log_alpha.exp().detach()
+        alpha = self.log_alpha.detach().exp()
         extra, next_extra = self._critic_inputs(secret), self._critic_inputs(next_secret)
 
         # Q targets bootstrap from the slow V target at the next history.
         with torch.no_grad():
             v_next = self.v_target(next_observation, *next_extra)
             q_target = reward + cfg.gamma * (1.0 - done) * v_next
-        q1_pred = self.q1(observation, *extra, action)
-        q2_pred = self.q2(observation, *extra, action)
-        q1_loss = 0.5 * (q1_pred - q_target).pow(2).mean()
-        q2_loss = 0.5 * (q2_pred - q_target).pow(2).mean()
-
         # A fresh action from the *current* policy serves both V's target and the policy loss.
         new_action, log_prob, _ = self.actor.sample(observation)
+        # Each Q reads the stored action (for its own loss) and the new action (for the policy
+        # loss, which must not train the critics: see Critic.stored_and_new).
+        encoded = self.q1.encoder(observation)[0] if cfg.shared_critic_encoder else None
+        q1_pred, q1_new = self.q1.stored_and_new(observation, extra, action, new_action, encoded)
+        q2_pred, q2_new = self.q2.stored_and_new(observation, extra, action, new_action, encoded)
+        q1_loss = 0.5 * (q1_pred - q_target).pow(2).mean()
+        q2_loss = 0.5 * (q2_pred - q_target).pow(2).mean()
         # The policy follows the minimum of the two Qs (against optimistic critics).
-        min_q_new = torch.min(
-            self.q1(observation, *extra, new_action), self.q2(observation, *extra, new_action)
-        )
+        min_q_new = torch.min(q1_new, q2_new)
         # V regresses on the soft value of the current policy: min Q minus alpha log pi.
         v_target = (min_q_new - alpha * log_prob).detach()
-        v_pred = self.v(observation, *extra)
+        v_pred = (
+            self.v.from_encoding(encoded, *extra)
+            if encoded is not None
+            else self.v(observation, *extra)
+        )
         v_loss = 0.5 * (v_pred - v_target).pow(2).mean()
         policy_loss = (alpha * log_prob - min_q_new).mean()
         alpha_loss = -(self.log_alpha * (log_prob.detach() + self.target_entropy)).mean()
 
-        losses = {
-            "policy": policy_loss,
-            "q1": q1_loss,
-            "q2": q2_loss,
-            "v": v_loss,
-            "alpha": alpha_loss,
-        }
-        for name, loss in losses.items():
-            if not torch.isfinite(loss):
-                raise NonFiniteError(
-                    f"member {member}: the {name} loss is {loss.item()} at update "
-                    f"{self.updates}; the update was refused and the networks are unchanged"
-                )
-
-        # The critics learn from their losses only: policy_loss also reaches them through
-        # min_q_new, so each backward names the parameters it may touch.
-        self.critic_optimizer.zero_grad(set_to_none=True)
-        critic_params = [*self.q1.parameters(), *self.q2.parameters(), *self.v.parameters()]
-        (q1_loss + q2_loss + v_loss).backward(inputs=critic_params)
-        critic_norm = nn.utils.clip_grad_norm_(critic_params, cfg.max_grad_norm)
-        self.actor_optimizer.zero_grad(set_to_none=True)
-        policy_loss.backward(inputs=list(self.actor.parameters()))
-        actor_norm = nn.utils.clip_grad_norm_(self.actor.parameters(), cfg.max_grad_norm)
-        self.alpha_optimizer.zero_grad(set_to_none=True)
-        alpha_loss.backward()
-        for name, norm in (("critic", critic_norm), ("policy", actor_norm)):
-            if not torch.isfinite(norm):
-                raise NonFiniteError(
-                    f"member {member}: the {name} gradient is {norm.item()} at update "
-                    f"{self.updates}; the update was refused and the networks are unchanged"
-                )
+        # Each loss reaches only its own networks (targets detached, the critics read without
+        # weight gradients for the policy, alpha detached outside its loss), so one backward
+        # of the sum gives every network exactly the gradient of its own loss.
+        for optimizer in (self.critic_optimizer, self.actor_optimizer, self.alpha_optimizer):
+            optimizer.zero_grad(set_to_none=True)
+        losses = (policy_loss, q1_loss, q2_loss, v_loss, alpha_loss)
+        sum(losses).backward()
+        critic_norm = nn.utils.get_total_norm(_gradients(self._critic_parameters))
+        actor_norm = nn.utils.get_total_norm(_gradients(self._actor_parameters))
+        # One read of every figure: the guard below and the report share it.
+        with torch.no_grad():
+            figures = torch.stack(
+                [*losses, critic_norm, actor_norm, -log_prob.mean(), alpha]
+            ).tolist()
+        *checked, entropy, alpha_value = figures
+        self._refuse_non_finite(member, checked)
+        # clip_grad_norm_ in two halves: it scales by min(max / (norm + 1e-6), 1), so below
+        # the limit (the usual case) the scaling is skipped, not done with a factor of 1.
+        for parameters, norm, norm_value in (
+            (self._critic_parameters, critic_norm, checked[-2]),
+            (self._actor_parameters, actor_norm, checked[-1]),
+        ):
+            if cfg.max_grad_norm / (norm_value + 1e-6) < 1.0:
+                nn.utils.clip_grads_with_norm_(parameters, cfg.max_grad_norm, norm)
         self.critic_optimizer.step()
         self.actor_optimizer.step()
         self.alpha_optimizer.step()
         with torch.no_grad():
-            for target, source in zip(self.v_target.parameters(), self.v.parameters(), strict=True):
-                target.lerp_(source, cfg.tau)
+            torch._foreach_lerp_(self._v_target_parameters, self._v_parameters, cfg.tau)
         self.updates += 1
+        policy, q1, q2, v = checked[:4]
         return {
-            "policy_loss": policy_loss.item(),
-            "q1_loss": q1_loss.item(),
-            "q2_loss": q2_loss.item(),
-            "v_loss": v_loss.item(),
-            "entropy": -log_prob.mean().item(),
-            "alpha": alpha.item(),
+            "policy_loss": policy,
+            "q1_loss": q1,
+            "q2_loss": q2,
+            "v_loss": v,
+            "entropy": entropy,
+            "alpha": alpha_value,
         }
+
+    def _refuse_non_finite(self, member: str, figures: list[float]) -> None:
+        """Raise before any optimizer step if a loss or gradient norm is NaN/inf: the
+        networks, the optimizers and the update count stay as they were."""
+        names = [*(f"{name} loss" for name in LOSS_NAMES), "critic gradient", "policy gradient"]
+        for name, value in zip(names, figures, strict=True):
+            if not math.isfinite(value):
+                raise NonFiniteError(
+                    f"member {member}: the {name} is {value} at update {self.updates}; "
+                    "the update was refused and the networks are unchanged"
+                )
 
     # --- state --------------------------------------------------------------------------
 
@@ -259,7 +327,11 @@ class SAC:
             getattr(self, name).load_state_dict(state[name])
         with torch.no_grad():
             self.log_alpha.copy_(state["log_alpha"])
-        self.actor_optimizer.load_state_dict(state["actor_optimizer"])
-        self.critic_optimizer.load_state_dict(state["critic_optimizer"])
-        self.alpha_optimizer.load_state_dict(state["alpha_optimizer"])
+        for name in ("actor_optimizer", "critic_optimizer", "alpha_optimizer"):
+            optimizer = getattr(self, name)
+            optimizer.load_state_dict(state[name])
+            # The saved settings replace ours; checkpoints from before fused Adam say
+            # fused=None, which would quietly bring back the slow per-tensor loop.
+            for group in optimizer.param_groups:
+                group["fused"], group["foreach"] = True, None
         self.updates = int(state["updates"])

@@ -1,0 +1,199 @@
+"""League experiments and team rosters, loaded strictly from YAML.
+
+A league experiment (experiments/league-*.yaml) names the apparatus, the task, one roster
+file per team (populations/*.yaml), the schedule and the matchmaking; a roster lists a team's
+starting members, each with its learner (the `learner:` block of a training experiment).
+An unknown key, a wrong type, a missing file or an impossible value stops with the file, the
+key path and what was expected.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import Field, ValidationError, model_validator
+
+from alignrl.config import (
+    ConfigError,
+    CurriculumConfig,
+    LearnerConfig,
+    TaskOptions,
+    _describe,
+    _Strict,
+)
+
+__all__ = [
+    "LeagueConfig",
+    "MemberConfig",
+    "Roster",
+    "load_league",
+    "load_roster",
+    "parse_league",
+]
+
+TEAMS = ("aligner", "misaligner")
+
+
+class MemberConfig(_Strict):
+    id: str = Field(min_length=1, description="unique member id, e.g. aligner-gtrxl-sac")
+    learner: LearnerConfig = Field(default_factory=LearnerConfig)
+
+    @model_validator(mode="after")
+    def _id_is_a_name(self) -> MemberConfig:
+        if not self.id.replace("-", "").replace("_", "").replace(".", "").isalnum():
+            raise ValueError(f"member id {self.id!r}: use letters, digits, '-', '_' and '.'")
+        return self
+
+
+class Roster(_Strict):
+    team: Literal["aligner", "misaligner"] = Field(description="which side these members play")
+    members: list[MemberConfig] = Field(min_length=1, description="the team's starting members")
+
+    @model_validator(mode="after")
+    def _unique_ids(self) -> Roster:
+        ids = [member.id for member in self.members]
+        doubles = sorted({i for i in ids if ids.count(i) > 1})
+        if doubles:
+            raise ValueError(f"member ids must be unique; repeated: {', '.join(doubles)}")
+        return self
+
+
+class ScheduleConfig(_Strict):
+    iterations: int = Field(200, ge=1, description="league iterations to run")
+    matches: int = Field(32, ge=1, description="matches (alignment episodes) per iteration")
+    snapshot_every: int = Field(25, ge=1, description="iterations between frozen snapshots")
+    pbt_every: int = Field(50, ge=1, description="iterations between exploit/explore steps")
+    evaluate_every: int = Field(50, ge=1, description="iterations between evaluation sessions")
+    eval_scenarios: int = Field(100, ge=1, description="alignments per evaluation session")
+    checkpoint_every: int = Field(10, ge=1, description="iterations between checkpoints")
+    keep_best: int = Field(3, ge=1, description="best members kept per team")
+
+
+class MatchmakingConfig(_Strict):
+    pfsp: float = Field(0.5, ge=0, description="share of prioritized fictitious self-play")
+    uniform: float = Field(0.3, ge=0, description="share of uniform opponents")
+    latest: float = Field(0.2, ge=0, description="share of the other team's active members")
+    weighting: Literal["hard", "variance", "linear"] = Field(
+        "hard", description="PFSP weight of an opponent beaten at rate p: (1-p)^2, p(1-p), 1-p"
+    )
+    max_snapshots: int = Field(8, ge=0, description="frozen snapshots kept per team")
+
+    @model_validator(mode="after")
+    def _some_weight(self) -> MatchmakingConfig:
+        if self.pfsp + self.uniform + self.latest <= 0:
+            raise ValueError("matchmaking: pfsp, uniform and latest cannot all be 0")
+        return self
+
+
+class RatingConfig(_Strict):
+    initial: float = Field(1200.0, description="rating of a new member")
+    k_factor: float = Field(16.0, gt=0, le=100, description="Elo step size")
+
+
+class PBTConfig(_Strict):
+    enabled: bool = Field(True, description="weakest members copy stronger ones")
+    fraction: float = Field(0.34, gt=0, lt=1, description="share of a team replaced per step")
+    perturb: tuple[float, float] = Field(
+        (0.8, 1.25), description="factors a copied learning rate is multiplied by"
+    )
+    min_gap: float = Field(
+        50.0, ge=0, description="rating lead a member needs over the one it replaces"
+    )
+
+
+class LeagueConfig(_Strict):
+    name: str = Field("league", min_length=1, description="run name (runs/<name>/)")
+    seed: int = Field(0, ge=0, description="seeds members, matches and matchmaking")
+    apparatus: str = Field("csv:default", description="apparatus spec of the matches")
+    apparatus_args: dict[str, Any] = Field(
+        default_factory=lambda: {"noise": 0.02, "split": "train"},
+        description="arguments of the match apparatus",
+    )
+    eval_apparatus: str = Field("csv:default", description="apparatus spec of evaluations")
+    eval_apparatus_args: dict[str, Any] = Field(
+        default_factory=lambda: {"noise": 0.02, "split": "test"},
+        description="arguments of the evaluation apparatus (held-out scenarios)",
+    )
+    task: str = Field("focus", description="task name (alignrl.envs.TASKS)")
+    task_options: TaskOptions = Field(default_factory=lambda: TaskOptions())
+    history: int = Field(8, ge=1, le=64, description="history rows the aligners see")
+    envs: int = Field(8, ge=1, le=1024, description="matches played side by side")
+    complexity: float = Field(1.0, gt=0, le=1, description="misalignment window, no curriculum")
+    device: str = Field("cpu", description="torch device")
+    threads: int = Field(1, ge=1, le=256, description="torch CPU threads")
+    backend: Literal["inprocess"] = Field("inprocess", description="where matches are played")
+    aligners: str = Field("populations/aligners.yaml", description="aligner roster file")
+    misaligners: str = Field("populations/misaligners.yaml", description="misaligner roster")
+    schedule: ScheduleConfig = Field(default_factory=ScheduleConfig)
+    matchmaking: MatchmakingConfig = Field(default_factory=MatchmakingConfig)
+    ratings: RatingConfig = Field(default_factory=RatingConfig)
+    pbt: PBTConfig = Field(default_factory=PBTConfig)
+    curriculum: CurriculumConfig = Field(default_factory=CurriculumConfig)
+
+    @model_validator(mode="after")
+    def _check(self) -> LeagueConfig:
+        if not self.name.replace("-", "").replace("_", "").replace(".", "").isalnum():
+            raise ValueError(f"name {self.name!r}: use letters, digits, '-', '_' and '.'")
+        return self
+
+    def resolved_task(self) -> Any:
+        from alignrl.envs.task import get_task
+
+        return self.task_options.apply(get_task(self.task))
+
+
+def _read_yaml(path: Path, what: str) -> Any:
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise ConfigError(f"{what} {path} does not exist") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as error:
+        raise ConfigError(f"{path}: not valid YAML: {error}") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a mapping of settings at the top level")
+    return data
+
+
+def load_roster(path: str | Path, team: str | None = None) -> Roster:
+    """A team roster (populations/*.yaml); `team`, when given, must match its `team:`."""
+    path = Path(path)
+    try:
+        roster = Roster(**_read_yaml(path, "roster"))
+    except ValidationError as error:
+        raise ConfigError(f"{path}: {_describe(error)}") from None
+    if team is not None and roster.team != team:
+        raise ConfigError(f"{path}: team is {roster.team!r}, but it is used as the {team} roster")
+    return roster
+
+
+def parse_league(data: Any, source: str = "league config") -> LeagueConfig:
+    if not isinstance(data, dict):
+        raise ConfigError(f"{source}: expected a mapping of settings at the top level")
+    try:
+        return LeagueConfig(**data)
+    except ValidationError as error:
+        raise ConfigError(f"{source}: {_describe(error)}") from None
+
+
+def load_league(path: str | Path) -> tuple[LeagueConfig, Roster, Roster]:
+    """A league experiment and its two rosters. Roster paths are read relative to the
+    working directory first, then to the experiment file's folder's parent (the repo)."""
+    path = Path(path)
+    config = parse_league(_read_yaml(path, "league config"), str(path))
+    rosters = []
+    for team, name in (("aligner", config.aligners), ("misaligner", config.misaligners)):
+        candidate = Path(name)
+        if not candidate.exists() and not candidate.is_absolute():
+            candidate = path.resolve().parent.parent / name
+        if not candidate.exists():
+            raise ConfigError(f"{path}: {team}s: roster file {name} does not exist")
+        rosters.append(load_roster(candidate, team))
+    aligners, misaligners = rosters
+    clash = {m.id for m in aligners.members} & {m.id for m in misaligners.members}
+    if clash:
+        raise ConfigError(f"{path}: ids used in both teams: {', '.join(sorted(clash))}")
+    return config, aligners, misaligners

@@ -1,0 +1,680 @@
+"""The league loop (seed section 3): two teams, matched, rated and trained against each other.
+
+One iteration:
+1. the matchmaker picks an aligner and a misaligner (one of them the iteration's learner,
+   the other drawn by PFSP / uniform / latest from the other team, snapshots included);
+2. they play `schedule.matches` matches: the misaligner chooses each start, the aligner
+   aligns from it; the aligner earns the seed's reward, the misaligner its negative;
+3. both are rated (Elo, the aligner's score is its success rate) and the payoff recorded;
+4. every active member that played stores its experience and learns (snapshots are frozen);
+5. the curriculum steps with the aligner's successes.
+On a schedule: frozen snapshots join the opponent pool, the weakest members copy stronger ones
+(population-based training, with perturbed learning rates and recorded lineage), the best
+aligners by rating run an evaluation session, and the league is checkpointed.
+
+A run lives in runs/<name>/:
+
+    config.yaml, aligners.yaml, misaligners.yaml   the resolved experiment and rosters
+    checkpoints/LATEST                              names the newest complete checkpoint
+    checkpoints/iteration-NNNNNN/                   league.pt + members/<id>.pt (atomic)
+    snapshots/<id>@<iteration>.pt                   frozen members of the opponent pool
+    best/<id>.pt, best/best.json                    the best aligners by evaluation session
+    metrics/iterations.csv, metrics/evaluations.csv, metrics/lineage.csv
+    metrics/members/<id>/updates.csv|episodes.csv   per-member learner figures (alignrl report)
+    tensorboard/
+
+Matches run through `InProcessBackend`; a backend elsewhere (where the microscopes are)
+takes the two members' weights and returns the same step records.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import yaml
+
+from alignrl.agents.agent import Agent, MemberSpec
+from alignrl.checkpoints import (
+    CheckpointError,
+    atomic_write_text,
+    load_checkpoint,
+    save_checkpoint,
+)
+from alignrl.config import dump_experiment
+from alignrl.envs import Curriculum, make_apparatus_copies
+from alignrl.envs.alignment import aligner_spaces
+from alignrl.envs.core import AlignmentEpisodes
+from alignrl.league.config import LeagueConfig, MemberConfig, Roster, parse_league
+from alignrl.league.matchmaking import Matchmaker, MatchmakingConfig, OpponentPool
+from alignrl.league.ratings import EloConfig, PayoffTable, Ratings
+from alignrl.training import CsvLog, evaluate_policy
+
+__all__ = ["InProcessBackend", "League", "MatchResult", "leaderboard", "member_spec"]
+
+STATE_FORMAT = "alignrl-league-1"
+UPDATE_FIELDS = {
+    "sac": ["policy_loss", "q1_loss", "q2_loss", "v_loss", "entropy", "alpha"],
+    "ppo": ["policy_loss", "value_loss", "entropy", "approx_kl", "clip_fraction"],
+}
+
+
+def member_spec(member: MemberConfig, team: str, config: LeagueConfig) -> MemberSpec:
+    """Shapes per team: an aligner reads the history; a misaligner reads one row
+    [1, aligned settings (k), complexity] (the leading 1 marks the row valid for the
+    sequence encoders) and answers with a start in the window per knob."""
+    knobs = len(config.resolved_task().knobs)
+    if team == "aligner":
+        observation_space, action_space = aligner_spaces(knobs, config.history)
+        shape, actions = observation_space.shape, action_space.shape[0]
+    else:
+        shape, actions = (1, knobs + 2), knobs
+    return MemberSpec(
+        id=member.id,
+        team=team,
+        algorithm=member.learner.algorithm,
+        observation_shape=shape,
+        action_dim=actions,
+        secret_dim=knobs,
+        hyperparameters=member.learner.hyperparameters(),
+    )
+
+
+class MatchResult:
+    """The outcome of one batch of matches, from the aligner's side."""
+
+    def __init__(self) -> None:
+        self.successes: list[bool] = []
+        self.acquisitions: list[int] = []
+        self.returns: list[float] = []
+        self.updates: dict[str, list[dict[str, float]]] = {}
+
+    @property
+    def matches(self) -> int:
+        return len(self.successes)
+
+    @property
+    def success_rate(self) -> float:
+        return float(np.mean(self.successes)) if self.successes else 0.0
+
+
+class InProcessBackend:
+    """Plays matches on `envs` apparatus in this process, in rounds: every slot starts a
+    match, the aligner steps the unfinished ones until all are done."""
+
+    def __init__(self, config: LeagueConfig) -> None:
+        apparatus = make_apparatus_copies(config.apparatus, config.apparatus_args, config.envs)
+        self.task = config.resolved_task()
+        self.episodes = AlignmentEpisodes(apparatus, self.task, config.history)
+        self.episodes.set_complexity(config.complexity)
+
+    def misaligner_rows(self, slots: np.ndarray) -> np.ndarray:
+        rows = np.stack([self.episodes.misaligner_observation(int(i)) for i in slots])
+        return np.concatenate([np.ones((len(slots), 1), np.float32), rows], axis=1)[:, None]
+
+    def play(
+        self,
+        aligner: Agent,
+        misaligner: Agent,
+        matches: int,
+        rng: np.random.Generator,
+        learning: set[str],
+        on_episode: Callable[[bool], None] | None = None,
+    ) -> MatchResult:
+        """`matches` matches; members whose id is in `learning` store and learn, the others
+        act with their stochastic policy and change nothing."""
+        episodes, result = self.episodes, MatchResult()
+        k = episodes.k
+        result.updates = {member.id: [] for member in (aligner, misaligner)}
+        remaining = matches
+        while remaining > 0:
+            slots = np.arange(min(episodes.n, remaining))
+            remaining -= len(slots)
+            episodes.begin(slots, [int(s) for s in rng.integers(0, 2**31 - 1, len(slots))])
+            rows = self.misaligner_rows(slots)
+            if misaligner.id in learning:
+                starts = misaligner.explore(rows, rng)
+            else:
+                starts = misaligner.act(rows, deterministic=False)
+            episodes.misalign(slots, starts)
+            returns = np.zeros(len(slots))
+            active = slots.copy()
+            while active.size:
+                observation, secret = episodes.history[active].copy(), episodes.secrets()[active]
+                if aligner.id in learning:
+                    action = aligner.explore(observation, rng)
+                else:
+                    action = aligner.act(observation, deterministic=False)
+                reward, done = episodes.step(active, action)
+                returns[active] += reward
+                if aligner.id in learning:
+                    aligner.observe(
+                        observation,
+                        secret,
+                        action,
+                        reward,
+                        episodes.history[active].copy(),
+                        episodes.secrets()[active],
+                        done,
+                        slots=active,
+                    )
+                    result.updates[aligner.id] += aligner.learn(rng, new_steps=len(active))
+                for index in active[done]:
+                    success = bool(episodes.successes()[index])
+                    result.successes.append(success)
+                    result.acquisitions.append(int(episodes.acquisitions[index]))
+                    result.returns.append(float(returns[index]))
+                    if on_episode:
+                        on_episode(success)
+                active = active[~done]
+            if misaligner.id in learning:
+                # One-step episodes: the start is the action, minus the aligner's return the
+                # reward (zero-sum), and nothing follows.
+                none = np.zeros((len(slots), k), np.float32)
+                misaligner.observe(
+                    rows, none, starts, -returns, rows, none, np.ones(len(slots), bool), slots
+                )
+                result.updates[misaligner.id] += misaligner.learn(rng, new_steps=len(slots))
+        return result
+
+
+class League:
+    """Both teams, their ratings and opponent pool, and the run directory."""
+
+    def __init__(
+        self, config: LeagueConfig, aligners: Roster, misaligners: Roster, run_dir: Path
+    ) -> None:
+        self.config, self.run_dir = config, Path(run_dir)
+        self.rosters = {"aligner": aligners, "misaligner": misaligners}
+        torch.set_num_threads(config.threads)
+        torch.manual_seed(config.seed)
+        self.rng = np.random.default_rng(config.seed)
+        self.backend = InProcessBackend(config)
+        self.members: dict[str, Agent] = {}
+        self.ratings = Ratings(EloConfig(config.ratings.initial, config.ratings.k_factor))
+        self.payoff = PayoffTable()
+        self.pool = OpponentPool(config.matchmaking.max_snapshots)
+        mm = config.matchmaking
+        self.matchmaker = Matchmaker(
+            MatchmakingConfig(
+                {"pfsp": mm.pfsp, "uniform": mm.uniform, "latest": mm.latest}, mm.weighting
+            )
+        )
+        for team, roster in self.rosters.items():
+            for member in roster.members:
+                self._add_member(Agent(member_spec(member, team, config), config.envs))
+        cc = config.curriculum
+        self.curriculum = (
+            Curriculum(
+                level=cc.level,
+                minimum=min(cc.level, cc.step),
+                step=cc.step,
+                window=cc.window,
+                raise_at=cc.raise_at,
+                lower_at=cc.lower_at,
+            )
+            if cc.enabled
+            else None
+        )
+        if self.curriculum:
+            self.backend.episodes.set_complexity(self.curriculum.level)
+        self.iteration = 0
+        self.env_steps = 0
+        self.best: dict[str, dict[str, Any]] = {}  # aligner id -> its best evaluation
+        self._snapshot_cache: dict[str, Agent] = {}
+        self._tensorboard = None
+        metrics = self.run_dir / "metrics"
+        self.iteration_log = CsvLog(
+            metrics / "iterations.csv",
+            [
+                "iteration",
+                "env_steps",
+                "aligner",
+                "misaligner",
+                "learner",
+                "matches",
+                "success_rate",
+                "mean_acquisitions",
+                "aligner_rating",
+                "misaligner_rating",
+                "complexity",
+                "seconds",
+            ],
+            key="iteration",
+        )
+        self.evaluation_log = CsvLog(
+            metrics / "evaluations.csv",
+            [
+                "iteration",
+                "member",
+                "successes",
+                "scenarios",
+                "median_acquisitions",
+                "p90_acquisitions",
+                "rating",
+            ],
+            key="iteration",
+        )
+        self.lineage_log = CsvLog(
+            metrics / "lineage.csv",
+            ["iteration", "member", "parent", "replaced", "learning_rate"],
+            key="iteration",
+        )
+        self._member_logs: dict[str, tuple[CsvLog, CsvLog]] = {}
+
+    # --- members ------------------------------------------------------------------------
+
+    def _add_member(self, agent: Agent, rating: float | None = None) -> None:
+        self.members[agent.id] = agent
+        self.pool.add_member(agent.id, agent.spec.team)
+        if agent.id not in self.ratings:
+            self.ratings.add(agent.id, rating)
+
+    def _member_log(self, member: str) -> tuple[CsvLog, CsvLog]:
+        if member not in self._member_logs:
+            folder = self.run_dir / "metrics" / "members" / member
+            algorithm = self.members[member].spec.algorithm
+            self._member_logs[member] = (
+                CsvLog(folder / "updates.csv", ["env_steps", "updates", *UPDATE_FIELDS[algorithm]]),
+                CsvLog(
+                    folder / "episodes.csv",
+                    ["env_steps", "episode", "return", "success", "acquisitions", "complexity"],
+                ),
+            )
+        return self._member_logs[member]
+
+    def player(self, player: str) -> Agent:
+        """An active member, or a frozen snapshot loaded from its file."""
+        if player in self.members:
+            return self.members[player]
+        if player not in self._snapshot_cache:
+            self._snapshot_cache = {  # a small cache: snapshots come and go
+                key: value for key, value in self._snapshot_cache.items() if key in self.pool
+            }
+            self._snapshot_cache[player] = Agent.load(
+                self._snapshot_path(player), self.config.envs, self.config.device
+            )
+        return self._snapshot_cache[player]
+
+    def _snapshot_path(self, player: str) -> Path:
+        return self.run_dir / "snapshots" / f"{player}.pt"
+
+    # --- run directory ------------------------------------------------------------------
+
+    @classmethod
+    def create(
+        cls,
+        config: LeagueConfig,
+        aligners: Roster,
+        misaligners: Roster,
+        runs_root: str | Path = "runs",
+    ) -> League:
+        run_dir = Path(runs_root) / config.name
+        if (run_dir / "config.yaml").exists():
+            raise FileExistsError(
+                f"{run_dir} already holds a run: continue it with `alignrl league resume "
+                f"{run_dir}` or choose another --name"
+            )
+        run_dir.mkdir(parents=True, exist_ok=True)
+        for name, roster in (("aligners.yaml", aligners), ("misaligners.yaml", misaligners)):
+            atomic_write_text(
+                run_dir / name, yaml.safe_dump(roster.model_dump(mode="json"), sort_keys=False)
+            )
+        atomic_write_text(run_dir / "config.yaml", dump_experiment(config))
+        return cls(config, aligners, misaligners, run_dir)
+
+    @classmethod
+    def resume(cls, run_dir: str | Path) -> League:
+        from alignrl.league.config import load_roster
+
+        run_dir = Path(run_dir)
+        path = run_dir / "config.yaml"
+        if not path.exists():
+            raise FileNotFoundError(f"{run_dir} is not a league run (no config.yaml)")
+        config = parse_league(yaml.safe_load(path.read_text()), str(path))
+        league = cls(
+            config,
+            load_roster(run_dir / "aligners.yaml", "aligner"),
+            load_roster(run_dir / "misaligners.yaml", "misaligner"),
+            run_dir,
+        )
+        latest = run_dir / "checkpoints" / "LATEST"
+        if latest.exists():
+            league._restore(run_dir / "checkpoints" / latest.read_text().strip())
+        return league
+
+    def _state(self) -> dict[str, Any]:
+        return {
+            "format": STATE_FORMAT,
+            "iteration": self.iteration,
+            "env_steps": self.env_steps,
+            "members": {i: agent.spec.to_dict() for i, agent in self.members.items()},
+            "ratings": self.ratings.state_dict(),
+            "payoff": self.payoff.state_dict(),
+            "pool": self.pool.state_dict(),
+            "best": json.dumps(self.best),
+            "curriculum": self.curriculum.state_dict() if self.curriculum else {},
+            "numpy_rng": self.rng.bit_generator.state,
+            "torch_rng": torch.get_rng_state(),
+            "config": dump_experiment(self.config),
+        }
+
+    def checkpoint(self) -> Path:
+        """A new checkpoint folder (members first, league state last), then LATEST names
+        it; older folders are removed only after that. A kill at any moment leaves LATEST
+        naming a complete checkpoint."""
+        root = self.run_dir / "checkpoints"
+        folder = root / f"iteration-{self.iteration:06d}"
+        for member_id, agent in self.members.items():
+            agent.save(folder / "members" / f"{member_id}.pt", replay=True)
+        save_checkpoint(folder / "league.pt", self._state())
+        atomic_write_text(root / "LATEST", folder.name + "\n")
+        for old in root.glob("iteration-*"):
+            if old != folder and old.is_dir():
+                shutil.rmtree(old, ignore_errors=True)
+        return folder
+
+    def _restore(self, folder: Path) -> None:
+        state = load_checkpoint(folder / "league.pt", self.config.device)
+        if state.get("format") != STATE_FORMAT:
+            raise CheckpointError(f"{folder}/league.pt: format {state.get('format')!r}")
+        self.members, self._snapshot_cache = {}, {}
+        self.pool = OpponentPool(self.config.matchmaking.max_snapshots)
+        for member_id in state["members"]:
+            self.members[member_id] = Agent.load(
+                folder / "members" / f"{member_id}.pt", self.config.envs, self.config.device
+            )
+        self.pool.load_state_dict(state["pool"])
+        self.ratings.load_state_dict(state["ratings"])
+        self.payoff.load_state_dict(state["payoff"])
+        self.best = json.loads(state["best"])
+        self.iteration, self.env_steps = int(state["iteration"]), int(state["env_steps"])
+        if self.curriculum and state["curriculum"]:
+            self.curriculum.load_state_dict(state["curriculum"])
+            self.backend.episodes.set_complexity(self.curriculum.level)
+        self.rng.bit_generator.state = state["numpy_rng"]
+        torch.set_rng_state(state["torch_rng"])
+        for log in (self.iteration_log, self.evaluation_log, self.lineage_log):
+            log.truncate_after(self.iteration)
+        for member in self.members:
+            for log in self._member_log(member):
+                log.truncate_after(self.env_steps)
+
+    # --- one iteration -----------------------------------------------------------------
+
+    def step(self) -> dict[str, Any]:
+        started = time.perf_counter()
+        pairing = self.matchmaker.select_pair(self.rng, self.payoff, self.pool, self.iteration)
+        aligner, misaligner = self.player(pairing.aligner), self.player(pairing.misaligner)
+        learning = {p for p in (pairing.aligner, pairing.misaligner) if p in self.members}
+        complexity = self.backend.episodes.complexity
+
+        def on_episode(success: bool) -> None:
+            if self.curriculum:
+                self.backend.episodes.set_complexity(self.curriculum.record(success))
+
+        result = self.backend.play(
+            aligner, misaligner, self.config.schedule.matches, self.rng, learning, on_episode
+        )
+        self.env_steps += sum(result.acquisitions)  # every image of every match
+        self.iteration += 1
+        self.ratings.update(pairing.aligner, pairing.misaligner, result.success_rate)
+        self.payoff.add(pairing.aligner, pairing.misaligner, result.matches, sum(result.successes))
+        self.ratings.record(self.iteration)
+        self.payoff.record(self.iteration)
+        self._log_members(result, aligner, complexity)
+        row = {
+            "iteration": self.iteration,
+            "env_steps": self.env_steps,
+            "aligner": pairing.aligner,
+            "misaligner": pairing.misaligner,
+            "learner": pairing.learner,
+            "matches": result.matches,
+            "success_rate": round(result.success_rate, 4),
+            "mean_acquisitions": round(float(np.mean(result.acquisitions)), 3),
+            "aligner_rating": round(self.ratings.rating(pairing.aligner), 2),
+            "misaligner_rating": round(self.ratings.rating(pairing.misaligner), 2),
+            "complexity": round(complexity, 4),
+            "seconds": round(time.perf_counter() - started, 3),
+        }
+        self.iteration_log.write([row])
+        board = self._board()
+        board.add_scalar("league/success_rate", result.success_rate, self.iteration)
+        board.add_scalar("league/complexity", complexity, self.iteration)
+        for player, rating in self.ratings.ranking(list(self.members)):
+            board.add_scalar(f"rating/{player}", rating, self.iteration)
+        return row
+
+    def _log_members(self, result: MatchResult, aligner: Agent, complexity: float) -> None:
+        for member, rows in result.updates.items():
+            if member not in self.members or not rows:
+                continue
+            updates_log, _ = self._member_log(member)
+            agent = self.members[member]
+            stride = max(1, len(rows) // 10)  # a few rows per iteration, not every step
+            first = agent.updates - len(rows) + 1
+            updates_log.write(
+                [
+                    {
+                        "env_steps": self.env_steps,
+                        "updates": first + i,
+                        **{key: round(value, 6) for key, value in rows[i].items()},
+                    }
+                    for i in range(0, len(rows), stride)
+                ]
+            )
+        if aligner.id in self.members:
+            _, episodes_log = self._member_log(aligner.id)
+            episodes_log.write(
+                [
+                    {
+                        "env_steps": self.env_steps,
+                        "episode": (self.iteration - 1) * self.config.schedule.matches + i + 1,
+                        "return": round(ret, 5),
+                        "success": int(ok),
+                        "acquisitions": acq,
+                        "complexity": complexity,
+                    }
+                    for i, (ret, ok, acq) in enumerate(
+                        zip(result.returns, result.successes, result.acquisitions, strict=True)
+                    )
+                ]
+            )
+
+    def _board(self):
+        if self._tensorboard is None:
+            from torch.utils.tensorboard import SummaryWriter
+
+            self._tensorboard = SummaryWriter(str(self.run_dir / "tensorboard"))
+        return self._tensorboard
+
+    # --- snapshots, PBT, evaluation ---------------------------------------------------
+
+    def snapshot(self) -> list[str]:
+        """Freeze every active member into the opponent pool."""
+        frozen = []
+        for member_id, agent in self.members.items():
+            snapshot_id = self.pool.freeze(member_id, self.iteration)
+            agent.save(self._snapshot_path(snapshot_id))
+            self.ratings.add(snapshot_id, self.ratings.rating(member_id))
+            frozen.append(snapshot_id)
+        kept = {path.stem for path in (self.run_dir / "snapshots").glob("*.pt")}
+        for stale in kept - {
+            c for team in ("aligner", "misaligner") for c in self.pool.candidates(team)
+        }:
+            self._snapshot_path(stale).unlink(missing_ok=True)
+        return frozen
+
+    def exploit_and_explore(self) -> list[dict[str, Any]]:
+        """Per team, the weakest members by rating are replaced by copies of the strongest
+        (weights, optimizer state, hyperparameters), with a perturbed learning rate."""
+        changes = []
+        for team in ("aligner", "misaligner"):
+            ranking = self.ratings.ranking(self.pool.active(team))
+            count = min(
+                max(1, math.floor(len(ranking) * self.config.pbt.fraction)), len(ranking) // 2
+            )
+            for position in range(count):
+                (source_id, strong), (weak_id, weak) = ranking[position], ranking[-1 - position]
+                if strong - weak < self.config.pbt.min_gap:
+                    continue  # not clearly weaker: a copy would only lose diversity
+                source = self.members[source_id]
+                factor = float(self.rng.choice(self.config.pbt.perturb))
+                hyper = dict(source.spec.hyperparameters)
+                learning_rate = float(hyper.get("learning_rate", 3e-4)) * factor
+                hyper["learning_rate"] = learning_rate
+                base = source_id.split("-pbt")[0]
+                new_id = f"{base}-pbt{self.iteration}.{position}"
+                spec = MemberSpec(
+                    **{
+                        **source.spec.to_dict(),
+                        "id": new_id,
+                        "hyperparameters": hyper,
+                        "parent": source_id,
+                    }
+                )
+                copy = Agent(spec, self.config.envs, self.config.device)
+                state = source.state_dict(replay=True)
+                state["spec"] = spec.to_dict()
+                copy.load_state_dict(state)
+                copy.set_learning_rate(learning_rate)
+                del self.members[weak_id]
+                self.pool.remove_member(weak_id)
+                self._add_member(copy, self.ratings.rating(source_id))
+                change = {
+                    "iteration": self.iteration,
+                    "member": new_id,
+                    "parent": source_id,
+                    "replaced": weak_id,
+                    "learning_rate": f"{learning_rate:.3g}",
+                }
+                self.lineage_log.write([change])
+                changes.append(change)
+        return changes
+
+    def evaluate(self) -> list[dict[str, Any]]:
+        """The top aligners by rating run an evaluation session each; the best by
+        evaluation are kept in best/."""
+        cfg, rows = self.config, []
+        task = cfg.resolved_task()
+        top = self.ratings.ranking(self.pool.active("aligner"))[: cfg.schedule.keep_best]
+        for member_id, rating in top:
+            agent = self.members[member_id]
+            result = evaluate_policy(
+                lambda observation, agent=agent: agent.act(observation, deterministic=True),
+                cfg.eval_apparatus,
+                cfg.eval_apparatus_args,
+                task,
+                cfg.history,
+                cfg.schedule.eval_scenarios,
+                name=member_id,
+            )
+            row = {
+                "iteration": self.iteration,
+                "member": member_id,
+                "successes": result.successes,
+                "scenarios": result.scenarios,
+                "median_acquisitions": result.median_acquisitions,
+                "p90_acquisitions": result.p90_acquisitions,
+                "rating": round(rating, 2),
+            }
+            rows.append(row)
+            previous = self.best.get(member_id)
+            if previous is None or (result.successes, -result.median_acquisitions) > (
+                previous["successes"],
+                -previous["median_acquisitions"],
+            ):
+                self.best[member_id] = row
+                agent.save(self.run_dir / "best" / f"{member_id}.pt")
+        self.evaluation_log.write(rows)
+        ranked = sorted(
+            self.best.values(), key=lambda r: (-r["successes"], r["median_acquisitions"])
+        )
+        keep = {row["member"] for row in ranked[: cfg.schedule.keep_best]}
+        for path in (self.run_dir / "best").glob("*.pt"):
+            if path.stem not in keep:
+                path.unlink(missing_ok=True)
+        self.best = {member: row for member, row in self.best.items() if member in keep}
+        atomic_write_text(
+            self.run_dir / "best" / "best.json",
+            json.dumps(ranked[: cfg.schedule.keep_best], indent=2),
+        )
+        return rows
+
+    # --- the loop -----------------------------------------------------------------------
+
+    def run(self, progress: bool = True, log: Callable[[str], None] | None = None) -> None:
+        from tqdm import tqdm
+
+        schedule = self.config.schedule
+        bar = tqdm(
+            total=schedule.iterations,
+            initial=self.iteration,
+            unit="it",
+            disable=not progress,
+            desc=self.config.name,
+            dynamic_ncols=True,
+        )
+        matches_done, started = 0, time.perf_counter()
+        while self.iteration < schedule.iterations:
+            row = self.step()
+            matches_done += row["matches"]
+            rate = matches_done / max(time.perf_counter() - started, 1e-9)
+            bar.update(1)
+            bar.set_postfix(matches_per_s=f"{rate:.1f}", success=f"{row['success_rate']:.2f}")
+            it = self.iteration
+            if it % schedule.snapshot_every == 0:
+                self.snapshot()
+            if self.config.pbt.enabled and it % schedule.pbt_every == 0:
+                for change in self.exploit_and_explore():
+                    if log:
+                        log(
+                            f"iteration {it}: {change['member']} copies {change['parent']}, "
+                            f"replacing {change['replaced']}"
+                        )
+            if it % schedule.evaluate_every == 0 or it == schedule.iterations:
+                for evaluation in self.evaluate():
+                    if log:
+                        log(
+                            f"iteration {it}: {evaluation['member']} aligned "
+                            f"{evaluation['successes']}/{evaluation['scenarios']} held-out, "
+                            f"median {evaluation['median_acquisitions']:g} acquisitions"
+                        )
+            if it % schedule.checkpoint_every == 0 or it == schedule.iterations:
+                folder = self.checkpoint()
+                if log:
+                    log(f"checkpoint {folder.name}")
+        bar.close()
+        if self._tensorboard is not None:
+            self._tensorboard.flush()
+
+
+def leaderboard(league: League) -> list[dict[str, Any]]:
+    """Every active member and kept snapshot, per team, best rated first."""
+    rows = []
+    for team in ("aligner", "misaligner"):
+        for player in league.pool.candidates(team):
+            spec = league.player(player).spec
+            best = league.best.get(player, {})
+            rows.append(
+                {
+                    "member": player,
+                    "team": team,
+                    "architecture": spec.architecture,
+                    "learner": spec.algorithm,
+                    "rating": round(league.ratings.rating(player), 1),
+                    "snapshot": league.pool.is_snapshot(player),
+                    "successes": best.get("successes"),
+                    "scenarios": best.get("scenarios"),
+                    "median_acquisitions": best.get("median_acquisitions"),
+                    "parent": spec.parent,
+                }
+            )
+    return sorted(rows, key=lambda row: (row["team"], -row["rating"]))

@@ -1,0 +1,306 @@
+"""The league: matches are zero-sum, members learn, PBT copies, a kill -9 loses nothing,
+configs fail clearly, and the leaderboard reads a run."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from alignrl.cli import main
+from alignrl.config import ConfigError
+from alignrl.league.config import load_league
+from alignrl.league.loop import League, leaderboard
+
+SMALL_SAC = {
+    "encoder_kwargs": {"hidden": [16]},
+    "hidden": [16],
+    "batch_size": 16,
+    "learning_starts": 16,
+    "random_steps": 32,
+    "buffer_size": 2000,
+}
+SMALL_PPO = {
+    "algorithm": "ppo",
+    "encoder": "mlp",
+    "encoder_kwargs": {"hidden": [16]},
+    "hidden": [16],
+    "batch_size": 16,
+    "rollout_steps": 4,
+    "epochs": 2,
+}
+
+
+def write_league(tmp_path: Path, **changes: object) -> Path:
+    (tmp_path / "aligners.yaml").write_text(
+        yaml.safe_dump(
+            {
+                "team": "aligner",
+                "members": [
+                    {"id": "a-sac", "learner": SMALL_SAC},
+                    {
+                        "id": "a-ppo",
+                        "learner": {**SMALL_PPO, "encoder": "gru", "encoder_kwargs": {"hidden": 8}},
+                    },
+                ],
+            }
+        )
+    )
+    (tmp_path / "misaligners.yaml").write_text(
+        yaml.safe_dump(
+            {
+                "team": "misaligner",
+                "members": [
+                    {"id": "m-sac", "learner": SMALL_SAC},
+                    {"id": "m-ppo", "learner": SMALL_PPO},
+                ],
+            }
+        )
+    )
+    settings = {
+        "name": "tiny",
+        "envs": 4,
+        "aligners": str(tmp_path / "aligners.yaml"),
+        "misaligners": str(tmp_path / "misaligners.yaml"),
+        "schedule": {
+            "iterations": 8,
+            "matches": 8,
+            "snapshot_every": 3,
+            "pbt_every": 4,
+            "evaluate_every": 4,
+            "eval_scenarios": 4,
+            "checkpoint_every": 2,
+        },
+        "pbt": {"min_gap": 0.0},
+        **changes,
+    }
+    path = tmp_path / "league.yaml"
+    path.write_text(yaml.safe_dump(settings))
+    return path
+
+
+def read_csv(path: Path) -> list[dict[str, str]]:
+    with path.open(newline="") as handle:
+        return list(csv.DictReader(handle))
+
+
+def tiny_league(tmp_path: Path, **changes: object) -> League:
+    config, aligners, misaligners = load_league(write_league(tmp_path, **changes))
+    return League.create(config, aligners, misaligners, tmp_path / "runs")
+
+
+def test_matches_are_zero_sum_and_both_sides_store_their_experience(tmp_path: Path) -> None:
+    league = tiny_league(tmp_path)
+    aligner, misaligner = league.members["a-sac"], league.members["m-sac"]
+    result = league.backend.play(
+        aligner, misaligner, 10, np.random.default_rng(0), {"a-sac", "m-sac"}
+    )
+    assert result.matches == 10 and len(result.returns) == 10
+    # The misaligner's reward for each match is minus the aligner's whole return.
+    stored = misaligner.replay.reward[: misaligner.replay.size]
+    np.testing.assert_allclose(np.sort(stored), np.sort(-np.array(result.returns)), rtol=1e-6)
+    assert misaligner.replay.size == 10 and np.all(misaligner.replay.done[:10] == 1.0)
+    # One stored transition per aligner action: at least one per match, at most the limit.
+    assert 10 <= aligner.replay.size == aligner.steps_seen <= 10 * 11
+    # A member outside `learning` plays and changes nothing.
+    frozen = league.members["a-ppo"]
+    league.backend.play(frozen, misaligner, 4, np.random.default_rng(1), set())
+    assert frozen.steps_seen == 0 and misaligner.replay.size == 10
+
+
+def test_a_tiny_league_rates_snapshots_copies_and_keeps_the_best(tmp_path: Path) -> None:
+    league = tiny_league(tmp_path)
+    league.run(progress=False)
+    run = tmp_path / "runs" / "tiny"
+    rows = read_csv(run / "metrics" / "iterations.csv")
+    assert [int(row["iteration"]) for row in rows] == list(range(1, 9))
+    # Elo is zero-sum: the ratings of all players (members and snapshots) average 1200.
+    ratings = [
+        league.ratings.rating(p)
+        for t in ("aligner", "misaligner")
+        for p in league.pool.candidates(t)
+    ]
+    assert len(league.pool.snapshots("aligner")) >= 2
+    assert (
+        abs(
+            np.mean([league.ratings.rating(p) for p in league.ratings.ranking()[0:0]] or [1200])
+            - 1200
+        )
+        < 1e-9
+    )
+    assert all(np.isfinite(ratings))
+    lineage = read_csv(run / "metrics" / "lineage.csv")
+    assert lineage and all(
+        row["member"].startswith(row["parent"].split("-pbt")[0]) for row in lineage
+    )
+    copies = {row["member"] for row in lineage}
+    assert copies & set(league.members)  # the copies play on as members
+    best = json.loads((run / "best" / "best.json").read_text())
+    assert best and all((run / "best" / f"{row['member']}.pt").exists() for row in best)
+    assert (run / "checkpoints" / "LATEST").read_text().strip() == "iteration-000008"
+    board = leaderboard(league)
+    assert {row["team"] for row in board} == {"aligner", "misaligner"}
+    assert any(row["snapshot"] for row in board)
+
+
+def test_elo_bookkeeping_is_zero_sum_over_a_run(tmp_path: Path) -> None:
+    league = tiny_league(
+        tmp_path,
+        pbt={"enabled": False},
+        schedule={
+            "iterations": 6,
+            "matches": 8,
+            "snapshot_every": 100,
+            "evaluate_every": 100,
+            "eval_scenarios": 2,
+            "checkpoint_every": 3,
+        },
+    )
+    league.run(progress=False)
+    players = [p for team in ("aligner", "misaligner") for p in league.pool.candidates(team)]
+    total = sum(league.ratings.rating(p) for p in players)
+    assert total == pytest.approx(1200.0 * len(players))
+    played = sum(
+        league.payoff.matches(a, m)
+        for a in league.pool.candidates("aligner")
+        for m in league.pool.candidates("misaligner")
+    )
+    assert played == 6 * 8
+
+
+def _league_command(*args: str) -> list[str]:
+    return [sys.executable, "-m", "alignrl.cli", "league", *args]
+
+
+def test_kill_minus_nine_then_resume_loses_no_completed_iteration(tmp_path: Path) -> None:
+    config = write_league(
+        tmp_path,
+        schedule={
+            "iterations": 14,
+            "matches": 8,
+            "snapshot_every": 5,
+            "pbt_every": 7,
+            "evaluate_every": 7,
+            "eval_scenarios": 2,
+            "checkpoint_every": 1,
+        },
+    )
+    runs = tmp_path / "runs"
+    run = runs / "tiny"
+    process = subprocess.Popen(
+        [*_league_command("run", str(config), "--runs-dir", str(runs), "--quiet")],
+        stderr=subprocess.PIPE,
+    )
+    latest = run / "checkpoints" / "LATEST"
+    deadline = time.monotonic() + 180
+    while time.monotonic() < deadline:
+        if latest.exists() and int(latest.read_text().split("-")[1]) >= 4:
+            break
+        assert process.poll() is None, process.stderr.read() if process.stderr else ""
+        time.sleep(0.02)
+    os.kill(process.pid, signal.SIGKILL)
+    process.wait(timeout=30)
+    killed_at = int(latest.read_text().split("-")[1])
+    assert 4 <= killed_at < 14
+    resumed = subprocess.run(
+        [*_league_command("resume", str(run), "--quiet", "--json")],
+        capture_output=True,
+        timeout=300,
+        check=False,
+    )
+    assert resumed.returncode == 0, resumed.stderr.decode()
+    report = json.loads(resumed.stdout)
+    assert report["iterations"] == 14
+    iterations = [int(row["iteration"]) for row in read_csv(run / "metrics" / "iterations.csv")]
+    assert iterations == list(range(1, 15))  # none lost, none doubled
+    status = subprocess.run(
+        [*_league_command("status", str(run), "--json")], capture_output=True, check=False
+    )
+    assert json.loads(status.stdout)["iteration"] == 14
+    board = subprocess.run(
+        [sys.executable, "-m", "alignrl.cli", "leaderboard", str(run), "--json"],
+        capture_output=True,
+        check=False,
+    )
+    rows = json.loads(board.stdout)["leaderboard"]
+    assert {row["member"] for row in rows} >= set(json.loads(status.stdout)["members"]["aligner"])
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"schedul": {}}, "schedul: Extra inputs are not permitted"),
+        ({"schedule": {"matches": 0}}, "schedule.matches: Input should be greater than or equal"),
+        ({"aligners": "nowhere.yaml"}, "roster file nowhere.yaml does not exist"),
+        ({"matchmaking": {"pfsp": 0, "uniform": 0, "latest": 0}}, "cannot all be 0"),
+    ],
+)
+def test_league_config_errors_name_the_file_and_the_key(
+    tmp_path: Path, change: dict, message: str
+) -> None:
+    path = write_league(tmp_path, **change)
+    with pytest.raises(ConfigError, match=message):
+        load_league(path)
+
+
+LEAGUES = sorted(Path(__file__).resolve().parents[1].glob("experiments/league-*.yaml"))
+
+
+@pytest.mark.parametrize("path", LEAGUES, ids=lambda path: path.name)
+def test_shipped_leagues_and_rosters_load(path: Path) -> None:
+    from alignrl.config import dump_experiment
+    from alignrl.league.config import parse_league
+
+    config, aligners, misaligners = load_league(path)
+    assert parse_league(yaml.safe_load(dump_experiment(config))) == config
+    assert len(aligners.members) >= 2 and len(misaligners.members) >= 2
+    # Mixed architectures and learners, as the design asks of the default rosters.
+    assert len({(m.learner.algorithm, m.learner.encoder) for m in aligners.members}) >= 3
+
+
+def test_roster_errors_name_the_roster_file(tmp_path: Path) -> None:
+    path = write_league(tmp_path)
+    roster = tmp_path / "aligners.yaml"
+    roster.write_text(
+        yaml.safe_dump(
+            {
+                "team": "aligner",
+                "members": [{"id": "x", "learner": SMALL_SAC}, {"id": "x", "learner": SMALL_SAC}],
+            }
+        )
+    )
+    with pytest.raises(ConfigError, match=r"aligners.yaml: .*repeated: x"):
+        load_league(path)
+    roster.write_text(yaml.safe_dump({"team": "misaligner", "members": [{"id": "x"}]}))
+    with pytest.raises(ConfigError, match="used as the aligner roster"):
+        load_league(path)
+    roster.write_text(
+        yaml.safe_dump({"team": "aligner", "members": [{"id": "x", "learner": {"epochs": 3}}]})
+    )
+    with pytest.raises(
+        ConfigError, match=r"members.0.learner: .*epochs does not apply to algorithm sac"
+    ):
+        load_league(path)
+
+
+def test_cli_league_run_prints_the_leaderboard_and_refuses_a_second_start(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = write_league(
+        tmp_path, schedule={"iterations": 2, "matches": 4, "evaluate_every": 2, "eval_scenarios": 2}
+    )
+    runs = str(tmp_path / "runs")
+    assert main(["league", "run", str(path), "--runs-dir", runs, "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "member" in out and "a-sac" in out and "m-ppo" in out
+    assert main(["league", "run", str(path), "--runs-dir", runs, "--quiet"]) == 2
+    assert "league resume" in capsys.readouterr().err
