@@ -16,6 +16,12 @@ $(STAMP): pyproject.toml
 
 install: $(STAMP)
 
+# The benchmark extra (Stable-Baselines3) on top of the dev install; `make test` never needs it.
+BENCH_STAMP := $(VENV)/.installed-bench
+$(BENCH_STAMP): $(STAMP)
+	$(BIN)/pip install --quiet -e '.[dev,bench]'
+	touch $(BENCH_STAMP)
+
 # The most complete end-to-end job so far: record a small scenario set on the synthetic SEM,
 # validate it strictly and plot its focus curves; run the classical autofocus baselines on a
 # simulator replaying it; train a SAC aligner briefly and evaluate it on held-out scenarios
@@ -47,7 +53,7 @@ format: $(STAMP)
 	$(BIN)/ruff format alignrl tests benchmarks docs/examples
 	$(BIN)/ruff check --fix alignrl tests benchmarks docs/examples
 
-bench: $(STAMP)
+bench: $(BENCH_STAMP)
 	$(BIN)/python -m benchmarks.run --out docs/benchmarks.md
 
 # Regenerate the shipped 2000-scenario set of the `synthetic` preset (deterministic).

@@ -519,14 +519,24 @@ def _run_league(league: Any, args: argparse.Namespace) -> int:
             f"league stopped: {error}; the last checkpoint in {league.run_dir} is intact"
         ) from None
     rows = leaderboard(league)
+    champion = league.champion()
     payload = {
         "run": str(league.run_dir),
         "iterations": league.iteration,
         "env_steps": league.env_steps,
         "seconds": round(time.perf_counter() - started, 1),
         "leaderboard": rows,
+        "champion": champion,
     }
-    _emit(payload, args.json, _leaderboard_lines(rows))
+    lines = _leaderboard_lines(rows)
+    if champion:
+        lines.append("")
+        lines += [
+            f"{label:9}: {row['member']} aligned {row['successes']}/{row['scenarios']} "
+            f"held-out, median {row['median_acquisitions']:g} acquisitions"
+            for label, row in champion.items()
+        ]
+    _emit(payload, args.json, lines)
     return 0
 
 

@@ -386,6 +386,13 @@ def load_policy(path: str | Path, device: str = "cpu") -> tuple[Agent, Experimen
     path = Path(path)
     checkpoint = path / "checkpoints" / "best.pt" if path.is_dir() else path
     state = load_checkpoint(checkpoint, device)
+    if state.get("format") == "alignrl-member-1":  # a league member (runs/<league>/best/...)
+        agent = Agent.load(checkpoint, device=device)
+        if agent.spec.team != "aligner":
+            raise ValueError(f"{checkpoint} holds a {agent.spec.team}, not an aligner")
+        return agent, parse_experiment(
+            {"name": agent.id, "history": agent.spec.observation_shape[0]}, str(checkpoint)
+        )
     config = parse_experiment(yaml.safe_load(state["config"]), f"{checkpoint} (config)")
     spec = member_spec(config)
     agent = Agent(spec, device=device)

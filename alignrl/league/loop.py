@@ -328,7 +328,10 @@ class League:
                 run_dir / name, yaml.safe_dump(roster.model_dump(mode="json"), sort_keys=False)
             )
         atomic_write_text(run_dir / "config.yaml", dump_experiment(config))
-        return cls(config, aligners, misaligners, run_dir)
+        league = cls(config, aligners, misaligners, run_dir)
+        for member_id, agent in league.members.items():  # the untrained starting point
+            agent.save(run_dir / "initial" / f"{member_id}.pt")
+        return league
 
     @classmethod
     def resume(cls, run_dir: str | Path) -> League:
@@ -607,6 +610,39 @@ class League:
             json.dumps(ranked[: cfg.schedule.keep_best], indent=2),
         )
         return rows
+
+    def champion(self) -> dict[str, Any] | None:
+        """The best aligner by evaluation session, side by side with the same member as it
+        started (untrained), on the same held-out scenarios."""
+        path = self.run_dir / "best" / "best.json"
+        if not path.exists():
+            return None
+        ranked = json.loads(path.read_text())
+        if not ranked:
+            return None
+        best = ranked[0]
+        champion = Agent.load(self.run_dir / "best" / f"{best['member']}.pt")
+        base = best["member"].split("-pbt")[0]
+        untrained = Agent.load(self.run_dir / "initial" / f"{base}.pt")
+        cfg = self.config
+        sessions = {}
+        for label, agent in (("champion", champion), ("untrained", untrained)):
+            result = evaluate_policy(
+                lambda observation, agent=agent: agent.act(observation, deterministic=True),
+                cfg.eval_apparatus,
+                cfg.eval_apparatus_args,
+                cfg.resolved_task(),
+                cfg.history,
+                cfg.schedule.eval_scenarios,
+                name=agent.id,
+            )
+            sessions[label] = {
+                "member": agent.id,
+                "successes": result.successes,
+                "scenarios": result.scenarios,
+                "median_acquisitions": result.median_acquisitions,
+            }
+        return sessions
 
     # --- the loop -----------------------------------------------------------------------
 
