@@ -22,36 +22,28 @@ $(BENCH_STAMP): $(STAMP)
 	$(BIN)/pip install --quiet -e '.[dev,bench]'
 	touch $(BENCH_STAMP)
 
-# The most complete end-to-end job so far: record a small scenario set on the synthetic SEM,
-# validate it strictly and plot its focus curves; run the classical autofocus baselines on a
-# simulator replaying it; train a SAC aligner briefly and evaluate it on held-out scenarios
-# beside the baselines. Everything lands in runs/make-run/ (replaced on every `make run`).
+# The main job: the classical autofocus baselines on held-out scenarios, then a short league
+# of the default rosters (populations/) that ends with its leaderboard, its champion aligner
+# beside the same member untrained on the same held-out scenarios, and its report
+# (runs/make-run/league-make-run/report.md). Replaced on every `make run`.
 RUN_DIR := runs/make-run
 run: $(STAMP)
 	rm -rf $(RUN_DIR)
-	$(BIN)/alignrl record --apparatus synthetic --scenarios 40 --seed 0 \
-		--out $(RUN_DIR)/scenarios.csv
-	$(BIN)/alignrl scenarios validate $(RUN_DIR)/scenarios.csv --plot $(RUN_DIR)/focus-curves.png
-	$(BIN)/alignrl baselines --apparatus csv:$(RUN_DIR)/scenarios.csv --scenarios 40 \
-		--plot-dir $(RUN_DIR)/baselines
-	$(BIN)/alignrl train experiments/make-run.yaml --runs-dir $(RUN_DIR)
-	$(BIN)/alignrl evaluate --policy $(RUN_DIR)/make-run --apparatus csv:default \
-		--apparatus-args '{"noise": 0.02, "split": "test"}' --scenarios 100 \
-		--plot $(RUN_DIR)/trained-aligner.png
 	$(BIN)/alignrl baselines --apparatus csv:default \
-		--apparatus-args '{"noise": 0.02, "split": "test"}' --scenarios 100
+		--apparatus-args '{"noise": 0.02, "split": "test"}' --scenarios 50
+	$(BIN)/alignrl league run experiments/league-make-run.yaml --runs-dir $(RUN_DIR)
 
 test: $(STAMP)
-	$(BIN)/ruff check alignrl tests benchmarks docs/examples
-	$(BIN)/ruff format --check alignrl tests benchmarks docs/examples
+	$(BIN)/ruff check alignrl tests benchmarks docs/examples docs/gen_configs.py
+	$(BIN)/ruff format --check alignrl tests benchmarks docs/examples docs/gen_configs.py
 	$(BIN)/pytest
 
 lint: $(STAMP)
-	$(BIN)/ruff check alignrl tests benchmarks docs/examples
+	$(BIN)/ruff check alignrl tests benchmarks docs/examples docs/gen_configs.py
 
 format: $(STAMP)
-	$(BIN)/ruff format alignrl tests benchmarks docs/examples
-	$(BIN)/ruff check --fix alignrl tests benchmarks docs/examples
+	$(BIN)/ruff format alignrl tests benchmarks docs/examples docs/gen_configs.py
+	$(BIN)/ruff check --fix alignrl tests benchmarks docs/examples docs/gen_configs.py
 
 bench: $(BENCH_STAMP)
 	$(BIN)/python -m benchmarks.run --out docs/benchmarks.md

@@ -168,9 +168,15 @@ class ExperimentConfig(_Strict):
     threads: int = Field(
         1, ge=1, le=256, description="torch CPU threads (small networks: 1 is fastest)"
     )
-    learner: LearnerConfig = Field(default_factory=LearnerConfig)
-    curriculum: CurriculumConfig = Field(default_factory=CurriculumConfig)
-    budget: BudgetConfig = Field(default_factory=BudgetConfig)
+    learner: LearnerConfig = Field(
+        default_factory=LearnerConfig, description="the learner: algorithm, encoder, settings"
+    )
+    curriculum: CurriculumConfig = Field(
+        default_factory=CurriculumConfig, description="complexity that follows the successes"
+    )
+    budget: BudgetConfig = Field(
+        default_factory=BudgetConfig, description="how long to train; when to evaluate and save"
+    )
 
     def resolved_task(self) -> Any:
         """The Task object this experiment trains on."""

@@ -38,7 +38,9 @@ TEAMS = ("aligner", "misaligner")
 
 class MemberConfig(_Strict):
     id: str = Field(min_length=1, description="unique member id, e.g. aligner-gtrxl-sac")
-    learner: LearnerConfig = Field(default_factory=LearnerConfig)
+    learner: LearnerConfig = Field(
+        default_factory=LearnerConfig, description="same keys as a training experiment's learner"
+    )
 
     @model_validator(mode="after")
     def _id_is_a_name(self) -> MemberConfig:
@@ -117,7 +119,9 @@ class LeagueConfig(_Strict):
         description="arguments of the evaluation apparatus (held-out scenarios)",
     )
     task: str = Field("focus", description="task name (alignrl.envs.TASKS)")
-    task_options: TaskOptions = Field(default_factory=lambda: TaskOptions())
+    task_options: TaskOptions = Field(
+        default_factory=lambda: TaskOptions(), description="changes to the named task"
+    )
     history: int = Field(8, ge=1, le=64, description="history rows the aligners see")
     envs: int = Field(8, ge=1, le=1024, description="matches played side by side")
     complexity: float = Field(1.0, gt=0, le=1, description="misalignment window, no curriculum")
@@ -126,16 +130,27 @@ class LeagueConfig(_Strict):
     backend: Literal["inprocess"] = Field("inprocess", description="where matches are played")
     aligners: str = Field("populations/aligners.yaml", description="aligner roster file")
     misaligners: str = Field("populations/misaligners.yaml", description="misaligner roster")
-    schedule: ScheduleConfig = Field(default_factory=ScheduleConfig)
-    matchmaking: MatchmakingConfig = Field(default_factory=MatchmakingConfig)
-    ratings: RatingConfig = Field(default_factory=RatingConfig)
-    pbt: PBTConfig = Field(default_factory=PBTConfig)
-    curriculum: CurriculumConfig = Field(default_factory=CurriculumConfig)
+    schedule: ScheduleConfig = Field(
+        default_factory=ScheduleConfig,
+        description="league length; when to snapshot, copy, evaluate, save",
+    )
+    matchmaking: MatchmakingConfig = Field(
+        default_factory=MatchmakingConfig, description="how each match's opponent is drawn"
+    )
+    ratings: RatingConfig = Field(default_factory=RatingConfig, description="Elo ratings")
+    pbt: PBTConfig = Field(
+        default_factory=PBTConfig, description="population-based training (exploit/explore)"
+    )
+    curriculum: CurriculumConfig = Field(
+        default_factory=CurriculumConfig, description="complexity that follows the successes"
+    )
 
     @model_validator(mode="after")
     def _check(self) -> LeagueConfig:
         if not self.name.replace("-", "").replace("_", "").replace(".", "").isalnum():
             raise ValueError(f"name {self.name!r}: use letters, digits, '-', '_' and '.'")
+        if self.curriculum.lower_at >= self.curriculum.raise_at:
+            raise ValueError("curriculum.lower_at must be below curriculum.raise_at")
         return self
 
     def resolved_task(self) -> Any:
