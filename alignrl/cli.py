@@ -497,6 +497,26 @@ def _leaderboard_lines(rows: list[dict[str, Any]]) -> list[str]:
     return lines
 
 
+def _emit_with_league_report(
+    payload: dict[str, Any],
+    as_json: bool,
+    lines: list[str],
+    run_dir: Path,
+    rows: list[dict[str, Any]],
+) -> None:
+    """The table first (drawing the report takes a while), then the report and where it went."""
+    from alignrl.league.report import write_league_report
+
+    if not as_json:
+        print("\n".join(lines), flush=True)
+    report = write_league_report(run_dir, rows)
+    _emit(
+        {**payload, "report": str(report)},
+        as_json,
+        [f"report: {report} and {report.with_suffix('.html')}"],
+    )
+
+
 def _run_league(league: Any, args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
@@ -536,7 +556,7 @@ def _run_league(league: Any, args: argparse.Namespace) -> int:
             f"held-out, median {row['median_acquisitions']:g} acquisitions"
             for label, row in champion.items()
         ]
-    _emit(payload, args.json, lines)
+    _emit_with_league_report(payload, args.json, lines, league.run_dir, rows)
     return 0
 
 
@@ -559,7 +579,7 @@ def cmd_league_resume(args: argparse.Namespace) -> int:
 def cmd_league_status(args: argparse.Namespace) -> int:
     from alignrl.league.loop import League
 
-    league = League.resume(args.run)
+    league = League.resume(args.run, read_only=True)
     schedule = league.config.schedule
     payload = {
         "run": args.run,
@@ -591,9 +611,10 @@ def cmd_league_status(args: argparse.Namespace) -> int:
 def cmd_leaderboard(args: argparse.Namespace) -> int:
     from alignrl.league.loop import League, leaderboard
 
-    league = League.resume(args.run)
+    league = League.resume(args.run, read_only=True)
     rows = leaderboard(league)
-    _emit({"run": args.run, "leaderboard": rows}, args.json, _leaderboard_lines(rows))
+    payload = {"run": args.run, "leaderboard": rows}
+    _emit_with_league_report(payload, args.json, _leaderboard_lines(rows), league.run_dir, rows)
     return 0
 
 

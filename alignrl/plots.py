@@ -39,10 +39,13 @@ __all__ = [
     "draw_success",
     "draw_update_metric",
     "losses_figure",
+    "new_figure",
     "panel_figure",
     "read_metrics_csv",
+    "read_metrics_folder",
     "read_run_metrics",
     "rolling_mean",
+    "save_png",
     "training_figures",
     "update_metric_columns",
     "write_figures",
@@ -128,15 +131,21 @@ def _number(cell: str, blank_allowed: bool) -> float:
 
 
 def read_metrics_csv(
-    path: Path, required: Sequence[str], blank_allowed: Collection[str] = ()
+    path: Path,
+    required: Sequence[str],
+    blank_allowed: Collection[str] = (),
+    text_columns: Collection[str] = (),
 ) -> pd.DataFrame:
     """A metrics CSV as float64 columns, read strictly: every column must hold numbers (blank
-    cells only in `blank_allowed`, as NaN). A missing or empty file gives zero rows, because
-    a run killed before its first update or evaluation is a run, not an error."""
+    cells only in `blank_allowed`, as NaN), except `text_columns`, kept as strings (the
+    member ids of a league's CSVs). A missing or empty file gives zero rows, because a run
+    killed before its first update or evaluation is a run, not an error."""
     import pandas as pd
 
     if not path.exists() or path.stat().st_size == 0:
-        return pd.DataFrame({name: np.empty(0) for name in required})
+        return pd.DataFrame(
+            {name: np.empty(0, object if name in text_columns else float) for name in required}
+        )
     try:
         with path.open(newline="", encoding="utf-8") as handle:
             header, *rows = csv.reader(handle)
@@ -147,8 +156,9 @@ def read_metrics_csv(
         raise ReportError(f"{path}: no column {missing[0]!r} (the header is {','.join(header)})")
     if len(set(header)) < len(header):
         raise ReportError(f"{path}: a column name appears twice in the header")
-    values = np.empty((len(rows), len(header)))
+    values = np.full((len(rows), len(header)), np.nan)
     blank = [name in blank_allowed for name in header]
+    numeric = [name not in text_columns for name in header]
     for index, row in enumerate(rows):
         line = index + 2  # the trainer never quotes a line break, so rows and lines agree
         if len(row) != len(header):
@@ -156,29 +166,37 @@ def read_metrics_csv(
                 f"{path}, line {line}: {len(row)} fields, the header has {len(header)}"
             )
         for column, cell in enumerate(row):
+            if not numeric[column]:
+                continue
             try:
                 values[index, column] = _number(cell, blank[column])
             except ValueError as problem:
                 raise ReportError(
                     f"{path}, line {line}, column {header[column]}: {problem}"
                 ) from None
-    return pd.DataFrame(values, columns=header)
+    frame = pd.DataFrame(values, columns=header)
+    for column, name in enumerate(header):
+        if not numeric[column]:
+            frame[name] = [row[column] for row in rows]
+    return frame
 
 
 @dataclass(frozen=True)
 class RunMetrics:
-    """The three metrics tables of a run; a table whose file is missing has zero rows."""
+    """The three metrics tables of a run, or of a league member; a table whose file is
+    missing has zero rows."""
 
     run_dir: Path
     updates: pd.DataFrame
     episodes: pd.DataFrame
     evaluations: pd.DataFrame
+    folder: str = "metrics"  # where the CSVs are, relative to run_dir
 
     def why_empty(self, table: str) -> str:
         """Why `table` ('updates', 'episodes' or 'evaluations') has no rows, for the reader."""
-        path = self.run_dir / "metrics" / f"{table}.csv"
+        path = self.run_dir / self.folder / f"{table}.csv"
         state = "is missing" if not path.exists() else "has no rows yet"
-        return f"metrics/{table}.csv {state}"
+        return f"{self.folder}/{table}.csv {state}"
 
 
 def _check_run_dir(run_dir: Path) -> None:
@@ -192,10 +210,10 @@ def _check_run_dir(run_dir: Path) -> None:
             )
 
 
-def read_run_metrics(run_dir: Path) -> RunMetrics:
-    """The metrics of a run directory, after checking that it is one."""
-    _check_run_dir(run_dir)
-    metrics = run_dir / "metrics"
+def read_metrics_folder(run_dir: Path, folder: str = "metrics") -> RunMetrics:
+    """The updates, episodes and evaluations CSVs in run_dir/folder. A training run keeps
+    them in metrics/; a league keeps each member's first two in metrics/members/<id>/."""
+    metrics = run_dir / folder
     return RunMetrics(
         run_dir=run_dir,
         updates=read_metrics_csv(metrics / "updates.csv", UPDATE_COUNTERS),
@@ -203,7 +221,14 @@ def read_run_metrics(run_dir: Path) -> RunMetrics:
         evaluations=read_metrics_csv(
             metrics / "evaluations.csv", EVALUATION_COLUMNS, blank_allowed={"median_final_px"}
         ),
+        folder=folder,
     )
+
+
+def read_run_metrics(run_dir: Path) -> RunMetrics:
+    """The metrics of a run directory, after checking that it is one."""
+    _check_run_dir(run_dir)
+    return read_metrics_folder(run_dir)
 
 
 def update_metric_columns(updates: pd.DataFrame) -> list[str]:
@@ -339,7 +364,7 @@ def draw_complexity(axes: Axes, episodes: pd.DataFrame, run: str | None = None) 
 # --- figures ------------------------------------------------------------------------------
 
 
-def _new_figure(panels: int = 1, columns: int = 1) -> tuple[Figure, list[Axes]]:
+def new_figure(panels: int = 1, columns: int = 1) -> tuple[Figure, list[Axes]]:
     """A Figure on its own Agg canvas with `panels` Axes in a grid; nothing global is touched,
     so nothing needs closing and no GUI backend can be picked up."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -357,7 +382,7 @@ def _new_figure(panels: int = 1, columns: int = 1) -> tuple[Figure, list[Axes]]:
 
 def panel_figure(draw: Callable[..., None], *tables: pd.DataFrame) -> Figure:
     """A one-panel figure of one `draw_*` function, e.g. panel_figure(draw_return, episodes)."""
-    figure, (axes,) = _new_figure()
+    figure, (axes,) = new_figure()
     draw(axes, *tables)
     return figure
 
@@ -367,7 +392,7 @@ def losses_figure(updates: pd.DataFrame) -> Figure:
     columns = update_metric_columns(updates)
     if not columns:
         raise ValueError("updates has no columns to plot besides env_steps and updates")
-    figure, panels = _new_figure(len(columns), columns=min(3, len(columns)))
+    figure, panels = new_figure(len(columns), columns=min(3, len(columns)))
     for axes, column in zip(panels, columns, strict=True):
         draw_update_metric(axes, updates, column)
     return figure
@@ -392,7 +417,7 @@ class RunReport:
     figures: TrainingFigures
 
 
-def _save_png(figure: Figure, path: Path) -> None:
+def save_png(figure: Figure, path: Path) -> None:
     """Atomically: a report read while it is rewritten shows the old figure or the new one."""
     from alignrl.checkpoints import atomic_write
 
@@ -436,7 +461,7 @@ def write_figures(metrics: RunMetrics, out_dir: Path) -> TrainingFigures:
     written = []
     for name in FIGURES:
         if name in built:
-            _save_png(built[name], out_dir / name)
+            save_png(built[name], out_dir / name)
             written.append(out_dir / name)
     return TrainingFigures(
         written=written, skipped={name: skipped[name] for name in FIGURES if name in skipped}

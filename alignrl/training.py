@@ -239,15 +239,16 @@ class Trainer:
 
     def evaluate(self) -> SessionResult:
         cfg = self.config
-        return evaluate_policy(
-            lambda observation: self.agent.act(observation, deterministic=True),
-            cfg.eval_apparatus,
-            cfg.eval_apparatus_args,
-            self.task,
-            cfg.history,
-            cfg.budget.eval_scenarios,
-            name=cfg.name,
-        )
+        with torch.random.fork_rng(devices=[]):  # evaluating must not move training's stream
+            return evaluate_policy(
+                lambda observation: self.agent.act(observation, deterministic=True),
+                cfg.eval_apparatus,
+                cfg.eval_apparatus_args,
+                self.task,
+                cfg.history,
+                cfg.budget.eval_scenarios,
+                name=cfg.name,
+            )
 
     def _evaluate_and_keep_best(self) -> SessionResult:
         result = self.evaluate()

@@ -304,3 +304,31 @@ def test_cli_league_run_prints_the_leaderboard_and_refuses_a_second_start(
     assert "member" in out and "a-sac" in out and "m-ppo" in out
     assert main(["league", "run", str(path), "--runs-dir", runs, "--quiet"]) == 2
     assert "league resume" in capsys.readouterr().err
+
+
+def _outcomes(run: Path) -> list[tuple[str, ...]]:
+    rows = read_csv(run / "metrics" / "iterations.csv")
+    return [tuple(v for k, v in row.items() if k != "seconds") for row in rows]
+
+
+def test_a_resumed_league_plays_exactly_as_one_never_stopped(tmp_path: Path) -> None:
+    schedule = {
+        "iterations": 6,
+        "matches": 6,
+        "snapshot_every": 2,
+        "pbt_every": 4,
+        "evaluate_every": 100,
+        "eval_scenarios": 2,
+        "checkpoint_every": 3,
+    }
+    for folder in ("a", "b"):
+        (tmp_path / folder).mkdir()
+    straight = tiny_league(tmp_path / "a", schedule=schedule)
+    straight.run(progress=False)
+    stopped = tiny_league(tmp_path / "b", schedule={**schedule, "iterations": 3})
+    stopped.run(progress=False)
+    run = tmp_path / "b" / "runs" / "tiny"
+    config = (run / "config.yaml").read_text().replace("iterations: 3", "iterations: 6")
+    (run / "config.yaml").write_text(config)
+    League.resume(run).run(progress=False)
+    assert _outcomes(run) == _outcomes(tmp_path / "a" / "runs" / "tiny")

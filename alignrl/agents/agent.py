@@ -262,7 +262,8 @@ class Agent:
     # --- state --------------------------------------------------------------------------
 
     def state_dict(self, replay: bool = False) -> dict[str, Any]:
-        """Spec, weights, optimizers and counters; with replay=True, SAC's replay too."""
+        """Spec, weights, optimizers and counters; with replay=True, the experience too
+        (SAC's replay, PPO's rollout in progress)."""
         state: dict[str, Any] = {
             "format": MEMBER_FORMAT,
             "spec": self.spec.to_dict(),
@@ -270,8 +271,9 @@ class Agent:
             "steps_seen": self.steps_seen,
             "update_debt": self._update_debt,
         }
-        if replay and isinstance(self.learner, SAC):
-            state["replay"] = self.replay.state_dict()
+        if replay:
+            store = self.replay if isinstance(self.learner, SAC) else self.rollout
+            state["replay"] = store.state_dict()
         return state
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -293,12 +295,13 @@ class Agent:
         self.learner.load_state_dict(state["learner"])
         self.steps_seen = int(state["steps_seen"])
         self._update_debt = float(state["update_debt"])
-        if "replay" in state and isinstance(self.learner, SAC):
+        if "replay" in state:
             replay = {
                 key: value.numpy() if isinstance(value, torch.Tensor) else value
                 for key, value in state["replay"].items()
             }
-            self.replay.load_state_dict(replay)
+            store = self.replay if isinstance(self.learner, SAC) else self.rollout
+            store.load_state_dict(replay)
 
     def save(self, path: str | Path, replay: bool = False) -> None:
         """Atomically write this member (weights_only-loadable)."""

@@ -142,6 +142,30 @@ class RolloutBuffer:
             self.follows[used].copy(),
         )
 
+    def state_dict(self) -> dict[str, np.ndarray | int]:
+        """The transitions so far and each slot's latest (numpy and ints: safe to store)."""
+        used = slice(0, self.size)
+        arrays = ("observation", "next_observation", "secret", "next_secret", "pre_tanh",
+                  "reward", "done", "follows")  # fmt: skip
+        return {
+            **{name: getattr(self, name)[used].copy() for name in arrays},
+            "last": self._last.copy(),
+            "size": self.size,
+        }
+
+    def load_state_dict(self, state: dict[str, np.ndarray | int]) -> None:
+        size = int(state["size"])
+        if size > len(self.reward) or len(state["last"]) != self.envs:
+            raise ValueError(
+                f"saved rollout of {size} transitions over {len(state['last'])} slots does not "
+                f"fit a rollout of {self.capacity} over {self.envs}"
+            )
+        for name in ("observation", "next_observation", "secret", "next_secret", "pre_tanh",
+                     "reward", "done", "follows"):  # fmt: skip
+            getattr(self, name)[:size] = state[name]
+        self._last[:] = state["last"]
+        self.size = size
+
     def clear(self) -> None:
         """Empty the buffer; episodes in flight continue into the next rollout unlinked
         (their last transition here bootstraps from V)."""

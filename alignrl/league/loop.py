@@ -298,9 +298,12 @@ class League:
             self._snapshot_cache = {  # a small cache: snapshots come and go
                 key: value for key, value in self._snapshot_cache.items() if key in self.pool
             }
-            self._snapshot_cache[player] = Agent.load(
-                self._snapshot_path(player), self.config.envs, self.config.device
-            )
+            # Building a network draws on torch's random stream: loading a snapshot must not,
+            # or a resumed league (which loads it at another moment) would play differently.
+            with torch.random.fork_rng(devices=[]):
+                self._snapshot_cache[player] = Agent.load(
+                    self._snapshot_path(player), self.config.envs, self.config.device
+                )
         return self._snapshot_cache[player]
 
     def _snapshot_path(self, player: str) -> Path:
@@ -334,7 +337,10 @@ class League:
         return league
 
     @classmethod
-    def resume(cls, run_dir: str | Path) -> League:
+    def resume(cls, run_dir: str | Path, read_only: bool = False) -> League:
+        """The league as of its last checkpoint. To continue it, metrics written after that
+        checkpoint are dropped (they will be written again); `read_only` (status,
+        leaderboard) leaves every file as it is, also while the league runs elsewhere."""
         from alignrl.league.config import load_roster
 
         run_dir = Path(run_dir)
@@ -350,7 +356,7 @@ class League:
         )
         latest = run_dir / "checkpoints" / "LATEST"
         if latest.exists():
-            league._restore(run_dir / "checkpoints" / latest.read_text().strip())
+            league._restore(run_dir / "checkpoints" / latest.read_text().strip(), read_only)
         return league
 
     def _state(self) -> dict[str, Any]:
@@ -384,7 +390,7 @@ class League:
                 shutil.rmtree(old, ignore_errors=True)
         return folder
 
-    def _restore(self, folder: Path) -> None:
+    def _restore(self, folder: Path, read_only: bool = False) -> None:
         state = load_checkpoint(folder / "league.pt", self.config.device)
         if state.get("format") != STATE_FORMAT:
             raise CheckpointError(f"{folder}/league.pt: format {state.get('format')!r}")
@@ -404,6 +410,8 @@ class League:
             self.backend.episodes.set_complexity(self.curriculum.level)
         self.rng.bit_generator.state = state["numpy_rng"]
         torch.set_rng_state(state["torch_rng"])
+        if read_only:
+            return
         for log in (self.iteration_log, self.evaluation_log, self.lineage_log):
             log.truncate_after(self.iteration)
         for member in self.members:
@@ -570,15 +578,16 @@ class League:
         top = self.ratings.ranking(self.pool.active("aligner"))[: cfg.schedule.keep_best]
         for member_id, rating in top:
             agent = self.members[member_id]
-            result = evaluate_policy(
-                lambda observation, agent=agent: agent.act(observation, deterministic=True),
-                cfg.eval_apparatus,
-                cfg.eval_apparatus_args,
-                task,
-                cfg.history,
-                cfg.schedule.eval_scenarios,
-                name=member_id,
-            )
+            with torch.random.fork_rng(devices=[]):  # evaluating must not move training's stream
+                result = evaluate_policy(
+                    lambda observation, agent=agent: agent.act(observation, deterministic=True),
+                    cfg.eval_apparatus,
+                    cfg.eval_apparatus_args,
+                    task,
+                    cfg.history,
+                    cfg.schedule.eval_scenarios,
+                    name=member_id,
+                )
             row = {
                 "iteration": self.iteration,
                 "member": member_id,
