@@ -127,9 +127,11 @@ class InProcessBackend:
         rng: np.random.Generator,
         learning: set[str],
         on_episode: Callable[[bool], None] | None = None,
+        deterministic: bool = False,
     ) -> MatchResult:
         """`matches` matches; members whose id is in `learning` store and learn, the others
-        act with their stochastic policy and change nothing."""
+        act with their stochastic policy (their mean action if `deterministic`: how they are
+        judged) and change nothing."""
         episodes, result = self.episodes, MatchResult()
         k = episodes.k
         result.updates = {member.id: [] for member in (aligner, misaligner)}
@@ -142,7 +144,7 @@ class InProcessBackend:
             if misaligner.id in learning:
                 starts = misaligner.explore(rows, rng)
             else:
-                starts = misaligner.act(rows, deterministic=False)
+                starts = misaligner.act(rows, deterministic=deterministic)
             episodes.misalign(slots, starts)
             returns = np.zeros(len(slots))
             active = slots.copy()
@@ -151,7 +153,7 @@ class InProcessBackend:
                 if aligner.id in learning:
                     action = aligner.explore(observation, rng)
                 else:
-                    action = aligner.act(observation, deterministic=False)
+                    action = aligner.act(observation, deterministic=deterministic)
                 reward, done = episodes.step(active, action)
                 returns[active] += reward
                 if aligner.id in learning:
