@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 import yaml
 
 from alignrl.cli import main
@@ -332,3 +333,30 @@ def test_a_resumed_league_plays_exactly_as_one_never_stopped(tmp_path: Path) -> 
     (run / "config.yaml").write_text(config)
     League.resume(run).run(progress=False)
     assert _outcomes(run) == _outcomes(tmp_path / "a" / "runs" / "tiny")
+
+
+def test_pbt_copies_the_strongest_and_perturbs_its_learning_rate(tmp_path: Path) -> None:
+    league = tiny_league(tmp_path, pbt={"min_gap": 10.0, "perturb": [0.5, 2.0]})
+    league.ratings.update("a-sac", "m-sac", 1.0)  # a-sac beats m-sac: a-ppo is now the weakest
+    for _ in range(20):
+        league.ratings.update("a-sac", "m-ppo", 1.0)
+    changes = league.exploit_and_explore()
+    aligner = [c for c in changes if c["parent"] == "a-sac"]
+    assert len(aligner) == 1 and aligner[0]["replaced"] == "a-ppo"
+    copy = league.members[aligner[0]["member"]]
+    parent = league.members["a-sac"]
+    assert "a-ppo" not in league.members and copy.spec.parent == "a-sac"
+    assert league.ratings.rating(copy.id) == league.ratings.rating("a-sac")
+    for a, b in zip(
+        copy.learner.actor.parameters(), parent.learner.actor.parameters(), strict=True
+    ):
+        assert torch.equal(a, b)  # the weights are copied ...
+    rate = copy.learner.actor_optimizer.param_groups[0]["lr"]
+    assert rate / parent.learner.actor_optimizer.param_groups[0]["lr"] in (0.5, 2.0)
+    assert copy.spec.hyperparameters["learning_rate"] == pytest.approx(rate)  # ... and perturbed
+    # In the misaligner team m-ppo lost far more: it is replaced by a copy of m-sac.
+    assert [(c["parent"], c["replaced"]) for c in changes if c["parent"].startswith("m-")] == [
+        ("m-sac", "m-ppo")
+    ]
+    # The copies share their parents' ratings: no lead of min_gap, so nobody is replaced.
+    assert league.exploit_and_explore() == []
