@@ -19,6 +19,7 @@ __all__ = [
     "CurriculumConfig",
     "ExperimentConfig",
     "LearnerConfig",
+    "RunConfig",
     "TaskOptions",
     "load_experiment",
 ]
@@ -142,7 +143,11 @@ class BudgetConfig(_Strict):
     checkpoint_every: int = Field(5000, ge=1, description="env steps between checkpoints")
 
 
-class ExperimentConfig(_Strict):
+class RunConfig(_Strict):
+    """What every run names: where it lives, its seed, the apparatus it trains and is judged
+    on, the task, the history, and the torch settings. Training experiments and leagues add
+    their own keys."""
+
     name: str = Field("experiment", min_length=1, description="run name (runs/<name>/)")
     seed: int = Field(0, ge=0, description="seeds everything: networks, envs, sampling")
     apparatus: str = Field("csv:default", description="apparatus spec trained on")
@@ -168,6 +173,21 @@ class ExperimentConfig(_Strict):
     threads: int = Field(
         1, ge=1, le=256, description="torch CPU threads (small networks: 1 is fastest)"
     )
+
+    def resolved_task(self) -> Any:
+        """The Task object this run aligns."""
+        from alignrl.envs.task import get_task
+
+        return self.task_options.apply(get_task(self.task))
+
+    @model_validator(mode="after")
+    def _check_name(self) -> RunConfig:
+        if not self.name.replace("-", "").replace("_", "").replace(".", "").isalnum():
+            raise ValueError(f"name {self.name!r}: use letters, digits, '-', '_' and '.'")
+        return self
+
+
+class ExperimentConfig(RunConfig):
     learner: LearnerConfig = Field(
         default_factory=LearnerConfig, description="the learner: algorithm, encoder, settings"
     )
@@ -178,16 +198,8 @@ class ExperimentConfig(_Strict):
         default_factory=BudgetConfig, description="how long to train; when to evaluate and save"
     )
 
-    def resolved_task(self) -> Any:
-        """The Task object this experiment trains on."""
-        from alignrl.envs.task import get_task
-
-        return self.task_options.apply(get_task(self.task))
-
     @model_validator(mode="after")
     def _check(self) -> ExperimentConfig:
-        if not self.name.replace("-", "").replace("_", "").replace(".", "").isalnum():
-            raise ValueError(f"name {self.name!r}: use letters, digits, '-', '_' and '.'")
         if self.curriculum.lower_at >= self.curriculum.raise_at:
             raise ValueError("curriculum.lower_at must be below curriculum.raise_at")
         return self

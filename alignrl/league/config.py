@@ -19,7 +19,7 @@ from alignrl.config import (
     ConfigError,
     CurriculumConfig,
     LearnerConfig,
-    TaskOptions,
+    RunConfig,
     _describe,
     _Strict,
 )
@@ -105,28 +105,12 @@ class PBTConfig(_Strict):
     )
 
 
-class LeagueConfig(_Strict):
+class LeagueConfig(RunConfig):
+    """A league: the run settings of every experiment (RunConfig: apparatus of the matches,
+    held-out apparatus, task, history, envs = matches side by side), plus the rosters and
+    the schedule."""
+
     name: str = Field("league", min_length=1, description="run name (runs/<name>/)")
-    seed: int = Field(0, ge=0, description="seeds members, matches and matchmaking")
-    apparatus: str = Field("csv:default", description="apparatus spec of the matches")
-    apparatus_args: dict[str, Any] = Field(
-        default_factory=lambda: {"noise": 0.02, "split": "train"},
-        description="arguments of the match apparatus",
-    )
-    eval_apparatus: str = Field("csv:default", description="apparatus spec of evaluations")
-    eval_apparatus_args: dict[str, Any] = Field(
-        default_factory=lambda: {"noise": 0.02, "split": "test"},
-        description="arguments of the evaluation apparatus (held-out scenarios)",
-    )
-    task: str = Field("focus", description="task name (alignrl.envs.TASKS)")
-    task_options: TaskOptions = Field(
-        default_factory=lambda: TaskOptions(), description="changes to the named task"
-    )
-    history: int = Field(8, ge=1, le=64, description="history rows the aligners see")
-    envs: int = Field(8, ge=1, le=1024, description="matches played side by side")
-    complexity: float = Field(1.0, gt=0, le=1, description="misalignment window, no curriculum")
-    device: str = Field("cpu", description="torch device")
-    threads: int = Field(1, ge=1, le=256, description="torch CPU threads")
     backend: Literal["inprocess"] = Field("inprocess", description="where matches are played")
     aligners: str = Field("populations/aligners.yaml", description="aligner roster file")
     misaligners: str = Field("populations/misaligners.yaml", description="misaligner roster")
@@ -147,16 +131,9 @@ class LeagueConfig(_Strict):
 
     @model_validator(mode="after")
     def _check(self) -> LeagueConfig:
-        if not self.name.replace("-", "").replace("_", "").replace(".", "").isalnum():
-            raise ValueError(f"name {self.name!r}: use letters, digits, '-', '_' and '.'")
         if self.curriculum.lower_at >= self.curriculum.raise_at:
             raise ValueError("curriculum.lower_at must be below curriculum.raise_at")
         return self
-
-    def resolved_task(self) -> Any:
-        from alignrl.envs.task import get_task
-
-        return self.task_options.apply(get_task(self.task))
 
 
 def _read_yaml(path: Path, what: str) -> Any:
