@@ -8,7 +8,7 @@ code derives new values into new objects, never edits a loaded config.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, TypeVar
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
@@ -23,6 +23,9 @@ __all__ = [
     "TaskOptions",
     "load_experiment",
 ]
+
+
+ModelT = TypeVar("ModelT", bound=BaseModel)
 
 
 class ConfigError(ValueError):
@@ -174,6 +177,10 @@ class RunConfig(_Strict):
         1, ge=1, le=256, description="torch CPU threads (small networks: 1 is fastest)"
     )
 
+    curriculum: CurriculumConfig = Field(
+        default_factory=CurriculumConfig, description="complexity that follows the successes"
+    )
+
     def resolved_task(self) -> Any:
         """The Task object this run aligns."""
         from alignrl.envs.task import get_task
@@ -181,9 +188,11 @@ class RunConfig(_Strict):
         return self.task_options.apply(get_task(self.task))
 
     @model_validator(mode="after")
-    def _check_name(self) -> RunConfig:
+    def _check(self) -> RunConfig:
         if not self.name.replace("-", "").replace("_", "").replace(".", "").isalnum():
             raise ValueError(f"name {self.name!r}: use letters, digits, '-', '_' and '.'")
+        if self.curriculum.lower_at >= self.curriculum.raise_at:
+            raise ValueError("curriculum.lower_at must be below curriculum.raise_at")
         return self
 
 
@@ -191,18 +200,9 @@ class ExperimentConfig(RunConfig):
     learner: LearnerConfig = Field(
         default_factory=LearnerConfig, description="the learner: algorithm, encoder, settings"
     )
-    curriculum: CurriculumConfig = Field(
-        default_factory=CurriculumConfig, description="complexity that follows the successes"
-    )
     budget: BudgetConfig = Field(
         default_factory=BudgetConfig, description="how long to train; when to evaluate and save"
     )
-
-    @model_validator(mode="after")
-    def _check(self) -> ExperimentConfig:
-        if self.curriculum.lower_at >= self.curriculum.raise_at:
-            raise ValueError("curriculum.lower_at must be below curriculum.raise_at")
-        return self
 
 
 def _describe(error: ValidationError) -> str:
@@ -215,27 +215,38 @@ def _describe(error: ValidationError) -> str:
     return "; ".join(lines)
 
 
-def parse_experiment(data: Any, source: str = "config") -> ExperimentConfig:
+def parse_config(model: type[ModelT], data: Any, source: str) -> ModelT:
+    """`data` (a YAML mapping) as a `model`; any problem is a ConfigError naming `source`,
+    the key path and what was expected."""
     if not isinstance(data, dict):
         raise ConfigError(f"{source}: expected a mapping of settings at the top level")
     try:
-        return ExperimentConfig(**data)
+        return model(**data)
     except ValidationError as error:
         raise ConfigError(f"{source}: {_describe(error)}") from None
+
+
+def read_yaml(path: Path, what: str) -> Any:
+    """A YAML file read with yaml.safe_load (an empty file is an empty mapping)."""
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise ConfigError(f"{what} {path} does not exist") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as error:
+        raise ConfigError(f"{path}: not valid YAML: {error}") from None
+    return {} if data is None else data
+
+
+def parse_experiment(data: Any, source: str = "config") -> ExperimentConfig:
+    return parse_config(ExperimentConfig, data, source)
 
 
 def load_experiment(path: str | Path) -> ExperimentConfig:
     """Read an experiment YAML strictly (yaml.safe_load; unknown keys are errors)."""
     path = Path(path)
-    try:
-        text = path.read_text()
-    except FileNotFoundError:
-        raise ConfigError(f"experiment config {path} does not exist") from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as error:
-        raise ConfigError(f"{path}: not valid YAML: {error}") from None
-    return parse_experiment(data if data is not None else {}, str(path))
+    return parse_experiment(read_yaml(path, "experiment config"), str(path))
 
 
 def dump_experiment(config: ExperimentConfig) -> str:

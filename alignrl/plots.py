@@ -23,6 +23,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import ArrayLike
 
+from alignrl.metrics import EPISODE_COLUMNS, EVALUATION_COLUMNS
+
 if TYPE_CHECKING:
     import pandas as pd
     from matplotlib.axes import Axes
@@ -58,16 +60,6 @@ DPI = 120
 ENV_STEPS_LABEL = "env steps (image acquisitions)"
 
 UPDATE_COUNTERS = ("env_steps", "updates")  # the columns of updates.csv that are not plotted
-EPISODE_COLUMNS = ("env_steps", "episode", "return", "success", "acquisitions", "complexity")
-EVALUATION_COLUMNS = (
-    "env_steps",
-    "successes",
-    "scenarios",
-    "median_acquisitions",
-    "p90_acquisitions",
-    "median_final_px",
-    "seconds",
-)
 
 # Title and y-axis label of the updates.csv columns we know; any other column is plotted
 # under its own name, so a new learner's metrics need no change here.

@@ -22,7 +22,6 @@ episodes in flight at the kill start over.
 
 from __future__ import annotations
 
-import csv
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -39,8 +38,9 @@ from alignrl.envs.alignment import aligner_spaces
 from alignrl.envs.task import Task
 from alignrl.evaluation.controllers import PolicyController
 from alignrl.evaluation.session import SessionResult, run_session
+from alignrl.metrics import EPISODE_COLUMNS, EVALUATION_COLUMNS, CsvLog
 
-__all__ = ["CsvLog", "Trainer", "evaluate_policy", "load_policy", "member_spec"]
+__all__ = ["Trainer", "evaluate_policy", "load_policy", "member_spec"]
 
 CHECKPOINT_FORMAT = "alignrl-train-2"  # -1: a bare SAC state (policies still load)
 EVALUATION_SEED = 1_000_000  # evaluation scenarios never overlap training seeds
@@ -61,36 +61,6 @@ def evaluate_policy(
     held-out scenarios, starts anywhere in the interval, a verification image each."""
     controller = PolicyController(name, act, task, history)
     return run_session(controller, make_apparatus(apparatus, apparatus_args), task, scenarios, seed)
-
-
-class CsvLog:
-    """Append-only CSV with a fixed header; rows past a checkpoint's count of `key` (env
-    steps, league iterations) are dropped on resume."""
-
-    def __init__(self, path: Path, fields: list[str], key: str = "env_steps") -> None:
-        self.path, self.fields, self.key = path, fields, key
-        path.parent.mkdir(parents=True, exist_ok=True)
-        if not path.exists():
-            with path.open("w", newline="") as handle:
-                csv.writer(handle).writerow(fields)
-
-    def truncate_after(self, count: int) -> None:
-        with self.path.open(newline="") as handle:
-            rows = list(csv.DictReader(handle))
-        kept = [row for row in rows if int(row[self.key]) <= count]
-        text = (
-            ",".join(self.fields)
-            + "\n"
-            + "".join(",".join(row[field] for field in self.fields) + "\n" for row in kept)
-        )
-        atomic_write_text(self.path, text)
-
-    def write(self, rows: list[dict[str, Any]]) -> None:
-        if not rows:
-            return
-        with self.path.open("a", newline="") as handle:
-            writer = csv.DictWriter(handle, self.fields)
-            writer.writerows(rows)
 
 
 def member_spec(config: ExperimentConfig, member_id: str | None = None) -> MemberSpec:
@@ -148,22 +118,8 @@ class Trainer:
         self.update_log = CsvLog(
             metrics / "updates.csv", ["env_steps", "updates", *self.agent.metric_names]
         )
-        self.episode_log = CsvLog(
-            metrics / "episodes.csv",
-            ["env_steps", "episode", "return", "success", "acquisitions", "complexity"],
-        )
-        self.evaluation_log = CsvLog(
-            metrics / "evaluations.csv",
-            [
-                "env_steps",
-                "successes",
-                "scenarios",
-                "median_acquisitions",
-                "p90_acquisitions",
-                "median_final_px",
-                "seconds",
-            ],
-        )
+        self.episode_log = CsvLog(metrics / "episodes.csv", list(EPISODE_COLUMNS))
+        self.evaluation_log = CsvLog(metrics / "evaluations.csv", list(EVALUATION_COLUMNS))
         self._tensorboard = None
 
     # --- run directory ------------------------------------------------------------------

@@ -12,16 +12,15 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Literal
 
-import yaml
-from pydantic import Field, ValidationError, model_validator
+from pydantic import Field, model_validator
 
 from alignrl.config import (
     ConfigError,
-    CurriculumConfig,
     LearnerConfig,
     RunConfig,
-    _describe,
     _Strict,
+    parse_config,
+    read_yaml,
 )
 
 __all__ = [
@@ -125,57 +124,26 @@ class LeagueConfig(RunConfig):
     pbt: PBTConfig = Field(
         default_factory=PBTConfig, description="population-based training (exploit/explore)"
     )
-    curriculum: CurriculumConfig = Field(
-        default_factory=CurriculumConfig, description="complexity that follows the successes"
-    )
-
-    @model_validator(mode="after")
-    def _check(self) -> LeagueConfig:
-        if self.curriculum.lower_at >= self.curriculum.raise_at:
-            raise ValueError("curriculum.lower_at must be below curriculum.raise_at")
-        return self
-
-
-def _read_yaml(path: Path, what: str) -> Any:
-    try:
-        text = path.read_text()
-    except FileNotFoundError:
-        raise ConfigError(f"{what} {path} does not exist") from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as error:
-        raise ConfigError(f"{path}: not valid YAML: {error}") from None
-    if not isinstance(data, dict):
-        raise ConfigError(f"{path}: expected a mapping of settings at the top level")
-    return data
 
 
 def load_roster(path: str | Path, team: str | None = None) -> Roster:
     """A team roster (populations/*.yaml); `team`, when given, must match its `team:`."""
     path = Path(path)
-    try:
-        roster = Roster(**_read_yaml(path, "roster"))
-    except ValidationError as error:
-        raise ConfigError(f"{path}: {_describe(error)}") from None
+    roster = parse_config(Roster, read_yaml(path, "roster"), str(path))
     if team is not None and roster.team != team:
         raise ConfigError(f"{path}: team is {roster.team!r}, but it is used as the {team} roster")
     return roster
 
 
 def parse_league(data: Any, source: str = "league config") -> LeagueConfig:
-    if not isinstance(data, dict):
-        raise ConfigError(f"{source}: expected a mapping of settings at the top level")
-    try:
-        return LeagueConfig(**data)
-    except ValidationError as error:
-        raise ConfigError(f"{source}: {_describe(error)}") from None
+    return parse_config(LeagueConfig, data, source)
 
 
 def load_league(path: str | Path) -> tuple[LeagueConfig, Roster, Roster]:
     """A league experiment and its two rosters. Roster paths are read relative to the
     working directory first, then to the experiment file's folder's parent (the repo)."""
     path = Path(path)
-    config = parse_league(_read_yaml(path, "league config"), str(path))
+    config = parse_league(read_yaml(path, "league config"), str(path))
     rosters = []
     for team, name in (("aligner", config.aligners), ("misaligner", config.misaligners)):
         candidate = Path(name)

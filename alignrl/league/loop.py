@@ -55,15 +55,18 @@ from alignrl.envs.core import AlignmentEpisodes
 from alignrl.league.config import LeagueConfig, MemberConfig, Roster, parse_league
 from alignrl.league.matchmaking import Matchmaker, MatchmakingConfig, OpponentPool
 from alignrl.league.ratings import EloConfig, PayoffTable, Ratings
-from alignrl.training import CsvLog, evaluate_policy
+from alignrl.metrics import (
+    EPISODE_COLUMNS,
+    LEAGUE_EVALUATION_COLUMNS,
+    LEAGUE_ITERATION_COLUMNS,
+    LINEAGE_COLUMNS,
+    CsvLog,
+)
+from alignrl.training import evaluate_policy
 
 __all__ = ["InProcessBackend", "League", "MatchResult", "leaderboard", "member_spec"]
 
 STATE_FORMAT = "alignrl-league-1"
-UPDATE_FIELDS = {
-    "sac": ["policy_loss", "q1_loss", "q2_loss", "v_loss", "entropy", "alpha"],
-    "ppo": ["policy_loss", "value_loss", "entropy", "approx_kl", "clip_fraction"],
-}
 
 
 def member_spec(member: MemberConfig, team: str, config: LeagueConfig) -> MemberSpec:
@@ -168,8 +171,9 @@ class InProcessBackend:
                         slots=active,
                     )
                     result.updates[aligner.id] += aligner.learn(rng, new_steps=len(active))
+                won = episodes.successes()
                 for index in active[done]:
-                    success = bool(episodes.successes()[index])
+                    success = bool(won[index])
                     result.successes.append(success)
                     result.acquisitions.append(int(episodes.acquisitions[index]))
                     result.returns.append(float(returns[index]))
@@ -234,41 +238,12 @@ class League:
         self._tensorboard = None
         metrics = self.run_dir / "metrics"
         self.iteration_log = CsvLog(
-            metrics / "iterations.csv",
-            [
-                "iteration",
-                "env_steps",
-                "aligner",
-                "misaligner",
-                "learner",
-                "matches",
-                "success_rate",
-                "mean_acquisitions",
-                "aligner_rating",
-                "misaligner_rating",
-                "complexity",
-                "seconds",
-            ],
-            key="iteration",
+            metrics / "iterations.csv", list(LEAGUE_ITERATION_COLUMNS), key="iteration"
         )
         self.evaluation_log = CsvLog(
-            metrics / "evaluations.csv",
-            [
-                "iteration",
-                "member",
-                "successes",
-                "scenarios",
-                "median_acquisitions",
-                "p90_acquisitions",
-                "rating",
-            ],
-            key="iteration",
+            metrics / "evaluations.csv", list(LEAGUE_EVALUATION_COLUMNS), key="iteration"
         )
-        self.lineage_log = CsvLog(
-            metrics / "lineage.csv",
-            ["iteration", "member", "parent", "replaced", "learning_rate"],
-            key="iteration",
-        )
+        self.lineage_log = CsvLog(metrics / "lineage.csv", list(LINEAGE_COLUMNS), key="iteration")
         self._member_logs: dict[str, tuple[CsvLog, CsvLog]] = {}
 
     # --- members ------------------------------------------------------------------------
@@ -282,13 +257,10 @@ class League:
     def _member_log(self, member: str) -> tuple[CsvLog, CsvLog]:
         if member not in self._member_logs:
             folder = self.run_dir / "metrics" / "members" / member
-            algorithm = self.members[member].spec.algorithm
+            metrics = self.members[member].metric_names
             self._member_logs[member] = (
-                CsvLog(folder / "updates.csv", ["env_steps", "updates", *UPDATE_FIELDS[algorithm]]),
-                CsvLog(
-                    folder / "episodes.csv",
-                    ["env_steps", "episode", "return", "success", "acquisitions", "complexity"],
-                ),
+                CsvLog(folder / "updates.csv", ["env_steps", "updates", *metrics]),
+                CsvLog(folder / "episodes.csv", list(EPISODE_COLUMNS)),
             )
         return self._member_logs[member]
 

@@ -26,6 +26,7 @@ import yaml
 from alignrl.checkpoints import atomic_write_text, load_checkpoint
 from alignrl.league.matchmaking import SNAPSHOT_MARK, TEAMS
 from alignrl.league.ratings import PayoffTable, Ratings
+from alignrl.metrics import LINEAGE_COLUMNS
 from alignrl.plots import (
     FIGURES,
     ReportError,
@@ -64,7 +65,6 @@ ITERATION_LABEL = "league iteration"
 
 ITERATION_COLUMNS = ("iteration", "env_steps", "matches", "success_rate", "complexity", "seconds")
 EVALUATION_COLUMNS = ("iteration", "member", "successes", "scenarios", "median_acquisitions")
-LINEAGE_COLUMNS = ("iteration", "member", "parent", "replaced", "learning_rate")
 # A misaligner plays one-step episodes logged as its aligners' (loop.py), so of the training
 # figures only its losses apply.
 MEMBER_FIGURES = {"aligner": tuple(FIGURES), "misaligner": ("losses.png",)}
