@@ -38,6 +38,7 @@ LEAGUE_ITERATION_COLUMNS = (
     "matches",
     "success_rate",
     "mean_acquisitions",
+    "aligner_payoff",
     "aligner_rating",
     "misaligner_rating",
     "complexity",

@@ -325,3 +325,35 @@ def test_the_optional_success_bonus_is_paid_only_within_spec() -> None:
     env.reset(seed=1, options={"misalignment": [-1.0]})  # far out, then stop at once
     _, reward, _, _, info = env.step(np.array([0.0, 1.0]))
     assert not info["success"] and reward == 0.0
+
+
+def _duel_totals(start: float, aligner: str) -> tuple[float, float]:
+    """Totals (misaligner, aligner) of one noise-free duel from `start`, against an aligner
+    that stops at once ("idle") or walks to the optimum with the secret ("oracle")."""
+    duel = DuelEnv(apparatus_args={"noise": 0.0})
+    duel.reset(seed=3)
+    totals = {MISALIGNER: 0.0, ALIGNER: 0.0}
+    duel.step(np.array([start], np.float32))
+    totals[MISALIGNER] += duel.rewards[MISALIGNER]
+    totals[ALIGNER] += duel.rewards[ALIGNER]
+    episodes = duel.episodes
+    while not duel.terminations[ALIGNER]:
+        move = episodes.secrets()[0] * episodes.span[0] / episodes.max_step[0]
+        done = aligner == "idle" or abs(move[0]) < 1e-9
+        duel.step(np.array([np.clip(move[0], -1, 1), 1.0 if done else -1.0], np.float32))
+        totals[MISALIGNER] += duel.rewards[MISALIGNER]
+        totals[ALIGNER] += duel.rewards[ALIGNER]
+    return totals[MISALIGNER], totals[ALIGNER]
+
+
+def test_the_misaligner_is_paid_for_what_the_aligner_does_not_recover() -> None:
+    # Against an aligner that does nothing, a far start is worth more than a near one...
+    far, _ = _duel_totals(-1.0, "idle")
+    near, _ = _duel_totals(0.02, "idle")
+    assert far > near + 1.0
+    # ...against one that reaches the optimum, no start is worth anything: had the misaligner
+    # been paid minus the aligner's improvement, it would have learned to start at focus.
+    for start in (-1.0, -0.5, 0.02, 0.6):
+        misaligner, aligner = _duel_totals(start, "oracle")
+        assert misaligner == pytest.approx(0.0, abs=0.05)
+        assert misaligner + aligner == pytest.approx(0.0, abs=1e-9)

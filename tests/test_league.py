@@ -106,9 +106,13 @@ def test_matches_are_zero_sum_and_both_sides_store_their_experience(tmp_path: Pa
         aligner, misaligner, 10, np.random.default_rng(0), {"a-sac", "m-sac"}
     )
     assert result.matches == 10 and len(result.returns) == 10
-    # The misaligner's reward for each match is minus the aligner's whole return.
+    # Zero-sum: the misaligner's reward for each match is minus the aligner's payoff, which
+    # is its return (the seed's rewards it learns from) less what the start was worth.
     stored = misaligner.replay.reward[: misaligner.replay.size]
-    np.testing.assert_allclose(np.sort(stored), np.sort(-np.array(result.returns)), rtol=1e-6)
+    payoffs = np.array(result.payoffs)
+    np.testing.assert_allclose(np.sort(stored), np.sort(-payoffs), rtol=1e-5, atol=1e-5)
+    # An aligner cannot win back more than the misalignment: its payoff is at most the bonus.
+    assert np.all(payoffs <= 1e-6) and not np.allclose(payoffs, np.array(result.returns))
     assert misaligner.replay.size == 10 and np.all(misaligner.replay.done[:10] == 1.0)
     # One stored transition per aligner action: at least one per match, at most the limit.
     assert 10 <= aligner.replay.size == aligner.steps_seen <= 10 * 11
@@ -124,21 +128,16 @@ def test_a_tiny_league_rates_snapshots_copies_and_keeps_the_best(tmp_path: Path)
     run = tmp_path / "runs" / "tiny"
     rows = read_csv(run / "metrics" / "iterations.csv")
     assert [int(row["iteration"]) for row in rows] == list(range(1, 9))
-    # Elo is zero-sum: the ratings of all players (members and snapshots) average 1200.
+    # Every player (members and snapshots) is rated, and the ratings moved; that Elo stays
+    # zero-sum (PBT copies aside) is test_elo_bookkeeping_is_zero_sum_over_a_run.
     ratings = [
         league.ratings.rating(p)
         for t in ("aligner", "misaligner")
         for p in league.pool.candidates(t)
     ]
     assert len(league.pool.snapshots("aligner")) >= 2
-    assert (
-        abs(
-            np.mean([league.ratings.rating(p) for p in league.ratings.ranking()[0:0]] or [1200])
-            - 1200
-        )
-        < 1e-9
-    )
     assert all(np.isfinite(ratings))
+    assert np.std(ratings) > 0
     lineage = read_csv(run / "metrics" / "lineage.csv")
     assert lineage and all(
         row["member"].startswith(row["parent"].split("-pbt")[0]) for row in lineage

@@ -106,6 +106,7 @@ class AlignmentEpisodes:
         self.width_before = np.full(self.n, np.nan)
         self.width = np.full(self.n, np.nan)
         self.threshold = np.full(self.n, np.nan)
+        self.best_width = np.full(self.n, np.nan)  # px at the optimum; NaN where unknown
         self.steps = np.zeros(self.n, np.int64)
         self.acquisitions = np.zeros(self.n, np.int64)
         self.active = np.zeros(self.n, bool)
@@ -144,6 +145,7 @@ class AlignmentEpisodes:
                 if callable(best_quality):
                     best[position] = float(best_quality())
         rule = self.task.success
+        self.best_width[indices] = best
         self.threshold[indices] = [
             rule.threshold_px(None if np.isnan(value) else float(value)) for value in best
         ]
@@ -165,6 +167,7 @@ class AlignmentEpisodes:
             self.aligned[index] = self.setting[index]
             self.info[index] = EpisodeInfo()
         self.threshold[indices] = np.nan
+        self.best_width[indices] = np.nan
         self.history[indices] = 0.0
         self.steps[indices] = 0
         self.acquisitions[indices] = 0
@@ -195,6 +198,16 @@ class AlignmentEpisodes:
             info.acquisitions = int(self.acquisitions[index])
         self._record(indices, widths, np.zeros((len(indices), self.k + 1)))
         self.active[indices] = True
+
+    def misalignment_scores(self, indices: np.ndarray) -> np.ndarray:
+        """What each start of `indices` is worth to the misaligner before the aligner acts
+        (see `rewards.misalignment_score`); the aligner is charged the same."""
+        indices = np.asarray(indices, dtype=np.int64)
+        return rewards.misalignment_score(
+            self._scored(self.width_before[indices]),
+            self.best_width[indices],
+            self.task.final_reward_scale,
+        )
 
     # --- stepping -----------------------------------------------------------------------
 

@@ -11,9 +11,11 @@ Card
   each knob starts.
 * Aligner observation/action: as in AlignmentEnv (history of settings, quality, actions;
   knob changes plus a stop component).
-* Rewards: the aligner's per the seed (0 in the interval, -penalty at a bound, the final
-  improvement of the edge width); the misaligner receives the negative of every aligner
-  reward at the same step, so every episode sums to exactly zero.
+* Rewards, zero-sum at every step: at the misaligner's move it scores the misalignment it
+  created, scale x (start width - best width), and the aligner is charged as much; then the
+  aligner earns the seed's rewards (0 in the interval, -penalty at a bound, the final
+  improvement of the edge width) and the misaligner the negative of each. The misaligner's
+  total is what the aligner did not recover (alignrl.envs.rewards).
 * Termination: both agents at the end of the alignment. info as in AlignmentEnv.
 * Seeding: only through `self.np_random` (reset(seed=...)).
 """
@@ -102,6 +104,8 @@ class raw_env(AECEnv):
         self._clear_rewards()
         if agent == MISALIGNER:
             self.episodes.misalign(self._index, np.asarray(action, float))
+            score = float(self.episodes.misalignment_scores(self._index)[0])
+            self.rewards[MISALIGNER], self.rewards[ALIGNER] = score, -score
             self.infos[ALIGNER] = episode_info(self.episodes, 0, done=False)
             self.agent_selection = ALIGNER
         else:

@@ -4,7 +4,8 @@ One iteration:
 1. the matchmaker picks an aligner and a misaligner (one of them the iteration's learner,
    the other drawn by PFSP / uniform / latest from the other team, snapshots included);
 2. they play `schedule.matches` matches: the misaligner chooses each start, the aligner
-   aligns from it; the aligner earns the seed's reward, the misaligner its negative;
+   aligns from it; the aligner learns from the seed's reward, the misaligner is paid what the
+   aligner did not recover (the zero-sum payoff of alignrl.envs.rewards);
 3. both are rated (Elo, the aligner's score is its success rate) and the payoff recorded;
 4. every active member that played stores its experience and learns (snapshots are frozen);
 5. the curriculum steps with the aligner's successes.
@@ -91,12 +92,15 @@ def member_spec(member: MemberConfig, team: str, config: LeagueConfig) -> Member
 
 
 class MatchResult:
-    """The outcome of one batch of matches, from the aligner's side."""
+    """The outcome of one batch of matches, from the aligner's side: its returns (the seed's
+    rewards it learns from) and payoffs in the zero-sum game (its return minus the start's
+    score; the misaligner's payoff is the negative)."""
 
     def __init__(self) -> None:
         self.successes: list[bool] = []
         self.acquisitions: list[int] = []
         self.returns: list[float] = []
+        self.payoffs: list[float] = []
         self.updates: dict[str, list[dict[str, float]]] = {}
 
     @property
@@ -149,6 +153,7 @@ class InProcessBackend:
             else:
                 starts = misaligner.act(rows, deterministic=deterministic)
             episodes.misalign(slots, starts)
+            scores = episodes.misalignment_scores(slots)
             returns = np.zeros(len(slots))
             active = slots.copy()
             while active.size:
@@ -177,15 +182,17 @@ class InProcessBackend:
                     result.successes.append(success)
                     result.acquisitions.append(int(episodes.acquisitions[index]))
                     result.returns.append(float(returns[index]))
+                    result.payoffs.append(float(returns[index] - scores[index]))
                     if on_episode:
                         on_episode(success)
                 active = active[~done]
             if misaligner.id in learning:
-                # One-step episodes: the start is the action, minus the aligner's return the
-                # reward (zero-sum), and nothing follows.
+                # One-step episodes: the start is the action, the reward its score minus the
+                # aligner's return (zero-sum), and nothing follows.
                 none = np.zeros((len(slots), k), np.float32)
+                payoff = scores - returns
                 misaligner.observe(
-                    rows, none, starts, -returns, rows, none, np.ones(len(slots), bool), slots
+                    rows, none, starts, payoff, rows, none, np.ones(len(slots), bool), slots
                 )
                 result.updates[misaligner.id] += misaligner.learn(rng, new_steps=len(slots))
         return result
@@ -424,6 +431,7 @@ class League:
             "matches": result.matches,
             "success_rate": round(result.success_rate, 4),
             "mean_acquisitions": round(float(np.mean(result.acquisitions)), 3),
+            "aligner_payoff": round(float(np.mean(result.payoffs)), 4),
             "aligner_rating": round(self.ratings.rating(pairing.aligner), 2),
             "misaligner_rating": round(self.ratings.rating(pairing.misaligner), 2),
             "complexity": round(complexity, 4),
