@@ -11,7 +11,8 @@ $(STAMP): pyproject.toml
 	$(BIN)/pip install --quiet --upgrade pip
 	# The pinned CPU build of torch lies on these machines' disk; an unpinned torch downloads gigabytes.
 	$(BIN)/pip install --quiet torch==2.13.0
-	$(BIN)/pip install --quiet -e '.[dev]'
+	# The onnx and ray extras too: their tests (export parity, the Ray backend) run in `make test`.
+	$(BIN)/pip install --quiet -e '.[dev,onnx,ray]'
 	touch $(STAMP)
 
 install: $(STAMP)
@@ -19,7 +20,7 @@ install: $(STAMP)
 # The benchmark extra (Stable-Baselines3) on top of the dev install; `make test` never needs it.
 BENCH_STAMP := $(VENV)/.installed-bench
 $(BENCH_STAMP): $(STAMP)
-	$(BIN)/pip install --quiet -e '.[dev,bench]'
+	$(BIN)/pip install --quiet -e '.[dev,onnx,ray,bench]'
 	touch $(BENCH_STAMP)
 
 # The main job: the classical autofocus baselines on held-out scenarios, then a short league

@@ -6,6 +6,8 @@
     alignrl evaluate --policy NAME --apparatus SPEC --scenarios N [--seed S] [--spec-px X]
     alignrl baselines --apparatus SPEC --scenarios N [--seed S] [--spec-px X] [--plot-dir DIR]
     alignrl report RUN [--out DIR] [--json]
+    alignrl export RUN [--member ID] --format onnx|torchscript|safetensors --out DIR
+                   [--force] [--json]
 """
 
 from __future__ import annotations
@@ -324,7 +326,6 @@ def _trained_controller(path: Path):
 
 
 def cmd_train(args: argparse.Namespace) -> int:
-    from alignrl.agents.sac import NonFiniteError
     from alignrl.config import load_experiment
     from alignrl.training import Trainer
 
@@ -337,6 +338,13 @@ def cmd_train(args: argparse.Namespace) -> int:
         if args.name:
             config = config.model_copy(update={"name": args.name})
         trainer = Trainer.create(config, args.runs_dir)
+    return _train_to_the_end(trainer, args, "alignrl train --resume")
+
+
+def _train_to_the_end(trainer: Any, args: argparse.Namespace, resume: str) -> int:
+    """Run a Trainer (alignrl train or adapt) to its budget; one summary at the end."""
+    from alignrl.agents.sac import NonFiniteError
+
     run_dir = trainer.run_dir
     from tqdm import tqdm
 
@@ -347,7 +355,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         print(
             f"\ninterrupted at {trainer.env_steps} env steps; the last checkpoint is kept: "
-            f"continue with `alignrl train --resume {run_dir}`",
+            f"continue with `{resume} {run_dir}`",
             file=sys.stderr,
         )
         return EXIT_INTERRUPTED
@@ -377,6 +385,50 @@ def cmd_train(args: argparse.Namespace) -> int:
         ],
     )
     return 0
+
+
+def cmd_adapt(args: argparse.Namespace) -> int:
+    from alignrl.training import Trainer
+
+    if args.resume:
+        trainer = Trainer.resume(args.resume)
+        if trainer.config.adaptation is None:
+            raise CommandError(f"{args.resume} is a training run, not an adaptation: use train")
+        return _train_to_the_end(trainer, args, "alignrl adapt --resume")
+    from alignrl.adaptation import adaptation_config, start_adaptation
+    from alignrl.deploy.export import ExportError, resolve_source
+
+    if not (args.source and args.apparatus and args.steps):
+        raise CommandError("give --from RUN_OR_POLICY, --apparatus SPEC and --steps N")
+    try:
+        source = resolve_source(args.source, args.member)
+    except ExportError as error:
+        raise CommandError(str(error)) from None
+    apparatus_args = _json_object(args.apparatus_args, "--apparatus-args")
+    eval_args = (
+        _json_object(args.eval_apparatus_args, "--eval-apparatus-args")
+        if args.eval_apparatus_args is not None
+        else None
+    )
+    safe_name = "".join(c if c.isalnum() or c in "-_." else "-" for c in args.apparatus)
+    config = adaptation_config(
+        source,
+        name=args.name or f"{source.agent.id}-on-{safe_name}".strip("-"),
+        apparatus=args.apparatus,
+        apparatus_args=apparatus_args,
+        steps=args.steps,
+        eval_apparatus=args.eval_apparatus,
+        eval_apparatus_args=eval_args,
+        eval_every=args.eval_every,
+        eval_scenarios=args.eval_scenarios,
+        envs=args.envs,
+        seed=args.seed,
+        limits=_json_object(args.limits, "--limits"),
+        max_step=_json_object(args.max_step, "--max-step"),
+        spec_px=args.spec_px,
+    )
+    trainer = start_adaptation(config, source, args.runs_dir)
+    return _train_to_the_end(trainer, args, "alignrl adapt --resume")
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
@@ -521,7 +573,7 @@ def _run_league(league: Any, args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from alignrl.agents.sac import NonFiniteError
-    from alignrl.league.loop import leaderboard
+    from alignrl.league.loop import WorkerFailedError, leaderboard
 
     log = None if args.quiet else (lambda line: tqdm.write(line, file=sys.stderr))
     started = time.perf_counter()
@@ -534,10 +586,12 @@ def _run_league(league: Any, args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return EXIT_INTERRUPTED
-    except NonFiniteError as error:
+    except (NonFiniteError, WorkerFailedError) as error:
         raise CommandError(
             f"league stopped: {error}; the last checkpoint in {league.run_dir} is intact"
         ) from None
+    finally:
+        league.close()  # a Ray backend's workers
     rows = leaderboard(league)
     champion = league.champion()
     payload = {
@@ -586,7 +640,7 @@ def cmd_league_status(args: argparse.Namespace) -> int:
         "iteration": league.iteration,
         "iterations": schedule.iterations,
         "env_steps": league.env_steps,
-        "complexity": league.backend.episodes.complexity,
+        "complexity": league.backend.complexity,
         "members": {team: league.pool.active(team) for team in ("aligner", "misaligner")},
         "snapshots": {
             team: [snapshot.id for snapshot in league.pool.snapshots(team)]
@@ -615,6 +669,149 @@ def cmd_leaderboard(args: argparse.Namespace) -> int:
     rows = leaderboard(league)
     payload = {"run": args.run, "leaderboard": rows}
     _emit_with_league_report(payload, args.json, _leaderboard_lines(rows), league.run_dir, rows)
+    return 0
+
+
+# --- align ------------------------------------------------------------------------------
+
+
+def _count(number: int, noun: str) -> str:
+    return f"{number} {noun}{'' if number == 1 else 's'}"
+
+
+def _setting_text(setting: dict[str, float] | None) -> str:
+    if setting is None:
+        return "unknown"
+    return ", ".join(f"{knob} {value:.4g}" for knob, value in setting.items())
+
+
+def cmd_align(args: argparse.Namespace) -> int:
+    """One alignment through the safety shield; the exit code says how it ended
+    (alignrl/deploy/align.py: 0 aligned, 1 not, 2 config, 3 aborted, 4 driver failure)."""
+    from alignrl.deploy.align import (
+        EXIT_ABORTED,
+        EXIT_DRIVER,
+        JsonLinesAudit,
+        align,
+        operator_signals,
+    )
+    from alignrl.deploy.policy import load_deployable
+    from alignrl.deploy.shield import MemoryAudit, resolve_limits
+
+    apparatus_args = _json_object(args.apparatus_args, "--apparatus-args")
+    site_limits = _json_object(args.limits, "--limits")
+    max_step = _json_object(args.max_step, "--max-step")
+    with operator_signals():
+        try:
+            try:
+                policy = load_deployable(args.policy)
+            except ImportError as error:  # an ONNX policy without onnxruntime
+                raise CommandError(f"cannot run policy {args.policy}: {error}") from None
+            if args.task is not None and args.task != policy.task.name:
+                raise CommandError(
+                    f"policy {policy.name!r} aligns task {policy.task.name!r}, not {args.task!r}"
+                )
+            try:
+                apparatus = make_apparatus(args.apparatus, apparatus_args, seed=args.seed)
+            except ApparatusError as error:
+                print(f"alignrl: apparatus error: {error}", file=sys.stderr)
+                return EXIT_DRIVER
+            limits = resolve_limits(apparatus.knobs, site_limits, max_step)
+        except KeyboardInterrupt:
+            print("\ninterrupted before the alignment started: nothing written", file=sys.stderr)
+            return EXIT_ABORTED
+        audit = JsonLinesAudit(args.log) if args.log else MemoryAudit()
+        try:
+            result = align(
+                policy,
+                apparatus,
+                limits,
+                audit,
+                apparatus_spec=args.apparatus,
+                spec_px=args.spec_px,
+                dry_run=args.dry_run,
+                timeout_s=args.timeout,
+                max_acquisitions=args.max_acquisitions,
+                restore_on_abort=args.restore_on_abort,
+                log_path=args.log,
+            )
+        except KeyboardInterrupt:  # before the alignment began: it handles its own
+            print("\ninterrupted before the alignment started: nothing written", file=sys.stderr)
+            return EXIT_ABORTED
+        finally:
+            if isinstance(audit, JsonLinesAudit):
+                audit.close()
+    lines = [
+        f"{result.outcome}: {result.reason}",
+        f"  policy {result.policy} on {result.apparatus}: "
+        f"{_count(result.acquisitions, 'acquisition')}, {_count(result.writes, 'write')} "
+        f"({result.clamped} clamped, {result.refused} refused)"
+        + (" - dry run: nothing was written" if result.dry_run else ""),
+        f"  start {_setting_text(result.start_setting)}; "
+        f"left at {_setting_text(result.final_setting)}"
+        + (" (start restored)" if result.restored else ""),
+    ]
+    if result.log:
+        lines.append(f"  audit log: {result.log}")
+    _emit(result.to_dict(), args.json, lines)
+    return result.exit_code
+
+
+# --- export -----------------------------------------------------------------------------
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    from alignrl.deploy.export import export_command, export_policy, resolve_source
+
+    started = time.perf_counter()
+    source = resolve_source(args.run, args.member)
+    command = export_command(args.run, args.member, args.format, args.out)
+    try:
+        result = export_policy(source, args.out, args.format, force=args.force, command=command)
+    except ImportError as error:  # the optional extra: its message says what to install
+        raise CommandError(str(error)) from None
+    card, parity = result.card, result.parity
+    payload = {
+        "run": args.run,
+        "member": card["member"]["id"],
+        "chosen_as": card["source"]["chosen_as"],
+        "format": args.format,
+        "out": str(result.out),
+        "policy": str(result.policy_file),
+        "card": str(result.out / "card.json"),
+        "model_card": str(result.out / "model_card.md"),
+        "inputs": card["inputs"],
+        "outputs": card["outputs"],
+        "history": card["history"],
+        "knobs": card["knobs"],
+        "memory": card["memory"]["kind"],
+        "parity_histories": parity.histories,
+        "parity_max_abs_difference": parity.max_abs_difference,
+        "seconds": round(time.perf_counter() - started, 2),
+    }
+
+    def shapes(side: str) -> str:
+        return ", ".join(
+            f"{entry['name']} {entry['dtype']} ({', '.join(map(str, entry['shape']))})"
+            for entry in card[side]
+        )
+
+    lines = [
+        f"exported {payload['member']} ({payload['chosen_as']} of {args.run}) as "
+        f"{args.format}: {result.policy_file}",
+        f"  inputs:  {shapes('inputs')}",
+        f"  outputs: {shapes('outputs')}",
+        *(
+            f"  knob:    {knob['name']} in [{knob['low']:g}, {knob['high']:g}], at most "
+            f"{knob['max_step']:g} per action"
+            for knob in card["knobs"]
+        ),
+        f"  memory:  {card['memory']['note']}",
+        f"  parity:  max |{args.format} - PyTorch| = {parity.max_abs_difference:.2g} on "
+        f"{parity.histories} random histories (allowed {parity.tolerance:g})",
+        f"  model card: {payload['model_card']} and {payload['card']}",
+    ]
+    _emit(payload, args.json, lines)
     return 0
 
 
@@ -712,6 +909,54 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--json", action="store_true", help="machine-readable summary")
     train.set_defaults(handler=cmd_train)
 
+    adapt = verbs.add_parser(
+        "adapt", help="continue training a pre-trained aligner on another apparatus, shielded"
+    )
+    adapt.add_argument(
+        "--from",
+        dest="source",
+        metavar="RUN_OR_POLICY",
+        help="a league run (its champion), a training run or a member .pt file",
+    )
+    adapt.add_argument("--member", help="a league run's member id instead of its champion")
+    adapt.add_argument(
+        "--apparatus", help="the new apparatus spec (preset, csv:, sem:, import path)"
+    )
+    adapt.add_argument("--apparatus-args", default="{}", help="JSON arguments of the apparatus")
+    adapt.add_argument("--steps", type=int, help="adaptation env steps (acquisitions)")
+    adapt.add_argument("--name", help="run name (default: <member>-on-<apparatus>)")
+    adapt.add_argument("--runs-dir", default="runs", help="where run directories go")
+    adapt.add_argument(
+        "--eval-apparatus", help="apparatus of the evaluation sessions (default: the new one)"
+    )
+    adapt.add_argument("--eval-apparatus-args", help="JSON arguments of the evaluation apparatus")
+    adapt.add_argument(
+        "--eval-every", type=int, help="env steps between evaluations (default: steps/4)"
+    )
+    adapt.add_argument("--eval-scenarios", type=int, default=100, help="alignments per evaluation")
+    adapt.add_argument("--envs", type=int, default=8, help="apparatus instances stepped together")
+    adapt.add_argument("--seed", type=int, default=0, help="seeds the adaptation run")
+    adapt.add_argument(
+        "--limits",
+        default="{}",
+        help="site limits inside the knobs' intervals, e.g. '{\"defocus\": [40, 60]}'",
+    )
+    adapt.add_argument(
+        "--max-step",
+        default="{}",
+        help="largest change per aligner write, e.g. '{\"defocus\": 5.0}'",
+    )
+    adapt.add_argument(
+        "--spec-px",
+        type=float,
+        help="absolute success spec, edge width in px (needed where the apparatus cannot "
+        "tell its best width)",
+    )
+    adapt.add_argument("--resume", metavar="RUN", help="continue an adaptation run")
+    adapt.add_argument("--quiet", action="store_true", help="no progress bar")
+    adapt.add_argument("--json", action="store_true", help="machine-readable summary")
+    adapt.set_defaults(handler=cmd_adapt)
+
     report = verbs.add_parser("report", help="training figures and a Markdown report of a run")
     report.add_argument("run", metavar="RUN", help="a run directory of `alignrl train`")
     report.add_argument("--out", metavar="DIR", help="where to write (default: RUN/report)")
@@ -740,6 +985,85 @@ def build_parser() -> argparse.ArgumentParser:
     board.add_argument("run", metavar="RUN", help="a league run directory")
     board.add_argument("--json", action="store_true", help="machine-readable summary")
     board.set_defaults(handler=cmd_leaderboard)
+
+    align = verbs.add_parser(
+        "align", help="align an apparatus with a trained policy, through the safety shield"
+    )
+    align.add_argument(
+        "--policy",
+        required=True,
+        help="a run directory (training or league), a checkpoint .pt, an exported policy "
+        "directory, or champion:NAME",
+    )
+    align.add_argument("--apparatus", required=True, help="apparatus spec, e.g. synthetic")
+    align.add_argument("--apparatus-args", default="{}", help="JSON keyword arguments")
+    align.add_argument(
+        "--task", default=None, help="the task the policy must align (default: its own)"
+    )
+    align.add_argument(
+        "--spec-px",
+        type=float,
+        default=None,
+        help="success threshold, edge width in px (default: relative to the best the "
+        "apparatus can reach, where it can say)",
+    )
+    align.add_argument(
+        "--limits",
+        default="{}",
+        metavar="JSON",
+        help="site limits inside the knobs' intervals, e.g. '{\"defocus\": [40, 60]}'",
+    )
+    align.add_argument(
+        "--max-step",
+        default="{}",
+        metavar="JSON",
+        help="largest change per write, e.g. '{\"defocus\": 2.0}' (instrument units)",
+    )
+    align.add_argument(
+        "--dry-run", action="store_true", help="decide and log every write, make none"
+    )
+    align.add_argument(
+        "--timeout", type=float, default=None, metavar="S", help="watchdog: end after S seconds"
+    )
+    align.add_argument(
+        "--max-acquisitions",
+        type=int,
+        default=None,
+        metavar="N",
+        help="watchdog: at most N images (default: the task's episode steps + 1)",
+    )
+    align.add_argument(
+        "--restore-on-abort",
+        action="store_true",
+        help="after Ctrl-C, SIGTERM or the watchdog, write the starting setting back",
+    )
+    align.add_argument("--log", metavar="FILE", help="audit log, JSON lines (appended)")
+    align.add_argument("--seed", type=int, default=0, help="seed of a simulated apparatus")
+    align.add_argument("--json", action="store_true", help="machine-readable result")
+    align.set_defaults(handler=cmd_align)
+
+    export = verbs.add_parser(
+        "export",
+        help="an aligner as a self-contained ONNX, TorchScript or safetensors policy with its card",
+    )
+    export.add_argument(
+        "run",
+        metavar="RUN",
+        help="a league run (its champion), a training run (its best checkpoint) or a member "
+        ".pt file",
+    )
+    export.add_argument("--member", metavar="ID", help="this member of a league run instead")
+    export.add_argument(
+        "--format",
+        required=True,
+        choices=("onnx", "torchscript", "safetensors"),
+        help="policy.onnx (needs: pip install 'alignrl[onnx]'), policy.pt (torch.jit) or "
+        "policy.safetensors (the network's weights; no extra dependencies)",
+    )
+    export.add_argument("--out", required=True, metavar="DIR", help="folder to write")
+    export.add_argument("--force", action="store_true", help="replace a non-empty --out")
+    export.add_argument("--json", action="store_true", help="machine-readable summary")
+    export.set_defaults(handler=cmd_export)
     return parser
 
 

@@ -14,6 +14,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 __all__ = [
+    "AdaptationConfig",
     "BudgetConfig",
     "ConfigError",
     "CurriculumConfig",
@@ -110,6 +111,9 @@ class TaskOptions(_Strict):
     out_of_bounds_penalty: float | None = Field(None, ge=0, description="bound penalty")
     final_reward_scale: float | None = Field(None, gt=0, description="final reward factor")
     success_bonus: float | None = Field(None, ge=0, description="optional shaping at success")
+    bonus_relative: float | None = Field(
+        None, gt=1, description="bonus only within this x best width (the spec unchanged)"
+    )
     success_relative: float | None = Field(None, gt=1, description="threshold x best width")
     success_absolute_px: float | None = Field(None, gt=0, description="absolute spec, px")
 
@@ -196,12 +200,30 @@ class RunConfig(_Strict):
         return self
 
 
+class AdaptationConfig(_Strict):
+    """Where an adaptation run (`alignrl adapt`) came from, and the safety shield every one of
+    its writes passes on the new apparatus (alignrl/deploy/shield.py)."""
+
+    source: str = Field(description="the pre-trained aligner's checkpoint file it started from")
+    source_member: str = Field(description="the pre-trained member's id")
+    source_steps: int = Field(ge=0, description="env steps the aligner had seen before")
+    limits: dict[str, tuple[float, float]] = Field(
+        default_factory=dict, description="site limits per knob, instrument units (low, high)"
+    )
+    max_step: dict[str, float] = Field(
+        default_factory=dict, description="largest change per write per knob, instrument units"
+    )
+
+
 class ExperimentConfig(RunConfig):
     learner: LearnerConfig = Field(
         default_factory=LearnerConfig, description="the learner: algorithm, encoder, settings"
     )
     budget: BudgetConfig = Field(
         default_factory=BudgetConfig, description="how long to train; when to evaluate and save"
+    )
+    adaptation: AdaptationConfig | None = Field(
+        None, description="set by `alignrl adapt`: the pre-trained source and the shield"
     )
 
 

@@ -30,6 +30,7 @@ import numpy as np
 import torch
 
 from alignrl.agents.agent import Agent, MemberSpec
+from alignrl.apparatus.base import Apparatus
 from alignrl.apparatus.registry import make_apparatus
 from alignrl.checkpoints import atomic_write_text, load_checkpoint, save_checkpoint
 from alignrl.config import ExperimentConfig, dump_experiment, parse_experiment
@@ -56,11 +57,14 @@ def evaluate_policy(
     scenarios: int,
     seed: int = EVALUATION_SEED,
     name: str = "policy",
+    shield: Callable[[Apparatus], Apparatus] | None = None,
 ) -> SessionResult:
     """An evaluation session (alignrl/evaluation/session.py) with a deterministic policy:
-    held-out scenarios, starts anywhere in the interval, a verification image each."""
+    held-out scenarios, starts anywhere in the interval, a verification image each. With
+    `shield`, every call to the apparatus passes through what it wraps it in."""
     controller = PolicyController(name, act, task, history)
-    return run_session(controller, make_apparatus(apparatus, apparatus_args), task, scenarios, seed)
+    unit = make_apparatus(apparatus, apparatus_args)
+    return run_session(controller, shield(unit) if shield else unit, task, scenarios, seed)
 
 
 def member_spec(config: ExperimentConfig, member_id: str | None = None) -> MemberSpec:
@@ -89,6 +93,12 @@ class Trainer:
         torch.manual_seed(config.seed)
         self.rng = np.random.default_rng(config.seed)
         apparatus = make_apparatus_copies(config.apparatus, config.apparatus_args, config.envs)
+        self.shield: Callable[[Apparatus], Apparatus] | None = None
+        if config.adaptation is not None:  # on an instrument: every call through the shield
+            from alignrl.adaptation import training_shield
+
+            self.shield = training_shield(config.adaptation, self.run_dir / "audit.jsonl")
+            apparatus = [self.shield(unit) for unit in apparatus]
         self.curriculum = (
             Curriculum(
                 level=config.curriculum.level,
@@ -132,9 +142,9 @@ class Trainer:
                 f"{run_dir} already holds a run: continue it with `alignrl train --resume "
                 f"{run_dir}` or choose another --name"
             )
-        run_dir.mkdir(parents=True, exist_ok=True)
+        trainer = cls(config, run_dir)  # bad apparatus or shield settings fail before any file
         atomic_write_text(run_dir / "config.yaml", dump_experiment(config))
-        return cls(config, run_dir)
+        return trainer
 
     @classmethod
     def resume(cls, run_dir: str | Path) -> Trainer:
@@ -204,6 +214,7 @@ class Trainer:
                 cfg.history,
                 cfg.budget.eval_scenarios,
                 name=cfg.name,
+                shield=self.shield,
             )
 
     def _evaluate_and_keep_best(self) -> SessionResult:

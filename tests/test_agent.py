@@ -187,3 +187,49 @@ def test_ppo_with_a_gru_lifts_its_success_rate_well_above_an_untrained_one(
     after = _near_focus_successes(trainer, 40)
     assert before <= 12, before
     assert after >= 20 and after >= before + 12, (before, after)
+
+
+@pytest.mark.parametrize("algorithm", ["sac", "ppo"])
+def test_an_acting_copy_acts_as_the_member_each_row_on_its_own_noise(algorithm: str) -> None:
+    agent = Agent(spec(algorithm), envs=4)
+    play(agent, 3, seed=0)  # past SAC's random warm-up of 8 steps
+    state = agent.policy_state()
+    assert set(state) == {"format", "spec", "policy", "steps_seen"}  # no critics, no optimizer
+    copy = Agent.from_policy_state(state)
+    assert copy.steps_seen == agent.steps_seen == 12
+    observation = np.random.default_rng(1).uniform(-1, 1, (5, *SHAPE)).astype(np.float32)
+    np.testing.assert_array_equal(copy.act(observation), agent.act(observation))
+
+    def generators(count: int) -> list[np.random.Generator]:
+        return [np.random.default_rng([seed, 1]) for seed in range(count)]
+
+    actions, pre_tanh = agent.explore_rows(observation, generators(5))
+    again, _ = copy.explore_rows(observation, generators(5))
+    np.testing.assert_allclose(actions, again, rtol=0, atol=1e-6)
+    # Row 2 drew from its own generator: alone, it gets the same action.
+    alone, _ = agent.explore_rows(observation[2:3], generators(5)[2:3])
+    np.testing.assert_allclose(alone[0], actions[2], rtol=0, atol=1e-6)
+    assert not np.allclose(actions, agent.act(observation))  # a sample, not the mean
+    assert (pre_tanh is None) == (algorithm == "sac")
+    if pre_tanh is not None:
+        np.testing.assert_allclose(np.tanh(pre_tanh), actions)
+
+
+def test_sac_warm_up_and_ppo_samples_from_elsewhere() -> None:
+    fresh = Agent(spec("sac"))
+    observation = np.zeros((3, *SHAPE), np.float32)
+    generators = [np.random.default_rng(seed) for seed in range(3)]
+    uniform, _ = fresh.explore_rows(observation, generators)
+    expected = np.stack([np.random.default_rng(seed).uniform(-1, 1, 2) for seed in range(3)])
+    np.testing.assert_array_equal(uniform, expected)  # still in its random warm-up
+    ppo = Agent(spec("ppo"), envs=3)
+    actions, pre_tanh = ppo.explore_rows(observation, generators)
+    with pytest.raises(RuntimeError, match="needs the explore"):
+        ppo.observe(observation, np.zeros((3, 1)), actions, np.zeros(3), observation,
+                    np.zeros((3, 1)), np.zeros(3, bool))  # fmt: skip
+    ppo.observe(observation, np.zeros((3, 1)), actions, np.zeros(3), observation,
+                np.zeros((3, 1)), np.zeros(3, bool), pre_tanh=pre_tanh)  # fmt: skip
+    np.testing.assert_array_equal(ppo.rollout.pre_tanh[:3], pre_tanh)
+    assert ppo.steps_seen == 3
+    with pytest.raises(ValueError, match="another member"):
+        ppo.load_policy_state(fresh.policy_state())

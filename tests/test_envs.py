@@ -3,6 +3,7 @@ histories without secrets, determinism, and failures as defined outcomes."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import warnings
 
@@ -16,6 +17,7 @@ from alignrl.envs import AlignmentEnv, DuelEnv, SuccessRule, Task
 from alignrl.envs.core import feature_layout
 from alignrl.envs.duel import ALIGNER, MISALIGNER
 from alignrl.envs.duel import env as duel_env
+from alignrl.envs.task import get_task
 from alignrl.envs.vector import VectorAlignmentEnv, make_apparatus_copies
 
 LENS = "fake_drivers:ParabolicLens"
@@ -325,6 +327,37 @@ def test_the_optional_success_bonus_is_paid_only_within_spec() -> None:
     env.reset(seed=1, options={"misalignment": [-1.0]})  # far out, then stop at once
     _, reward, _, _, info = env.step(np.array([0.0, 1.0]))
     assert not info["success"] and reward == 0.0
+
+
+def _bonus_episode(target_ratio: float) -> tuple[float, dict]:
+    """One noise-free episode on the recordings that ends where the edge width is
+    `target_ratio` x the best one; its final reward and info."""
+    task = dataclasses.replace(
+        get_task("focus"), success_bonus=5.0, bonus_relative=1.10
+    )  # the spec stays 1.15 x best
+    env = AlignmentEnv(apparatus_args={"noise": 0.0}, task=task)
+    env.reset(seed=4, options={"misalignment": [0.0]})
+    simulator, episodes = env.apparatus, env.episodes
+    best, optimum = simulator.best_quality(), simulator.optimum()["defocus"]
+    offsets = np.linspace(0.0, 20.0, 4001)
+    widths = [
+        simulator.query(np.array([simulator.row]), np.array([optimum + d]))[0] for d in offsets
+    ]
+    target = optimum + offsets[int(np.argmin(np.abs(np.array(widths) / best - target_ratio)))]
+    move = (target - episodes.setting[0, 0]) / episodes.max_step[0, 0]
+    assert abs(move) <= 1.0
+    env.step(np.array([move, -1.0]))
+    _, reward, terminated, _, info = env.step(np.array([0.0, 1.0]))
+    assert terminated and info["edge_width_px"] / best == pytest.approx(target_ratio, abs=0.005)
+    return reward - (info["edge_width_before_px"] - info["edge_width_px"]), info
+
+
+def test_a_tighter_bonus_margin_leaves_the_spec_alone() -> None:
+    # Within 1.10 x best: aligned and paid the bonus; between 1.10 and 1.15: aligned (the
+    # spec), no bonus; beyond 1.15: neither.
+    for ratio, success, bonus in ((1.02, True, 5.0), (1.13, True, 0.0), (1.25, False, 0.0)):
+        paid, info = _bonus_episode(ratio)
+        assert info["success"] is success and paid == pytest.approx(bonus, abs=1e-9), ratio
 
 
 def _duel_totals(start: float, aligner: str) -> tuple[float, float]:

@@ -359,3 +359,14 @@ def test_pbt_copies_the_strongest_and_perturbs_its_learning_rate(tmp_path: Path)
     ]
     # The copies share their parents' ratings: no lead of min_gap, so nobody is replaced.
     assert league.exploit_and_explore() == []
+
+
+def test_backend_ray_without_ray_says_what_to_install_before_writing_anything(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setitem(sys.modules, "ray", None)  # `import ray` fails, as where it is missing
+    monkeypatch.delitem(sys.modules, "alignrl.league.ray_backend", raising=False)
+    config, aligners, misaligners = load_league(write_league(tmp_path, backend="ray"))
+    with pytest.raises(ConfigError, match=r"backend: ray needs .*pip install 'alignrl\[ray\]'"):
+        League.create(config, aligners, misaligners, tmp_path / "runs")
+    assert not (tmp_path / "runs").exists()

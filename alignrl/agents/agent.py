@@ -10,11 +10,17 @@ loads without unpickling (tensors, numbers, strings, lists and dicts only).
     action = agent.explore(observation, rng)
     agent.observe(observation, secret, action, reward, next_observation, next_secret, done)
     for metrics in agent.learn(rng): ...
+
+Where the acting happens elsewhere (a Ray worker at a microscope), `policy_state` is what
+acting needs, `from_policy_state` builds the acting copy there, `explore_rows` draws each
+row's randomness from its own generator, and `observe(..., pre_tanh=...)` stores what came
+back.
 """
 
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -31,6 +37,7 @@ __all__ = ["ALGORITHMS", "TEAMS", "Agent", "MemberSpec"]
 TEAMS = ("aligner", "misaligner")
 ALGORITHMS = ("sac", "ppo")
 MEMBER_FORMAT = "alignrl-member-1"
+POLICY_FORMAT = "alignrl-policy-1"  # the acting network alone (Agent.policy_state)
 
 # How a SAC member gathers experience and how often it learns (not part of SACConfig, which
 # is one gradient step): uniform random actions first, then updates per env step.
@@ -179,6 +186,40 @@ class Agent:
         self._pending_pre_tanh = pre_tanh
         return np.tanh(pre_tanh)
 
+    def explore_rows(
+        self,
+        observation: np.ndarray,
+        generators: Sequence[np.random.Generator],
+        warm_up: bool = True,
+    ) -> tuple[np.ndarray, np.ndarray | None]:
+        """Stochastic actions for a batch whose row i draws its randomness from
+        `generators[i]` alone (one generator per match): a row's action then does not depend
+        on the rows beside it nor on the process that computed it. With `warm_up`, a SAC
+        member still in its random warm-up acts uniformly at random, as in `explore`.
+        Returns the actions and, for PPO, the pre-squash sample `observe(pre_tanh=...)`
+        stores (None for SAC)."""
+        actions = self.spec.action_dim
+        if isinstance(self.learner, SAC):
+            if warm_up and self.steps_seen < self.spec.schedule()["random_steps"]:
+                return np.stack([g.uniform(-1.0, 1.0, actions) for g in generators]), None
+        noise = np.stack([g.standard_normal(actions) for g in generators]).astype(np.float32)
+        mean, std = self._policy_gaussian(observation)
+        # The same reparameterised sample as SAC's Actor.sample and PPO's Normal.sample.
+        pre_tanh = mean + std * noise
+        return np.tanh(pre_tanh), None if isinstance(self.learner, SAC) else pre_tanh
+
+    @torch.no_grad()
+    def _policy_gaussian(self, observation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Mean and standard deviation of the policy's Gaussian over pre-squash actions."""
+        batch = torch.as_tensor(observation, dtype=torch.float32, device=self.learner.device)
+        if isinstance(self.learner, SAC):
+            mean, log_std = self.learner.actor(batch)
+            std = log_std.exp()
+        else:
+            distribution = self.learner.policy(batch)
+            mean, std = distribution.mean, distribution.stddev
+        return mean.cpu().numpy(), std.cpu().numpy()
+
     # --- experience and learning ------------------------------------------------------
 
     def observe(
@@ -191,22 +232,27 @@ class Agent:
         next_secret: np.ndarray,
         done: np.ndarray,
         slots: np.ndarray | None = None,
+        pre_tanh: np.ndarray | None = None,
     ) -> None:
         """Store one env step of every slot, or of the env slots `slots` where only some
         moved (next_observation of a done slot: the episode's last history, not the reset
-        one)."""
+        one). PPO stores the pre-squash sample of the `explore` before, or `pre_tanh` where
+        the actions were sampled elsewhere (`explore_rows` in a Ray worker)."""
         done = done.astype(np.float32)
         if isinstance(self.learner, SAC):
             self.replay.add(
                 observation, secret, action, reward, next_observation, next_secret, done
             )
         else:
-            if self._pending_pre_tanh is None:
-                raise RuntimeError(f"member {self.id}: observe() needs the explore() before it")
+            sample = pre_tanh if pre_tanh is not None else self._pending_pre_tanh
+            if sample is None:
+                raise RuntimeError(
+                    f"member {self.id}: observe() needs the explore() before it, or pre_tanh"
+                )
             self.rollout.add(
                 observation,
                 secret,
-                self._pending_pre_tanh,
+                sample,
                 reward,
                 next_observation,
                 next_secret,
@@ -302,6 +348,41 @@ class Agent:
             }
             store = self.replay if isinstance(self.learner, SAC) else self.rollout
             store.load_state_dict(replay)
+
+    @property
+    def _acting_network(self) -> torch.nn.Module:
+        return self.learner.actor if isinstance(self.learner, SAC) else self.learner.policy
+
+    def policy_state(self) -> dict[str, Any]:
+        """What acting needs, and no more: the spec, the acting network's weights (SAC's
+        actor, PPO's policy; on the CPU) and steps_seen (SAC's random warm-up)."""
+        return {
+            "format": POLICY_FORMAT,
+            "spec": self.spec.to_dict(),
+            "policy": {k: v.cpu() for k, v in self._acting_network.state_dict().items()},
+            "steps_seen": self.steps_seen,
+        }
+
+    def load_policy_state(self, state: dict[str, Any]) -> None:
+        """Take the acting network's weights and steps_seen of `policy_state`; critics,
+        optimizers and experience are left as they are."""
+        if state.get("format") != POLICY_FORMAT:
+            raise ValueError(f"policy state format {state.get('format')!r} is not {POLICY_FORMAT}")
+        if state["spec"] != self.spec.to_dict():
+            raise ValueError(
+                f"member {self.id}: the policy state is of another member or other settings "
+                f"({state['spec']['id']!r})"
+            )
+        self._acting_network.load_state_dict(state["policy"])
+        self.steps_seen = int(state["steps_seen"])
+
+    @classmethod
+    def from_policy_state(cls, state: dict[str, Any], device: str | torch.device = "cpu") -> Agent:
+        """An acting copy of a member (its critics untrained): `act` and `explore_rows` as
+        the member would, nothing to learn with."""
+        agent = cls(MemberSpec.from_dict(state["spec"]), 1, device)
+        agent.load_policy_state(state)
+        return agent
 
     def save(self, path: str | Path, replay: bool = False) -> None:
         """Atomically write this member (weights_only-loadable)."""

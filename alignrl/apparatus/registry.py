@@ -24,7 +24,7 @@ from alignrl.apparatus.base import APPARATUS_METHODS, Apparatus
 from alignrl.apparatus.simulator import ScenarioSimulator, default_scenarios_path
 from alignrl.apparatus.synthetic import PRESET_DIR, SyntheticSEM, load_sem_config
 
-__all__ = ["make_apparatus", "preset_names"]
+__all__ = ["make_apparatus", "preset_names", "spec_form"]
 
 
 def preset_names() -> list[str]:
@@ -99,24 +99,37 @@ def _import_driver(spec: str, args: Mapping[str, Any]) -> Apparatus:
     return _check_protocol(_construct(target, spec, args), spec)
 
 
+def spec_form(spec: str) -> str:
+    """Which form a spec has: 'csv', 'sem', 'preset' or 'driver'; a ValueError for none.
+    Nothing is built or imported: a driver may be importable only on its microscope's PC."""
+    if not isinstance(spec, str) or not spec:
+        raise ValueError("an apparatus spec must be a non-empty string")
+    if spec.startswith("csv:"):
+        return "csv"
+    if spec.startswith("sem:"):
+        return "sem"
+    if spec in preset_names():
+        return "preset"
+    if ":" in spec and all(part.isidentifier() for part in spec.replace(":", ".").split(".")):
+        return "driver"
+    raise ValueError(
+        f"unknown apparatus {spec!r}: use a preset ({', '.join(preset_names())}), "
+        "csv:PATH (or csv:default), sem:PATH.yaml, or an import path package.module:Class"
+    )
+
+
 def make_apparatus(
     spec: str, args: Mapping[str, Any] | None = None, seed: int | None = None
 ) -> Apparatus:
     """Build the apparatus a spec names (see the module docstring)."""
     args = dict(args or {})
-    if not isinstance(spec, str) or not spec:
-        raise ValueError("an apparatus spec must be a non-empty string")
-    if spec.startswith("csv:"):
+    form = spec_form(spec)
+    if form == "csv":
         location = spec[len("csv:") :]
         path = default_scenarios_path() if location == "default" else Path(location)
         return _construct(ScenarioSimulator, spec, args, path=path, seed=seed, scenarios=None)
-    if spec.startswith("sem:"):
+    if form == "sem":
         return SyntheticSEM(load_sem_config(spec[len("sem:") :], **args), seed=seed)
-    if spec in preset_names():
+    if form == "preset":
         return SyntheticSEM(load_sem_config(PRESET_DIR / f"{spec}.yaml", **args), seed=seed)
-    if ":" in spec and all(part.isidentifier() for part in spec.replace(":", ".").split(".")):
-        return _import_driver(spec, args)
-    raise ValueError(
-        f"unknown apparatus {spec!r}: use a preset ({', '.join(preset_names())}), "
-        "csv:PATH (or csv:default), sem:PATH.yaml, or an import path package.module:Class"
-    )
+    return _import_driver(spec, args)

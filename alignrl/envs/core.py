@@ -106,6 +106,7 @@ class AlignmentEpisodes:
         self.width_before = np.full(self.n, np.nan)
         self.width = np.full(self.n, np.nan)
         self.threshold = np.full(self.n, np.nan)
+        self.bonus_threshold = np.full(self.n, np.nan)  # px; the success bonus is paid within
         self.best_width = np.full(self.n, np.nan)  # px at the optimum; NaN where unknown
         self.steps = np.zeros(self.n, np.int64)
         self.acquisitions = np.zeros(self.n, np.int64)
@@ -149,6 +150,12 @@ class AlignmentEpisodes:
         self.threshold[indices] = [
             rule.threshold_px(None if np.isnan(value) else float(value)) for value in best
         ]
+        tighter = self.task.bonus_relative
+        self.bonus_threshold[indices] = (
+            self.threshold[indices]
+            if tighter is None
+            else np.fmin(self.threshold[indices], tighter * np.asarray(best))  # unknown best: spec
+        )
         self.history[indices] = 0.0
         self.steps[indices] = 0
         self.acquisitions[indices] = 0
@@ -167,6 +174,7 @@ class AlignmentEpisodes:
             self.aligned[index] = self.setting[index]
             self.info[index] = EpisodeInfo()
         self.threshold[indices] = np.nan
+        self.bonus_threshold[indices] = np.nan
         self.best_width[indices] = np.nan
         self.history[indices] = 0.0
         self.steps[indices] = 0
@@ -242,7 +250,9 @@ class AlignmentEpisodes:
             task.final_reward_scale,
         )
         if task.success_bonus:
-            reward[done] += rewards.success_bonus(self.successes()[finished], task.success_bonus)
+            with np.errstate(invalid="ignore"):
+                within = self.width[finished] <= self.bonus_threshold[finished]  # NaN: no
+            reward[done] += rewards.success_bonus(within, task.success_bonus)
         self.active[finished] = False
         for index in indices:
             info = self.info[index]
@@ -302,6 +312,11 @@ class AlignmentEpisodes:
             values = dict(zip(self.task.knobs, self.setting[index].tolist(), strict=True))
             try:
                 unit.write(values)
+                if callable(getattr(unit, "applied_setting", None)):
+                    # A safety shield may have clamped the write, or (dry run) not sent it:
+                    # the history must show where the column really is.
+                    applied = unit.applied_setting()
+                    self.setting[index] = [applied[k] for k in self.task.knobs]
                 widths[position] = float(unit.measure())
             except (MeasurementError, ApparatusError) as error:
                 # A defined outcome on real hardware: no edges far from focus, or a driver

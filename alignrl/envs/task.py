@@ -58,6 +58,9 @@ class Task:
     final_reward_scale: float = 1.0  # x (quality before - quality after), quality in px
     acquisition_cost: float = 0.0  # reward -cost per acquisition (the seed: none)
     success_bonus: float = 0.0  # optional shaping, off by default: + this when the spec is met
+    # Pay the bonus only within this x the best width (tighter than the spec: a margin against
+    # measurement noise); None: wherever the spec is met. Success itself keeps the spec.
+    bonus_relative: float | None = None
     quality_ref_px: float = 2.5  # quality observations are log(width / this)
     no_edges_px: float = 25.0  # a frame without edges counts as this wide in rewards
 
@@ -75,6 +78,8 @@ class Task:
                 raise ValueError(f"task {self.name!r}: max_step of {knob!r} must be positive")
         if self.out_of_bounds_penalty < 0 or self.acquisition_cost < 0 or self.success_bonus < 0:
             raise ValueError(f"task {self.name!r}: penalties and costs are magnitudes (>= 0)")
+        if self.bonus_relative is not None and not self.bonus_relative > 1:
+            raise ValueError(f"task {self.name!r}: bonus_relative must be above 1 (x best width)")
         if not self.quality_ref_px > 0 or not self.no_edges_px > 0:
             raise ValueError(f"task {self.name!r}: quality_ref_px and no_edges_px must be > 0")
 

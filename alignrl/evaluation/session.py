@@ -221,7 +221,7 @@ def run_session(
             raise ValueError(f"--spec-px must be a positive edge width in px, got {spec_px}")
         rule = dataclasses.replace(rule, absolute_px=float(spec_px))
         _check_spec_reachable(apparatus, seed, scenarios, float(spec_px))
-    elif _best_quality(apparatus) is None:
+    elif rule.absolute_px is None and _best_quality(apparatus) is None:
         raise ValueError(
             "this apparatus cannot tell the best edge width it can reach (it has no "
             "best_quality()), so a relative success threshold is impossible: give an "

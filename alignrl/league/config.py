@@ -12,8 +12,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 
+from alignrl.apparatus.registry import spec_form
 from alignrl.config import (
     ConfigError,
     LearnerConfig,
@@ -26,6 +27,8 @@ from alignrl.config import (
 __all__ = [
     "LeagueConfig",
     "MemberConfig",
+    "RayConfig",
+    "RayWorkerConfig",
     "Roster",
     "load_league",
     "load_roster",
@@ -104,13 +107,69 @@ class PBTConfig(_Strict):
     )
 
 
+class RayWorkerConfig(_Strict):
+    """One Ray worker: the microscope it drives (an apparatus spec, `envs` copies stepped
+    together) and where it may run."""
+
+    apparatus: str | None = Field(
+        None, description="apparatus spec of this worker's microscope; null: the experiment's"
+    )
+    apparatus_args: dict[str, Any] | None = Field(
+        None,
+        description="its arguments; null: the experiment's apparatus_args where apparatus is "
+        "null too, else none",
+    )
+    envs: int | None = Field(
+        None, ge=1, le=1024, description="apparatus copies stepped together; null: the experiment's"
+    )
+    resources: dict[str, float] = Field(
+        default_factory=dict,
+        description="Ray resources it needs, e.g. {microscope-a: 1}: it then runs only on the PC "
+        "started with them",
+    )
+
+    @field_validator("apparatus")
+    @classmethod
+    def _a_spec(cls, spec: str | None) -> str | None:
+        if spec is not None:
+            spec_form(spec)  # the form only: a driver may import only on its microscope's PC
+        return spec
+
+
+DEFAULT_RAY_WORKERS = 2  # workers on the experiment's apparatus when ray.workers is null
+
+
+class RayConfig(_Strict):
+    """The Ray workers of `backend: ray` (docs/scaling.md)."""
+
+    address: str | None = Field(
+        None,
+        description="Ray cluster to join, e.g. 192.168.1.10:6379 or auto; null: start Ray on "
+        "this machine",
+    )
+    workers: list[RayWorkerConfig] | None = Field(
+        None,
+        min_length=1,
+        description="one worker per microscope; null: 2 workers on the experiment's apparatus",
+    )
+    max_restarts: int = Field(
+        3, ge=0, le=100, description="times a lost worker is restarted within one iteration"
+    )
+    num_cpus_per_worker: float = Field(1.0, gt=0, description="CPUs Ray reserves per worker")
+
+
 class LeagueConfig(RunConfig):
     """A league: the run settings of every experiment (RunConfig: apparatus of the matches,
     held-out apparatus, task, history, envs = matches side by side), plus the rosters and
     the schedule."""
 
     name: str = Field("league", min_length=1, description="run name (runs/<name>/)")
-    backend: Literal["inprocess"] = Field("inprocess", description="where matches are played")
+    backend: Literal["inprocess", "ray"] = Field(
+        "inprocess", description="where matches are played: here, or on Ray workers"
+    )
+    ray: RayConfig = Field(
+        default_factory=RayConfig, description="the workers of backend ray (docs/scaling.md)"
+    )
     aligners: str = Field("populations/aligners.yaml", description="aligner roster file")
     misaligners: str = Field("populations/misaligners.yaml", description="misaligner roster")
     schedule: ScheduleConfig = Field(
@@ -124,6 +183,25 @@ class LeagueConfig(RunConfig):
     pbt: PBTConfig = Field(
         default_factory=PBTConfig, description="population-based training (exploit/explore)"
     )
+
+    def ray_workers(self) -> list[RayWorkerConfig]:
+        """The Ray workers with every null filled in from the experiment (new objects)."""
+        listed = self.ray.workers or [RayWorkerConfig()] * DEFAULT_RAY_WORKERS
+        resolved = []
+        for worker in listed:
+            if worker.apparatus_args is not None:
+                arguments = worker.apparatus_args
+            else:
+                arguments = self.apparatus_args if worker.apparatus is None else {}
+            resolved.append(
+                RayWorkerConfig(
+                    apparatus=worker.apparatus or self.apparatus,
+                    apparatus_args=dict(arguments),
+                    envs=worker.envs or self.envs,
+                    resources=dict(worker.resources),
+                )
+            )
+        return resolved
 
 
 def load_roster(path: str | Path, team: str | None = None) -> Roster:

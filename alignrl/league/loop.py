@@ -24,8 +24,10 @@ A run lives in runs/<name>/:
     metrics/members/<id>/updates.csv|episodes.csv   per-member learner figures (alignrl report)
     tensorboard/
 
-Matches run through `InProcessBackend`; a backend elsewhere (where the microscopes are)
-takes the two members' weights and returns the same step records.
+Matches run through the backend `backend:` names: `InProcessBackend` here, or the Ray
+backend (alignrl.league.ray_backend, docs/scaling.md), which sends the two members' weights
+to workers where the microscopes are and learns from the trajectories they return. League
+sees only the MatchResult either gives back.
 """
 
 from __future__ import annotations
@@ -36,7 +38,7 @@ import shutil
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import torch
@@ -49,11 +51,18 @@ from alignrl.checkpoints import (
     load_checkpoint,
     save_checkpoint,
 )
-from alignrl.config import dump_experiment
+from alignrl.config import ConfigError, dump_experiment
 from alignrl.envs import Curriculum, make_apparatus_copies
 from alignrl.envs.alignment import aligner_spaces
 from alignrl.envs.core import AlignmentEpisodes
 from alignrl.league.config import LeagueConfig, MemberConfig, Roster, parse_league
+from alignrl.league.matches import (
+    AlignerSteps,
+    Chooser,
+    MatchResult,
+    WorkerFailedError,
+    play_round,
+)
 from alignrl.league.matchmaking import Matchmaker, MatchmakingConfig, OpponentPool
 from alignrl.league.ratings import EloConfig, PayoffTable, Ratings
 from alignrl.metrics import (
@@ -65,7 +74,17 @@ from alignrl.metrics import (
 )
 from alignrl.training import evaluate_policy
 
-__all__ = ["InProcessBackend", "League", "MatchResult", "leaderboard", "member_spec"]
+__all__ = [
+    "BACKENDS",
+    "Backend",
+    "InProcessBackend",
+    "League",
+    "MatchResult",
+    "WorkerFailedError",
+    "backend_class",
+    "leaderboard",
+    "member_spec",
+]
 
 STATE_FORMAT = "alignrl-league-1"
 
@@ -91,30 +110,33 @@ def member_spec(member: MemberConfig, team: str, config: LeagueConfig) -> Member
     )
 
 
-class MatchResult:
-    """The outcome of one batch of matches, from the aligner's side: its returns (the seed's
-    rewards it learns from) and payoffs in the zero-sum game (its return minus the start's
-    score; the misaligner's payoff is the negative)."""
-
-    def __init__(self) -> None:
-        self.successes: list[bool] = []
-        self.acquisitions: list[int] = []
-        self.returns: list[float] = []
-        self.payoffs: list[float] = []
-        self.updates: dict[str, list[dict[str, float]]] = {}
+class Backend(Protocol):
+    """Where matches are played: in this process, or on Ray workers where the microscopes
+    are (docs/scaling.md). League sees only this and the MatchResult it returns."""
 
     @property
-    def matches(self) -> int:
-        return len(self.successes)
+    def complexity(self) -> float: ...
 
-    @property
-    def success_rate(self) -> float:
-        return float(np.mean(self.successes)) if self.successes else 0.0
+    def set_complexity(self, level: float) -> None: ...
+
+    def play(
+        self,
+        aligner: Agent,
+        misaligner: Agent,
+        matches: int,
+        rng: np.random.Generator,
+        learning: set[str],
+        on_episode: Callable[[bool], None] | None = None,
+        deterministic: bool = False,
+    ) -> MatchResult: ...
+
+    def close(self) -> None: ...
 
 
 class InProcessBackend:
     """Plays matches on `envs` apparatus in this process, in rounds: every slot starts a
-    match, the aligner steps the unfinished ones until all are done."""
+    match, the aligner steps the unfinished ones until all are done; learning members store
+    and learn after every step."""
 
     def __init__(self, config: LeagueConfig) -> None:
         apparatus = make_apparatus_copies(config.apparatus, config.apparatus_args, config.envs)
@@ -122,9 +144,12 @@ class InProcessBackend:
         self.episodes = AlignmentEpisodes(apparatus, self.task, config.history)
         self.episodes.set_complexity(config.complexity)
 
-    def misaligner_rows(self, slots: np.ndarray) -> np.ndarray:
-        rows = np.stack([self.episodes.misaligner_observation(int(i)) for i in slots])
-        return np.concatenate([np.ones((len(slots), 1), np.float32), rows], axis=1)[:, None]
+    @property
+    def complexity(self) -> float:
+        return self.episodes.complexity
+
+    def set_complexity(self, level: float) -> None:
+        self.episodes.set_complexity(level)
 
     def play(
         self,
@@ -140,62 +165,87 @@ class InProcessBackend:
         act with their stochastic policy (their mean action if `deterministic`: how they are
         judged) and change nothing."""
         episodes, result = self.episodes, MatchResult()
-        k = episodes.k
         result.updates = {member.id: [] for member in (aligner, misaligner)}
+
+        def chooser(agent: Agent) -> Chooser:
+            if agent.id in learning:
+                return lambda inputs, slots: (agent.explore(inputs, rng), None)
+            return lambda inputs, slots: (agent.act(inputs, deterministic=deterministic), None)
+
+        def learn_step(step: AlignerSteps) -> None:
+            if aligner.id in learning:
+                aligner.observe(
+                    step.observation,
+                    step.secret,
+                    step.action,
+                    step.reward,
+                    step.next_observation,
+                    step.next_secret,
+                    step.done,
+                    slots=step.slots,
+                )
+                result.updates[aligner.id] += aligner.learn(rng, new_steps=len(step.slots))
+
         remaining = matches
         while remaining > 0:
-            slots = np.arange(min(episodes.n, remaining))
-            remaining -= len(slots)
-            episodes.begin(slots, [int(s) for s in rng.integers(0, 2**31 - 1, len(slots))])
-            rows = self.misaligner_rows(slots)
-            if misaligner.id in learning:
-                starts = misaligner.explore(rows, rng)
-            else:
-                starts = misaligner.act(rows, deterministic=deterministic)
-            episodes.misalign(slots, starts)
-            scores = episodes.misalignment_scores(slots)
-            returns = np.zeros(len(slots))
-            active = slots.copy()
-            while active.size:
-                observation, secret = episodes.history[active].copy(), episodes.secrets()[active]
-                if aligner.id in learning:
-                    action = aligner.explore(observation, rng)
-                else:
-                    action = aligner.act(observation, deterministic=deterministic)
-                reward, done = episodes.step(active, action)
-                returns[active] += reward
-                if aligner.id in learning:
-                    aligner.observe(
-                        observation,
-                        secret,
-                        action,
-                        reward,
-                        episodes.history[active].copy(),
-                        episodes.secrets()[active],
-                        done,
-                        slots=active,
-                    )
-                    result.updates[aligner.id] += aligner.learn(rng, new_steps=len(active))
-                won = episodes.successes()
-                for index in active[done]:
-                    success = bool(won[index])
-                    result.successes.append(success)
-                    result.acquisitions.append(int(episodes.acquisitions[index]))
-                    result.returns.append(float(returns[index]))
-                    result.payoffs.append(float(returns[index] - scores[index]))
-                    if on_episode:
-                        on_episode(success)
-                active = active[~done]
+            count = min(episodes.n, remaining)
+            remaining -= count
+            seeds = [int(s) for s in rng.integers(0, 2**31 - 1, count)]
+            played = play_round(episodes, seeds, chooser(misaligner), chooser(aligner), learn_step)
+            # The curriculum's complexity is read when a round begins: reporting each match
+            # at the end of its round changes nothing.
+            for slot in played.finish_order:
+                payoff = played.returns[slot] - played.scores[slot]
+                result.add(
+                    played.successes[slot],
+                    played.acquisitions[slot],
+                    played.returns[slot],
+                    payoff,
+                )
+                if on_episode:
+                    on_episode(bool(played.successes[slot]))
             if misaligner.id in learning:
                 # One-step episodes: the start is the action, the reward its score minus the
                 # aligner's return (zero-sum), and nothing follows.
-                none = np.zeros((len(slots), k), np.float32)
-                payoff = scores - returns
+                none = np.zeros((count, misaligner.spec.secret_dim), np.float32)
                 misaligner.observe(
-                    rows, none, starts, payoff, rows, none, np.ones(len(slots), bool), slots
+                    played.rows,
+                    none,
+                    played.starts,
+                    played.scores - played.returns,
+                    played.rows,
+                    none,
+                    np.ones(count, bool),
+                    np.arange(count),
                 )
-                result.updates[misaligner.id] += misaligner.learn(rng, new_steps=len(slots))
+                result.updates[misaligner.id] += misaligner.learn(rng, new_steps=count)
         return result
+
+    def close(self) -> None:
+        """Nothing to release: the apparatus live in this process."""
+
+
+def _ray_backend() -> type[Backend]:
+    try:
+        from alignrl.league.ray_backend import RayBackend
+    except ImportError as error:
+        raise ConfigError(
+            f"backend: ray needs the ray package ({error}): pip install 'alignrl[ray]'"
+        ) from None
+    return RayBackend
+
+
+# One entry per `backend:` value; each gives the backend class (the Ray one imported only
+# when it is chosen).
+BACKENDS: dict[str, Callable[[], type[Backend]]] = {
+    "inprocess": lambda: InProcessBackend,
+    "ray": _ray_backend,
+}
+
+
+def backend_class(name: str) -> type[Backend]:
+    """The backend a league's `backend:` names (ConfigError where it cannot run here)."""
+    return BACKENDS[name]()
 
 
 class League:
@@ -209,7 +259,7 @@ class League:
         torch.set_num_threads(config.threads)
         torch.manual_seed(config.seed)
         self.rng = np.random.default_rng(config.seed)
-        self.backend = InProcessBackend(config)
+        self.backend = backend_class(config.backend)(config)
         self.members: dict[str, Agent] = {}
         self.ratings = Ratings(EloConfig(config.ratings.initial, config.ratings.k_factor))
         self.payoff = PayoffTable()
@@ -237,7 +287,7 @@ class League:
             else None
         )
         if self.curriculum:
-            self.backend.episodes.set_complexity(self.curriculum.level)
+            self.backend.set_complexity(self.curriculum.level)
         self.iteration = 0
         self.env_steps = 0
         self.best: dict[str, dict[str, Any]] = {}  # aligner id -> its best evaluation
@@ -301,6 +351,7 @@ class League:
         runs_root: str | Path = "runs",
     ) -> League:
         run_dir = Path(runs_root) / config.name
+        backend_class(config.backend)  # a backend that cannot run here stops before any file
         if (run_dir / "config.yaml").exists():
             raise FileExistsError(
                 f"{run_dir} already holds a run: continue it with `alignrl league resume "
@@ -388,7 +439,7 @@ class League:
         self.iteration, self.env_steps = int(state["iteration"]), int(state["env_steps"])
         if self.curriculum and state["curriculum"]:
             self.curriculum.load_state_dict(state["curriculum"])
-            self.backend.episodes.set_complexity(self.curriculum.level)
+            self.backend.set_complexity(self.curriculum.level)
         self.rng.bit_generator.state = state["numpy_rng"]
         torch.set_rng_state(state["torch_rng"])
         if read_only:
@@ -406,11 +457,11 @@ class League:
         pairing = self.matchmaker.select_pair(self.rng, self.payoff, self.pool, self.iteration)
         aligner, misaligner = self.player(pairing.aligner), self.player(pairing.misaligner)
         learning = {p for p in (pairing.aligner, pairing.misaligner) if p in self.members}
-        complexity = self.backend.episodes.complexity
+        complexity = self.backend.complexity
 
         def on_episode(success: bool) -> None:
             if self.curriculum:
-                self.backend.episodes.set_complexity(self.curriculum.record(success))
+                self.backend.set_complexity(self.curriculum.record(success))
 
         result = self.backend.play(
             aligner, misaligner, self.config.schedule.matches, self.rng, learning, on_episode
@@ -634,6 +685,11 @@ class League:
                 "median_acquisitions": result.median_acquisitions,
             }
         return sessions
+
+    def close(self) -> None:
+        """Release the backend's workers (a Ray backend's actors); the run directory is
+        untouched."""
+        self.backend.close()
 
     # --- the loop -----------------------------------------------------------------------
 

@@ -1,0 +1,372 @@
+"""One alignment of an instrument by a trained policy, through the safety shield.
+
+The loop is the environments' own (alignrl/envs/core.py, `AlignmentEpisodes.adopt` then
+`step` until the policy stops or its steps run out) over a `ShieldedApparatus`, so the policy
+sees the history features it was trained on; then a final image is acquired and its edge width
+judged against the spec. Where the shield changed a write (clamped it, or a dry run left the
+column where it was), the history is corrected to the setting the column really has.
+
+How it ends, and the exit code of `alignrl align`:
+
+    0  aligned          the final edge width is within the spec
+    1  not aligned      the alignment ran to its end, the spec was not met (or is unknown)
+    2  config error     nothing was written (also: the column started outside --limits)
+    3  aborted          the operator (Ctrl-C, SIGTERM), the watchdog, or a non-finite action
+    4  driver failure   the driver failed on a read or a write; the column's state is unknown
+
+Every read, write and measurement, and the shield's decision on it, goes to the audit log
+(`JsonLinesAudit`: one JSON object a line, flushed and fsynced each line).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import signal
+import threading
+import time
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, TextIO
+
+import numpy as np
+
+from alignrl.apparatus.base import Apparatus, ApparatusError
+from alignrl.deploy.policy import DeployablePolicy
+from alignrl.deploy.shield import (
+    OPERATOR_ABORT,
+    AuditSink,
+    DriverFailure,
+    KnobLimits,
+    ShieldedApparatus,
+    ShieldStop,
+    StartOutsideLimits,
+    Watchdog,
+)
+from alignrl.envs.core import AlignmentEpisodes
+
+__all__ = [
+    "EXIT_ABORTED",
+    "EXIT_ALIGNED",
+    "EXIT_CONFIG",
+    "EXIT_DRIVER",
+    "EXIT_NOT_ALIGNED",
+    "AlignResult",
+    "JsonLinesAudit",
+    "align",
+    "operator_signals",
+]
+
+EXIT_ALIGNED = 0
+EXIT_NOT_ALIGNED = 1
+EXIT_CONFIG = 2
+EXIT_ABORTED = 3
+EXIT_DRIVER = 4
+EXIT_CODES = {
+    "aligned": EXIT_ALIGNED,
+    "not-aligned": EXIT_NOT_ALIGNED,
+    "spec-unknown": EXIT_NOT_ALIGNED,
+    "config-error": EXIT_CONFIG,
+    "aborted": EXIT_ABORTED,
+    "driver-failure": EXIT_DRIVER,
+}
+
+
+# --- the audit log file -------------------------------------------------------------------
+
+
+def plain(value: Any) -> Any:
+    """`value` as strict JSON data: numpy numbers as Python numbers, NaN and infinities as
+    the strings "nan", "inf", "-inf" (JSON has no such numbers)."""
+    if isinstance(value, Mapping):
+        return {str(key): plain(item) for key, item in value.items()}
+    if isinstance(value, list | tuple | np.ndarray):
+        return [plain(item) for item in value]
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return str(value)
+    return value
+
+
+class JsonLinesAudit:
+    """The audit log as a JSON-lines file, appended to. Each record is flushed and fsynced
+    before the call it records returns, so a crash or a power cut loses nothing."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        if self.path.is_dir():
+            raise ValueError(f"--log {self.path} is a directory; give a file name")
+        self._file: TextIO | None = None  # opened with the first record
+        self._closed = False
+
+    def record(self, entry: dict[str, Any]) -> None:
+        if self._closed:
+            raise ValueError(f"the audit log {self.path} is closed")
+        if self._file is None:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._file = self.path.open("a", encoding="utf-8")
+        self._file.write(json.dumps(plain(entry), allow_nan=False) + "\n")
+        self._file.flush()
+        os.fsync(self._file.fileno())
+
+    def close(self) -> None:
+        self._closed = True
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+
+    def __enter__(self) -> JsonLinesAudit:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+# --- operator signals ---------------------------------------------------------------------
+
+
+def _interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt
+
+
+@contextmanager
+def operator_signals() -> Iterator[None]:
+    """Within: Ctrl-C (SIGINT) and SIGTERM (a `kill`, a service stop) both raise
+    KeyboardInterrupt, so each ends an alignment as an operator abort. Only the main thread
+    can install handlers; elsewhere the handlers stay as they are."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {sig: signal.signal(sig, _interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+# --- the result ---------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class AlignResult:
+    """How one alignment ended. Settings in instrument units, widths in px."""
+
+    outcome: str  # a key of EXIT_CODES
+    reason: str  # why it ended, in words
+    final_width_px: float | None  # the final image; None: not taken, or it had no edges
+    threshold_px: float | None  # the spec; None: unknown
+    acquisitions: int  # alignment images that reached the driver (not the final one)
+    writes: int  # writes that reached the driver, the restore included
+    clamped: int  # writes the shield clamped (in a dry run: would have)
+    refused: int  # writes the shield did not make (outside a dry run's)
+    start_setting: dict[str, float] | None
+    final_setting: dict[str, float] | None  # where the column was left; None: unknown
+    dry_run: bool
+    restored: bool  # the start was written back after an abort
+    log: str | None
+    policy: str
+    apparatus: str
+
+    @property
+    def success(self) -> bool:
+        return self.outcome == "aligned"
+
+    @property
+    def aborted(self) -> bool:
+        return self.outcome == "aborted"
+
+    @property
+    def exit_code(self) -> int:
+        return EXIT_CODES[self.outcome]
+
+    def to_dict(self) -> dict[str, Any]:
+        """The stable keys of `alignrl align --json` (docs/cli.md)."""
+        data = dataclasses.asdict(self)
+        data.update(success=self.success, aborted=self.aborted, exit_code=self.exit_code)
+        return plain(data)
+
+
+# --- the alignment ------------------------------------------------------------------------
+
+
+def _spec_threshold(
+    policy: DeployablePolicy, apparatus: Apparatus, spec_px: float | None, shield: Any
+) -> float | None:
+    """--spec-px, else the task's absolute spec, else its relative rule with the apparatus's
+    best_quality() (simulated apparatus); None where none of them is possible."""
+    rule = policy.task.success
+    if spec_px is not None:
+        return float(spec_px)
+    if rule.absolute_px is not None:
+        return float(rule.absolute_px)
+    best_quality = getattr(apparatus, "best_quality", None)
+    if not callable(best_quality):
+        return None
+    try:
+        best_px = float(best_quality())
+    except ApparatusError as error:
+        shield.log("reference", sent=True, error=str(error))
+        raise DriverFailure(f"the apparatus failed to say its best edge width: {error}") from None
+    shield.log("reference", sent=True, best_width_px=best_px, relative=rule.relative)
+    return rule.threshold_px(best_px) if math.isfinite(best_px) else None
+
+
+def _check_policy_shape(policy: DeployablePolicy, episodes: AlignmentEpisodes) -> None:
+    """One action on an empty history, before anything is written: a policy for another
+    task or history length is a config error, not a fault halfway through."""
+    empty = np.zeros((policy.history, episodes.n_features), np.float32)
+    action = np.asarray(policy.act(empty))
+    if action.shape != (episodes.k + 1,):
+        raise ValueError(
+            f"policy {policy.name!r} answers an action of shape {action.shape}; task "
+            f"{policy.task.name!r} needs ({episodes.k + 1},): {episodes.k} knob change(s) and stop"
+        )
+
+
+class _NonFiniteAction(ShieldStop):
+    """The policy answered NaN or infinity: the alignment ends before the write it asks for."""
+
+
+def _run_policy(
+    policy: DeployablePolicy, episodes: AlignmentEpisodes, shield: ShieldedApparatus
+) -> str:
+    """The alignment proper; returns why it ended. ShieldStop and KeyboardInterrupt pass."""
+    slot = np.array([0])
+    k = episodes.k
+    episodes.adopt(slot)
+    while episodes.active[0]:
+        action = np.asarray(policy.act(episodes.observation(0)), dtype=np.float64).reshape(-1)
+        stop = bool(action[k] > 0)
+        if not np.all(np.isfinite(action)):
+            reason = f"the policy produced a non-finite action {action.tolist()}"
+            shield.log("action", action=action, decision="refused", reason=reason)
+            raise _NonFiniteAction(reason)
+        shield.log("action", action=action, stop=stop)
+        episodes.step(slot, action[None])  # the shield's applied setting goes in the history
+        if stop:
+            return "the policy stopped"
+    return f"the policy used all {policy.task.episode_steps} steps of its task"
+
+
+def align(
+    policy: DeployablePolicy,
+    apparatus: Apparatus,
+    limits: Mapping[str, KnobLimits],
+    audit: AuditSink,
+    *,
+    apparatus_spec: str = "apparatus",
+    spec_px: float | None = None,
+    dry_run: bool = False,
+    timeout_s: float | None = None,
+    max_acquisitions: int | None = None,
+    restore_on_abort: bool = False,
+    clock: Callable[[], float] | None = None,
+    log_path: str | None = None,
+) -> AlignResult:
+    """Align `apparatus` once with `policy` through the shield (see the module docstring).
+
+    `limits` come from `resolve_limits`. `max_acquisitions` defaults to the task's
+    episode_steps + 1 (everything the policy may ask for); `clock` (monotonic seconds) is the
+    watchdog's and the log's. A policy or task that does not fit the apparatus raises
+    ValueError before anything is written; the driver's failures and the operator's Ctrl-C
+    end in a result, never in an exception.
+    """
+    task = policy.task
+    if spec_px is not None and not (math.isfinite(spec_px) and spec_px > 0):
+        raise ValueError(f"--spec-px must be a positive edge width in px, got {spec_px}")
+    if max_acquisitions is None:
+        max_acquisitions = task.episode_steps + 1
+    watchdog = Watchdog(timeout_s, max_acquisitions, clock or time.monotonic)
+    shield = ShieldedApparatus(apparatus, limits, audit, watchdog, dry_run)
+    episodes = AlignmentEpisodes([shield], task, policy.history)  # checks the task's knobs
+    _check_policy_shape(policy, episodes)
+
+    def result(outcome: str, reason: str, **fields: Any) -> AlignResult:
+        done = AlignResult(
+            outcome=outcome,
+            reason=reason,
+            final_width_px=fields.get("final_width_px"),
+            threshold_px=fields.get("threshold_px"),
+            acquisitions=shield.acquisitions,
+            writes=shield.writes,
+            clamped=shield.clamped,
+            refused=shield.refused,
+            start_setting=shield.start,
+            final_setting=dict(shield.setting) if shield.setting is not None else None,
+            dry_run=dry_run,
+            restored=shield.restored,
+            log=log_path,
+            policy=policy.name,
+            apparatus=apparatus_spec,
+        )
+        shield.log("end", result=done.to_dict())
+        return done
+
+    shield.log(
+        "start",
+        policy=policy.name,
+        policy_source=policy.source,
+        task=task.name,
+        history=policy.history,
+        apparatus=apparatus_spec,
+        knobs={name: list(interval) for name, interval in shield.knobs.items()},
+        limits={name: knob.as_dict() for name, knob in limits.items()},
+        dry_run=dry_run,
+        timeout_s=timeout_s,
+        max_acquisitions=max_acquisitions,
+        restore_on_abort=restore_on_abort,
+        spec_px=spec_px,
+    )
+    threshold: float | None = None
+    try:
+        shield.begin()
+        threshold = _spec_threshold(policy, apparatus, spec_px, shield)
+        reason = _run_policy(policy, episodes, shield)
+        final_width = shield.verify()
+    except StartOutsideLimits as error:
+        return result("config-error", str(error))
+    except DriverFailure as error:
+        shield.abort(str(error))  # nothing more reaches a failing driver, not even a restore
+        return result("driver-failure", str(error), threshold_px=threshold)
+    except (KeyboardInterrupt, ShieldStop) as error:
+        why = OPERATOR_ABORT if isinstance(error, KeyboardInterrupt) else str(error)
+        shield.abort(why)
+        if restore_on_abort:
+            try:
+                shield.restore()
+            except DriverFailure as failure:
+                return result("driver-failure", f"{why}; {failure}", threshold_px=threshold)
+            except KeyboardInterrupt:
+                why += "; the restore was interrupted"
+        return result("aborted", why, threshold_px=threshold)
+    except Exception as error:
+        # A bug (in alignrl, the policy or the driver), not an outcome: it still surfaces as
+        # a traceback, but nothing more reaches the driver and the log says how it ended.
+        shield.abort(f"internal error: {type(error).__name__}: {error}")
+        shield.log("end", error=f"{type(error).__name__}: {error}")
+        raise
+    if final_width is None or not math.isfinite(final_width):
+        return result(
+            "not-aligned", f"{reason}; the final image had no edges", threshold_px=threshold
+        )
+    if threshold is None:
+        return result(
+            "spec-unknown",
+            f"{reason}; spec unknown: the apparatus cannot say its best edge width, give "
+            "--spec-px to judge",
+            final_width_px=final_width,
+        )
+    met = final_width <= threshold
+    return result(
+        "aligned" if met else "not-aligned",
+        f"{reason}; final edge width {final_width:.3g} px {'<=' if met else '>'} spec "
+        f"{threshold:.3g} px",
+        final_width_px=final_width,
+        threshold_px=threshold,
+    )

@@ -1,0 +1,569 @@
+"""The safety shield: every write a policy makes to an instrument passes through it.
+
+`ShieldedApparatus` wraps an apparatus and implements the Apparatus protocol itself, so the
+alignment loop of the environments (alignrl/envs/core.py) runs over it unchanged and the
+policy sees exactly the history features it was trained on. Its rules, in order, before any
+write reaches the driver:
+
+1. after an abort nothing is written (the one exception: `restore()`, at most once);
+2. the watchdog: past the time limit, or with all acquisitions spent, the alignment ends;
+3. a non-finite value or an unknown knob is refused;
+4. each knob is clamped into the tighter of the apparatus's interval and the site limits,
+   then its change from the current setting to at most the knob's maximum step;
+5. a write that changes nothing is not sent; in a dry run, no write is sent.
+
+Reads and measurements are checked by rules 1 and 2. Every call to the driver, and every
+decision, is one record in the audit log (`AuditSink`), with the wall time (ISO 8601, UTC)
+and the monotonic clock of the watchdog, in seconds. Values are in instrument units (volts for
+lenses), edge widths in px.
+
+Pure logic: the only I/O is through the wrapped apparatus and the audit sink.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from typing import Any, Protocol
+
+import numpy as np
+
+from alignrl.apparatus.base import Apparatus, ApparatusError
+
+__all__ = [
+    "Aborted",
+    "AuditSink",
+    "DriverFailure",
+    "KnobLimits",
+    "MemoryAudit",
+    "RefusedWrite",
+    "ShieldConfigError",
+    "ShieldStop",
+    "ShieldedApparatus",
+    "StartOutsideLimits",
+    "TrainingShield",
+    "Watchdog",
+    "WatchdogExpired",
+    "WriteDecision",
+    "clamp_write",
+    "resolve_limits",
+]
+
+OPERATOR_ABORT = "operator abort (Ctrl-C or SIGTERM)"
+
+
+# --- exceptions ---------------------------------------------------------------------------
+
+
+class ShieldConfigError(ValueError):
+    """Site limits or maximum steps that cannot be used; raised before anything is written."""
+
+
+class ShieldStop(Exception):
+    """The shield ends the alignment. Deliberately not an ApparatusError: the alignment loop
+    treats those as unmeasured images and goes on, while this must end it."""
+
+
+class WatchdogExpired(ShieldStop):
+    """The time limit passed or the acquisitions are spent."""
+
+
+class Aborted(ShieldStop):
+    """A call after the alignment was aborted: nothing reaches the driver any more."""
+
+
+class RefusedWrite(ShieldStop):
+    """A write the shield will not clamp into shape: a non-finite value or an unknown knob."""
+
+
+class StartOutsideLimits(ShieldStop):
+    """The column sits outside the site limits before the alignment started."""
+
+
+class DriverFailure(ShieldStop):
+    """The driver failed on a read or a write: the column's state is not known."""
+
+
+# --- limits -------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class KnobLimits:
+    """Where one knob may go: the interval the shield clamps to (and which rule set each
+    bound) and the largest change per write (None: no limit), instrument units."""
+
+    low: float
+    high: float
+    low_rule: str  # "apparatus interval" or "site limit"
+    high_rule: str
+    max_step: float | None = None
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"low": self.low, "high": self.high, "max_step": self.max_step}
+
+
+def _number(value: Any, where: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise ShieldConfigError(f"{where}: {value!r} is not a number")
+    number = float(value)
+    if not math.isfinite(number):
+        raise ShieldConfigError(f"{where}: {value!r} is not a finite number")
+    return number
+
+
+def _known_knob(knobs: Mapping[str, tuple[float, float]], name: str, option: str) -> None:
+    if name not in knobs:
+        have = ", ".join(sorted(knobs)) or "none"
+        raise ShieldConfigError(f"{option}: unknown knob {name!r}; this apparatus has {have}")
+
+
+def resolve_limits(
+    knobs: Mapping[str, tuple[float, float]],
+    site_limits: Mapping[str, Any] | None = None,
+    max_step: Mapping[str, Any] | None = None,
+) -> dict[str, KnobLimits]:
+    """The limits of every knob of the apparatus, from its intervals, the site limits
+    (`{"defocus": [low, high]}`) and the maximum steps (`{"defocus": 2.0}`).
+
+    A site limit must lie inside the apparatus's interval (it can only tighten it): a bound
+    outside, low >= high, a non-finite number, an unknown knob or a maximum step that is not
+    positive is a ShieldConfigError naming the option and the knob.
+    """
+    site_limits = dict(site_limits or {})
+    max_step = dict(max_step or {})
+    for name in site_limits:
+        _known_knob(knobs, name, "--limits")
+    for name in max_step:
+        _known_knob(knobs, name, "--max-step")
+    limits = {}
+    for name, interval in knobs.items():
+        low, high = float(interval[0]), float(interval[1])
+        low_rule = high_rule = "apparatus interval"
+        if name in site_limits:
+            bounds = site_limits[name]
+            if not isinstance(bounds, list | tuple) or len(bounds) != 2:
+                raise ShieldConfigError(
+                    f"--limits: {name!r} needs [low, high] in instrument units, got {bounds!r}"
+                )
+            site_low = _number(bounds[0], f"--limits {name!r} low")
+            site_high = _number(bounds[1], f"--limits {name!r} high")
+            if not site_low < site_high:
+                raise ShieldConfigError(
+                    f"--limits: {name!r} low {site_low:g} must be below high {site_high:g}"
+                )
+            if site_low < low or site_high > high:
+                raise ShieldConfigError(
+                    f"--limits: {name!r} [{site_low:g}, {site_high:g}] is not inside the "
+                    f"apparatus's interval [{low:g}, {high:g}]: site limits can only tighten it"
+                )
+            if site_low > low:
+                low, low_rule = site_low, "site limit"
+            if site_high < high:
+                high, high_rule = site_high, "site limit"
+        step = None
+        if name in max_step:
+            step = _number(max_step[name], f"--max-step {name!r}")
+            if not step > 0:
+                raise ShieldConfigError(
+                    f"--max-step: {name!r} must be a positive change per write, got {step:g}"
+                )
+        limits[name] = KnobLimits(low, high, low_rule, high_rule, step)
+    return limits
+
+
+@dataclass(frozen=True)
+class WriteDecision:
+    """What the shield makes of one requested write: the values to write and, per clamped
+    knob, {"knob", "from", "to", "rule"}."""
+
+    values: dict[str, float]
+    clamps: tuple[dict[str, Any], ...]
+
+
+def clamp_write(
+    limits: Mapping[str, KnobLimits],
+    current: Mapping[str, float],
+    requested: Mapping[str, float],
+) -> WriteDecision:
+    """Clamp a requested write into the limits, then each change from `current` to its
+    maximum step. RefusedWrite for an unknown knob or a non-finite value.
+
+    `current` lies inside the limits (the shield refuses to start elsewhere), so a change cut
+    to the maximum step still ends inside them.
+    """
+    values: dict[str, float] = {}
+    clamps = []
+    for name, value in requested.items():
+        if name not in limits:
+            raise RefusedWrite(f"unknown knob {name!r}")
+        number = float(value)
+        if not math.isfinite(number):
+            raise RefusedWrite(f"{name} = {number} is not a finite value")
+        knob = limits[name]
+        target, rules = number, []
+        if target < knob.low:
+            target, rules = knob.low, [f"{knob.low_rule} low {knob.low:g}"]
+        elif target > knob.high:
+            target, rules = knob.high, [f"{knob.high_rule} high {knob.high:g}"]
+        if knob.max_step is not None and name in current:
+            change = target - current[name]
+            if abs(change) > knob.max_step:
+                target = current[name] + math.copysign(knob.max_step, change)
+                rules.append(f"max step {knob.max_step:g}")
+        if rules:
+            clamps.append({"knob": name, "from": number, "to": target, "rule": ", ".join(rules)})
+        values[name] = target
+    return WriteDecision(values, tuple(clamps))
+
+
+# --- the watchdog -------------------------------------------------------------------------
+
+
+@dataclass
+class Watchdog:
+    """Ends an alignment after `timeout_s` seconds of `clock` or `max_acquisitions` images
+    (None: no limit). Checked before every write and measurement."""
+
+    timeout_s: float | None = None
+    max_acquisitions: int | None = None
+    clock: Callable[[], float] = time.monotonic
+    started: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.timeout_s is not None and not (
+            math.isfinite(self.timeout_s) and self.timeout_s > 0
+        ):
+            raise ShieldConfigError(f"--timeout must be positive seconds, got {self.timeout_s}")
+        if self.max_acquisitions is not None and self.max_acquisitions < 1:
+            raise ShieldConfigError(
+                f"--max-acquisitions must be at least 1, got {self.max_acquisitions}"
+            )
+
+    def start(self) -> None:
+        self.started = self.clock()
+
+    def elapsed_s(self) -> float:
+        return 0.0 if self.started is None else self.clock() - self.started
+
+    def expiry(self, acquisitions: int | None) -> str | None:
+        """Why the alignment must end now, or None. `acquisitions`: images acquired so far,
+        or None where they do not count (the final verification image)."""
+        if self.timeout_s is not None and self.elapsed_s() >= self.timeout_s:
+            return f"watchdog: the time limit of {self.timeout_s:g} s passed"
+        if (
+            self.max_acquisitions is not None
+            and acquisitions is not None
+            and acquisitions >= self.max_acquisitions
+        ):
+            return f"watchdog: all {self.max_acquisitions} acquisitions are spent"
+        return None
+
+
+# --- the audit log ------------------------------------------------------------------------
+
+
+class AuditSink(Protocol):
+    """Where audit records go (a JSON-lines file in alignrl.deploy.align)."""
+
+    def record(self, entry: dict[str, Any]) -> None: ...
+
+
+class MemoryAudit:
+    """Audit records kept in a list (tests, and callers that keep no file)."""
+
+    def __init__(self) -> None:
+        self.entries: list[dict[str, Any]] = []
+
+    def record(self, entry: dict[str, Any]) -> None:
+        self.entries.append(entry)
+
+
+# --- the shielded apparatus ---------------------------------------------------------------
+
+
+class ShieldedApparatus:
+    """An apparatus seen through the shield (see the module docstring).
+
+    `knobs` are the wrapped apparatus's own intervals, so that history features and step
+    sizes are those the policy was trained with; the site limits act on the writes. Call
+    `begin()` first: it reads the starting setting and starts the watchdog.
+
+    With `dry_run`, writes are decided and logged but never sent: the column stays where it
+    was, and reads and measurements show it there.
+    """
+
+    def __init__(
+        self,
+        apparatus: Apparatus,
+        limits: Mapping[str, KnobLimits],
+        audit: AuditSink,
+        watchdog: Watchdog | None = None,
+        dry_run: bool = False,
+    ) -> None:
+        self.inner = apparatus
+        self.knobs: Mapping[str, tuple[float, float]] = dict(apparatus.knobs)
+        self.limits = dict(limits)
+        self.audit = audit
+        self.watchdog = watchdog or Watchdog()
+        self.dry_run = dry_run
+        self.start: dict[str, float] | None = None
+        self.setting: dict[str, float] | None = None  # the column as the shield last left it
+        self.acquisitions = 0  # alignment images that reached the driver
+        self.writes = 0  # writes that reached the driver
+        self.clamped = 0  # writes clamped (in a dry run: that would have been)
+        self.refused = 0  # writes not made, other than in a dry run
+        self.abort_reason: str | None = None
+        self.restored = False  # the start was written back after an abort
+        self._restore_tried = False
+
+    @property
+    def aborted(self) -> bool:
+        return self.abort_reason is not None
+
+    # --- records ------------------------------------------------------------------------
+
+    def log(self, event: str, **fields: Any) -> None:
+        """One audit record: the event, when (UTC and the watchdog's clock), and `fields`."""
+        entry = {
+            "event": event,
+            "time": datetime.now(UTC).isoformat(timespec="microseconds"),
+            "monotonic_s": self.watchdog.clock(),
+            "elapsed_s": self.watchdog.elapsed_s(),
+            **fields,
+        }
+        self.audit.record(entry)
+
+    def _stop_if_due(self, event: str, acquisitions: int | None, **fields: Any) -> None:
+        """Rules 1 and 2: after an abort, or when the watchdog fires, the call is logged as
+        aborted and never reaches the driver."""
+        if self.abort_reason is not None:
+            self.log(event, decision="aborted", sent=False, reason=self.abort_reason, **fields)
+            if event == "write":
+                self.refused += 1
+            raise Aborted(f"{event} after the alignment was aborted ({self.abort_reason})")
+        expired = self.watchdog.expiry(acquisitions)
+        if expired is not None:
+            self.log(event, decision="aborted", sent=False, reason=expired, **fields)
+            if event == "write":
+                self.refused += 1
+            raise WatchdogExpired(expired)
+
+    # --- the protocol -------------------------------------------------------------------
+
+    def begin(self) -> dict[str, float]:
+        """Read the starting setting, start the watchdog, and refuse (StartOutsideLimits) a
+        column that sits outside the limits: the shield never jumps into them."""
+        self.watchdog.start()
+        start = self.read()
+        self.start, self.setting = dict(start), dict(start)
+        outside = [
+            f"{name} = {value:g} (limits [{self.limits[name].low:g}, {self.limits[name].high:g}])"
+            for name, value in start.items()
+            if name in self.limits and not self.limits[name].low <= value <= self.limits[name].high
+        ]
+        if outside:
+            reason = (
+                f"the column starts outside the limits: {'; '.join(outside)}; move it inside "
+                "by hand or widen --limits"
+            )
+            self.log("refused-start", reason=reason)
+            raise StartOutsideLimits(reason)
+        return dict(start)
+
+    def reset(self, seed: int | None = None) -> None:
+        raise RuntimeError("align never resets the apparatus: it starts from the column as it is")
+
+    def read(self) -> dict[str, float]:
+        self._stop_if_due("read", None)
+        try:
+            values = {name: float(value) for name, value in self.inner.read().items()}
+        except KeyboardInterrupt:
+            self.log("read", sent=True, error="interrupted by the operator")
+            raise
+        except ApparatusError as error:
+            self.log("read", sent=True, error=str(error))
+            raise DriverFailure(f"the driver failed to read the knobs: {error}") from None
+        self.log("read", sent=True, values=values)
+        return values
+
+    def write(self, values: Mapping[str, float]) -> None:
+        requested = {name: float(value) for name, value in values.items()}
+        self._stop_if_due("write", self.acquisitions, requested=requested)
+        assert self.setting is not None, "call begin() before the first write"
+        try:
+            decision = clamp_write(self.limits, self.setting, requested)
+        except RefusedWrite as error:
+            self.refused += 1
+            self.log(
+                "write", requested=requested, decision="refused", sent=False, reason=str(error)
+            )
+            raise
+        self.clamped += bool(decision.clamps)
+        verdict = "clamped" if decision.clamps else "allowed"
+        record = {"requested": requested, "value": decision.values, "clamps": list(decision.clamps)}
+        if all(self.setting.get(name) == value for name, value in decision.values.items()):
+            # Nothing would change (the loop's first write repeats the setting it just read,
+            # or a clamp held the knob where it is): no command goes to the instrument.
+            self.log("write", decision=verdict, sent=False, unchanged=True, **record)
+            return
+        if self.dry_run:
+            self.log("write", decision="dry-run", would_be=verdict, sent=False, **record)
+            return
+        # Logged before it is sent: a crash during the driver call leaves it on record.
+        self.log("write", decision=verdict, sent=True, **record)
+        self.writes += 1
+        try:
+            self.inner.write(decision.values)
+        except KeyboardInterrupt:
+            self.setting = None  # the driver may or may not have set it
+            self.log("write-error", error="interrupted by the operator", value=decision.values)
+            raise
+        except (ApparatusError, ValueError) as error:
+            # ValueError: the driver refused a value inside its own interval, so it is not
+            # the apparatus it says it is; either way its state is unknown now.
+            self.setting = None
+            self.log("write-error", error=str(error), value=decision.values)
+            raise DriverFailure(f"the driver failed to write {decision.values}: {error}") from None
+        self.setting.update(decision.values)
+
+    def measure(self) -> float:
+        """An alignment image (counted by the watchdog). Measurement failures are logged and
+        raised as they came, so the alignment records an unmeasured row and goes on."""
+        self._stop_if_due("measure", self.acquisitions, purpose="alignment")
+        self.acquisitions += 1
+        return self._acquire("alignment")
+
+    def verify(self) -> float | None:
+        """The final image, judged against the spec: not counted against the acquisitions,
+        but after an abort or past the time limit it is not taken. None: it had no edges."""
+        self._stop_if_due("measure", None, purpose="final")
+        try:
+            return self._acquire("final")
+        except ApparatusError:
+            return None
+
+    def _acquire(self, purpose: str) -> float:
+        try:
+            width = float(self.inner.measure())
+        except KeyboardInterrupt:
+            self.log("measure", purpose=purpose, sent=True, error="interrupted by the operator")
+            raise
+        except ApparatusError as error:  # MeasurementError and NoEdgesError included
+            self.log("measure", purpose=purpose, sent=True, error=str(error))
+            raise
+        self.log("measure", purpose=purpose, sent=True, width_px=width)
+        return width
+
+    def image(self) -> np.ndarray | None:
+        return self.inner.image()
+
+    def applied_setting(self) -> dict[str, float]:
+        """Where the column is after the last write: the clamped value, or (dry run, or a
+        write that was not sent) where it was. AlignmentEpisodes records this in the history,
+        so the policy sees the real setting, as it saw a setting clipped at a bound in
+        training."""
+        if self.setting is None:
+            raise DriverFailure("the column's setting is unknown after a failed write")
+        return dict(self.setting)
+
+    # --- ending -------------------------------------------------------------------------
+
+    def abort(self, reason: str) -> None:
+        """From now on nothing reaches the driver, except one `restore()`."""
+        if self.abort_reason is None:
+            self.abort_reason = reason
+            self.log("abort", reason=reason, setting=self.setting)
+
+    def restore(self) -> bool:
+        """Write the starting setting back, once, after an abort; True if it was written.
+
+        Not written in a dry run or where the column is known to be at its start. The write
+        is exempt from the maximum step (it returns to a setting the column just held) but
+        not from the limits, which the start lies inside.
+        """
+        if self._restore_tried or self.start is None:
+            return False
+        self._restore_tried = True
+        if self.dry_run or self.setting == self.start:
+            why = "dry run: nothing was written" if self.dry_run else "the column is at its start"
+            self.log("restore", sent=False, reason=why, value=self.start)
+            return False
+        self.log("restore", sent=True, value=self.start)
+        self.writes += 1
+        try:
+            self.inner.write(self.start)
+        except KeyboardInterrupt:
+            self.log("write-error", error="interrupted by the operator", value=self.start)
+            raise
+        except (ApparatusError, ValueError) as error:
+            self.log("write-error", error=str(error), value=self.start)
+            raise DriverFailure(f"restoring the start {self.start} failed: {error}") from None
+        self.setting = dict(self.start)
+        self.restored = True
+        return True
+
+
+class TrainingShield(ShieldedApparatus):
+    """The shield for training on an instrument (`alignrl adapt`): many episodes, not one
+    alignment.
+
+    `reset(seed)` starts a new scenario on the instrument (a new specimen area, a new state
+    of the column) and reads where the column is. The first write after it is the
+    misalignment that starts the episode: clamped into the limits like every write, but
+    exempt from the maximum step, as a scenario's start is a jump by design. Every later
+    write is the aligner's and obeys every rule. No watchdog: the episode's step limit and
+    the run's budget end the work.
+    """
+
+    def __init__(
+        self,
+        apparatus: Apparatus,
+        limits: Mapping[str, KnobLimits],
+        audit: AuditSink,
+        unit: str = "0",
+    ) -> None:
+        super().__init__(apparatus, limits, audit)
+        self.unit = unit  # which apparatus of the run: every record names it
+        self._start_limits = {
+            name: KnobLimits(knob.low, knob.high, knob.low_rule, knob.high_rule, None)
+            for name, knob in self.limits.items()
+        }
+        self._starting = False
+
+    def log(self, event: str, **fields: Any) -> None:
+        super().log(event, unit=self.unit, **fields)
+
+    def __getattr__(self, name: str) -> Any:
+        # A simulated instrument's secret (the optimum, the best edge width) passes through,
+        # for the critics and for relative success thresholds; a real column has none, and
+        # then neither has its shield.
+        if name in ("optimum", "best_quality"):
+            return getattr(self.__dict__["inner"], name)
+        raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+
+    def reset(self, seed: int | None = None) -> None:
+        self._stop_if_due("reset", None, seed=seed)
+        try:
+            self.inner.reset(seed)
+        except ApparatusError as error:
+            self.log("reset", sent=True, seed=seed, error=str(error))
+            raise DriverFailure(f"the driver failed to start a new scenario: {error}") from None
+        self.log("reset", sent=True, seed=seed)
+        self.watchdog.start()
+        self.start = self.read()
+        self.setting = dict(self.start)
+        self._starting = True
+
+    def write(self, values: Mapping[str, float]) -> None:
+        if not self._starting:
+            super().write(values)
+            return
+        self._starting = False
+        aligner_limits, self.limits = self.limits, self._start_limits
+        try:
+            super().write(values)
+        finally:
+            self.limits = aligner_limits

@@ -1,0 +1,337 @@
+"""Playing matches on alignment episodes: the code every execution backend shares.
+
+A round is one match per episode slot: each slot's apparatus is reset with its match's seed,
+the misaligner reads [1, aligned settings, complexity] and chooses the start, and the
+aligner acts on the unfinished matches until all are done (a stop, or the task's last step).
+Who chooses, and what happens to each step, is the caller's:
+
+* the in-process backend lets learning members `explore` with the league's generator and
+  `observe` and `learn` after every step (`play_round` with its own choosers);
+* a Ray worker (alignrl.league.ray_backend) acts with copies of the members, each match's
+  randomness drawn from a generator seeded by that match's seed, and records every step
+  (`record_matches`); the driver then stores the trajectories in the learning members and
+  learns (`learn_from_matches`).
+
+Payoffs are the aligner's, in the zero-sum game: its return (the seed's rewards) minus what
+the start was worth (`AlignmentEpisodes.misalignment_scores`); the misaligner's is the
+negative.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from alignrl.agents.agent import Agent
+from alignrl.envs.core import AlignmentEpisodes
+
+__all__ = [
+    "AlignerSteps",
+    "Choice",
+    "Chooser",
+    "MatchResult",
+    "MatchTrajectory",
+    "Round",
+    "WorkerFailedError",
+    "exploration_generator",
+    "learn_from_matches",
+    "misaligner_rows",
+    "play_round",
+    "record_matches",
+]
+
+# A chooser answers a batch of inputs (the rows of the slots given) with actions in (-1, 1)
+# and, where the member is PPO and sampled them itself, their pre-squash sample (else None).
+Choice = tuple[np.ndarray, np.ndarray | None]
+Chooser = Callable[[np.ndarray, np.ndarray], Choice]
+
+
+class WorkerFailedError(RuntimeError):
+    """Matches could not be played: a worker was lost more often than it may be restarted.
+    Nothing of the batch reached the members."""
+
+
+class MatchResult:
+    """The outcome of one batch of matches, from the aligner's side: its returns (the seed's
+    rewards it learns from) and payoffs in the zero-sum game (its return minus the start's
+    score; the misaligner's payoff is the negative)."""
+
+    def __init__(self) -> None:
+        self.successes: list[bool] = []
+        self.acquisitions: list[int] = []
+        self.returns: list[float] = []
+        self.payoffs: list[float] = []
+        self.updates: dict[str, list[dict[str, float]]] = {}
+
+    def add(self, success: bool, acquisitions: int, aligner_return: float, payoff: float) -> None:
+        """One finished match."""
+        self.successes.append(bool(success))
+        self.acquisitions.append(int(acquisitions))
+        self.returns.append(float(aligner_return))
+        self.payoffs.append(float(payoff))
+
+    @property
+    def matches(self) -> int:
+        return len(self.successes)
+
+    @property
+    def success_rate(self) -> float:
+        return float(np.mean(self.successes)) if self.successes else 0.0
+
+
+@dataclass
+class AlignerSteps:
+    """Aligner steps, one row each: of the unfinished matches at one step (`slots`), or of
+    one match from its first step to its last."""
+
+    slots: np.ndarray  # (T,) episode slot of each row
+    observation: np.ndarray  # (T, H, F) the history the aligner read
+    secret: np.ndarray  # (T, k) optimum - setting, for the critics
+    action: np.ndarray  # (T, k + 1)
+    pre_tanh: np.ndarray | None  # (T, k + 1) PPO's pre-squash sample where it travels along
+    reward: np.ndarray  # (T,)
+    next_observation: np.ndarray  # (T, H, F)
+    next_secret: np.ndarray  # (T, k)
+    done: np.ndarray  # (T,) bool
+
+
+@dataclass
+class Round:
+    """One round of matches on slots 0..n-1, arrays indexed by slot."""
+
+    rows: np.ndarray  # (n, 1, k + 2) what the misaligner read
+    starts: np.ndarray  # (n, k) the misaligner's choices
+    starts_pre_tanh: np.ndarray | None  # (n, k) its pre-squash sample, where it travels along
+    scores: np.ndarray  # (n,) what each start was worth (charged to the aligner)
+    returns: np.ndarray  # (n,) the aligner's return
+    successes: np.ndarray  # (n,) bool, the final image within the threshold
+    acquisitions: np.ndarray  # (n,) images acquired
+    finish_order: list[int]  # slots in the order their matches ended
+
+
+@dataclass
+class MatchTrajectory:
+    """Everything the driver needs of one match played elsewhere: the outcome, the
+    misaligner's one step and the aligner's steps."""
+
+    seed: int
+    misaligner_row: np.ndarray  # (1, 1, k + 2)
+    start: np.ndarray  # (1, k)
+    start_pre_tanh: np.ndarray | None  # (1, k)
+    score: float
+    aligner_return: float
+    success: bool
+    acquisitions: int
+    steps: AlignerSteps  # from the first step to the last
+
+    @property
+    def payoff(self) -> float:
+        """The aligner's payoff; the misaligner's is the negative."""
+        return self.aligner_return - self.score
+
+
+def misaligner_rows(episodes: AlignmentEpisodes, slots: np.ndarray) -> np.ndarray:
+    """What the misaligner reads per slot: [1, aligned settings (k), complexity], as a
+    one-row history (the leading 1 marks the row valid for the sequence encoders)."""
+    rows = np.stack([episodes.misaligner_observation(int(i)) for i in slots])
+    return np.concatenate([np.ones((len(slots), 1), np.float32), rows], axis=1)[:, None]
+
+
+def play_round(
+    episodes: AlignmentEpisodes,
+    seeds: Sequence[int],
+    choose_start: Chooser,
+    choose_action: Chooser,
+    on_step: Callable[[AlignerSteps], None],
+) -> Round:
+    """One match per seed on slots 0..len(seeds)-1, played to the end; `on_step` sees every
+    aligner step as it happens."""
+    slots = np.arange(len(seeds))
+    episodes.begin(slots, list(seeds))
+    rows = misaligner_rows(episodes, slots)
+    starts, starts_pre_tanh = choose_start(rows, slots)
+    episodes.misalign(slots, starts)
+    scores = episodes.misalignment_scores(slots)
+    returns = np.zeros(len(slots))
+    finish_order: list[int] = []
+    active = slots.copy()
+    while active.size:
+        observation, secret = episodes.history[active].copy(), episodes.secrets()[active]
+        action, pre_tanh = choose_action(observation, active)
+        reward, done = episodes.step(active, action)
+        returns[active] += reward
+        on_step(
+            AlignerSteps(
+                active,
+                observation,
+                secret,
+                action,
+                pre_tanh,
+                reward,
+                episodes.history[active].copy(),
+                episodes.secrets()[active],
+                done,
+            )
+        )
+        finish_order += [int(slot) for slot in active[done]]
+        active = active[~done]
+    return Round(
+        rows,
+        starts,
+        starts_pre_tanh,
+        scores,
+        returns,
+        episodes.successes()[slots],
+        episodes.acquisitions[slots].copy(),
+        finish_order,
+    )
+
+
+# --- matches played elsewhere (a Ray worker), learned from in the driver -------------------
+
+EXPLORATION_STREAM = 1  # a match's exploration generator: seeded by [seed, this], not by seed
+
+
+def exploration_generator(seed: int) -> np.random.Generator:
+    """The generator of a match's exploration noise: a stream of its own, apart from the
+    apparatus (which `reset(seed)` seeds)."""
+    return np.random.default_rng([seed, EXPLORATION_STREAM])
+
+
+def _seeded_chooser(
+    agent: Agent, generators: list[np.random.Generator], learns: bool, deterministic: bool
+) -> Chooser:
+    """How `agent` chooses in a worker, as in-process: a learning member explores (SAC's
+    warm-up included), another acts with its mean action if `deterministic`, else samples."""
+
+    def choose(inputs: np.ndarray, slots: np.ndarray) -> Choice:
+        if deterministic and not learns:
+            return agent.act(inputs, deterministic=True), None
+        return agent.explore_rows(inputs, [generators[slot] for slot in slots], warm_up=learns)
+
+    return choose
+
+
+def _per_match(steps: list[AlignerSteps], slot: int) -> AlignerSteps:
+    """The rows of one slot's match, first step to last."""
+    picked = [(step, np.flatnonzero(step.slots == slot)) for step in steps]
+    picked = [(step, rows) for step, rows in picked if rows.size]
+
+    def column(name: str) -> np.ndarray:
+        return np.concatenate([getattr(step, name)[rows] for step, rows in picked])
+
+    with_pre_tanh = all(step.pre_tanh is not None for step, _ in picked)
+    return AlignerSteps(
+        column("slots"),
+        column("observation"),
+        column("secret"),
+        column("action"),
+        column("pre_tanh") if with_pre_tanh else None,
+        column("reward"),
+        column("next_observation"),
+        column("next_secret"),
+        column("done"),
+    )
+
+
+def record_matches(
+    episodes: AlignmentEpisodes,
+    seeds: Sequence[int],
+    aligner: Agent,
+    misaligner: Agent,
+    learns: tuple[bool, bool],
+    deterministic: bool = False,
+    on_step: Callable[[AlignerSteps], None] | None = None,
+) -> list[MatchTrajectory]:
+    """One match per seed, in rounds of `episodes.n`, recorded in the order of `seeds`.
+    `learns`: whether the aligner and the misaligner learn from these matches (they then
+    explore). Each match's randomness comes from its own seed alone, so it plays the same
+    on any worker, beside any other matches."""
+    aligner_learns, misaligner_learns = learns
+    trajectories = []
+    for first in range(0, len(seeds), episodes.n):
+        chunk = [int(seed) for seed in seeds[first : first + episodes.n]]
+        generators = [exploration_generator(seed) for seed in chunk]
+        steps: list[AlignerSteps] = []
+
+        def keep(step: AlignerSteps, steps: list[AlignerSteps] = steps) -> None:
+            steps.append(step)
+            if on_step:
+                on_step(step)
+
+        played = play_round(
+            episodes,
+            chunk,
+            _seeded_chooser(misaligner, generators, misaligner_learns, deterministic),
+            _seeded_chooser(aligner, generators, aligner_learns, deterministic),
+            keep,
+        )
+        for slot, seed in enumerate(chunk):
+            pre_tanh = played.starts_pre_tanh
+            trajectories.append(
+                MatchTrajectory(
+                    seed=seed,
+                    misaligner_row=played.rows[slot : slot + 1],
+                    start=np.asarray(played.starts[slot : slot + 1]),
+                    start_pre_tanh=None if pre_tanh is None else pre_tanh[slot : slot + 1],
+                    score=float(played.scores[slot]),
+                    aligner_return=float(played.returns[slot]),
+                    success=bool(played.successes[slot]),
+                    acquisitions=int(played.acquisitions[slot]),
+                    steps=_per_match(steps, slot),
+                )
+            )
+    return trajectories
+
+
+def learn_from_matches(
+    trajectories: Sequence[MatchTrajectory],
+    aligner: Agent,
+    misaligner: Agent,
+    learning: set[str],
+    rng: np.random.Generator,
+    on_episode: Callable[[bool], None] | None = None,
+) -> MatchResult:
+    """The outcome of matches played elsewhere; the members in `learning` store them in
+    match order, each match's steps one transition at a time (so PPO links them as one
+    episode), and run the updates that are due after each."""
+    result = MatchResult()
+    result.updates = {member.id: [] for member in (aligner, misaligner)}
+    for match in trajectories:
+        result.add(match.success, match.acquisitions, match.aligner_return, match.payoff)
+        if on_episode:
+            on_episode(match.success)
+        if aligner.id in learning:
+            steps = match.steps
+            for t in range(len(steps.reward)):
+                one = slice(t, t + 1)
+                aligner.observe(
+                    steps.observation[one],
+                    steps.secret[one],
+                    steps.action[one],
+                    steps.reward[one],
+                    steps.next_observation[one],
+                    steps.next_secret[one],
+                    steps.done[one],
+                    pre_tanh=None if steps.pre_tanh is None else steps.pre_tanh[one],
+                )
+                result.updates[aligner.id] += aligner.learn(rng, new_steps=1)
+        if misaligner.id in learning:
+            # One-step episodes: the start is the action, the reward its score minus the
+            # aligner's return (zero-sum), and nothing follows.
+            none = np.zeros((1, misaligner.spec.secret_dim), np.float32)
+            row = match.misaligner_row
+            misaligner.observe(
+                row,
+                none,
+                match.start,
+                np.array([-match.payoff]),
+                row,
+                none,
+                np.ones(1, bool),
+                pre_tanh=match.start_pre_tanh,
+            )
+            result.updates[misaligner.id] += misaligner.learn(rng, new_steps=1)
+    return result

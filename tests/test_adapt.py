@@ -1,0 +1,217 @@
+"""`alignrl adapt`: a pre-trained aligner trains on a new instrument, every call shielded.
+
+The new instrument is `fake_drivers:ParabolicLens`, a driver loaded by import path that, like
+a real column, cannot tell its best edge width (the spec is absolute, --spec-px) but, being
+simulated, knows its optimum (the critics' secret passes the shield).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from alignrl.adaptation import adaptation_config, start_adaptation
+from alignrl.agents.agent import Agent
+from alignrl.apparatus import make_apparatus
+from alignrl.cli import main
+from alignrl.config import TaskOptions, parse_experiment
+from alignrl.deploy.export import resolve_source
+from alignrl.deploy.shield import TrainingShield
+from alignrl.envs import AlignmentEnv
+from alignrl.envs.task import get_task
+from alignrl.training import Trainer
+
+LENS = "fake_drivers:ParabolicLens"
+SPEC_PX = 2.563 * 1.15  # 1.15 x the lens's best edge width (sigma0 = 1 px)
+SMALL = {
+    "encoder_kwargs": {"hidden": [32]},
+    "hidden": [32, 32],
+    "batch_size": 32,
+    "learning_starts": 32,
+    "random_steps": 64,
+}
+
+
+def _pretrained(root: Path, steps: int, learner: dict, complexity: float = 1.0) -> Path:
+    """An aligner trained on the shipped recordings: the source of an adaptation."""
+    settings = {
+        "name": "source",
+        "seed": 3,
+        "envs": 4,
+        "complexity": complexity,
+        "learner": learner,
+        "budget": {"env_steps": steps, "eval_every": steps, "eval_scenarios": 4},
+    }
+    Trainer.create(parse_experiment(settings), root).run(progress=False)
+    return root / "source"
+
+
+@pytest.fixture(scope="module")
+def small_source(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return _pretrained(tmp_path_factory.mktemp("pre"), 200, SMALL)
+
+
+def _adapt(source_dir: Path, root: Path, steps: int, **changes) -> Trainer:
+    source = resolve_source(source_dir)
+    config = adaptation_config(
+        source,
+        name="adapted",
+        apparatus=LENS,
+        apparatus_args=changes.pop("apparatus_args", {}),
+        steps=steps,
+        eval_scenarios=4,
+        envs=4,
+        seed=1,
+        spec_px=SPEC_PX,
+        **changes,
+    )
+    return start_adaptation(config, source, root)
+
+
+def test_an_adaptation_starts_from_the_source_with_an_empty_replay(
+    small_source: Path, tmp_path: Path
+) -> None:
+    source = resolve_source(small_source)
+    trainer = _adapt(small_source, tmp_path, 100)
+    histories = np.random.default_rng(0).uniform(-1, 1, (16, 8, 7)).astype(np.float32)
+    np.testing.assert_array_equal(
+        trainer.agent.act(histories), source.agent.act(histories)
+    )  # the policy, and the critics and entropy coefficient with it
+    for name, value in source.agent.learner.state_dict().items():
+        if isinstance(value, torch.Tensor):
+            assert torch.equal(trainer.agent.learner.state_dict()[name], value), name
+    assert trainer.agent.replay.size == 0  # transitions of the old instrument stay behind
+    assert trainer.agent.steps_seen == source.agent.steps_seen  # no random warm-up again
+    config = yaml.safe_load((tmp_path / "adapted" / "config.yaml").read_text())
+    assert config["adaptation"]["source_member"] == source.agent.id
+    assert config["task_options"]["success_absolute_px"] == pytest.approx(SPEC_PX)
+    # Checkpointed at once: a run killed before its first scheduled checkpoint resumes
+    # from the source, not from an untrained aligner.
+    resumed = Trainer.resume(tmp_path / "adapted")
+    np.testing.assert_array_equal(resumed.agent.act(histories), source.agent.act(histories))
+    trainer.run(progress=False)
+    assert trainer.env_steps >= 100
+    assert trainer.agent.steps_seen == source.agent.steps_seen + trainer.env_steps
+    assert trainer.agent.replay.size == trainer.env_steps
+
+
+def test_every_call_of_an_adaptation_passes_the_shield_and_is_on_record(
+    small_source: Path, tmp_path: Path
+) -> None:
+    trainer = _adapt(
+        small_source,
+        tmp_path,
+        300,
+        limits={"defocus": (20.0, 80.0)},
+        max_step={"defocus": 4.0},
+    )
+    units = trainer.env.episodes.apparatus
+    assert all(isinstance(unit, TrainingShield) for unit in units)
+    trainer.run(progress=False)
+    audit = [
+        json.loads(line) for line in (tmp_path / "adapted" / "audit.jsonl").read_text().splitlines()
+    ]
+    sent = [entry for entry in audit if entry["event"] == "write" and entry["sent"]]
+    assert sent and all(20.0 <= entry["value"]["defocus"] <= 80.0 for entry in sent)
+    # What reached the drivers: inside the limits, and every aligner step within 4 V (the
+    # first write after a reset starts the episode: a jump by design).
+    for unit in units:
+        writes = [w["defocus"] for w in unit.inner.writes]
+        assert writes and all(20.0 <= v <= 80.0 for v in writes)
+    steps, position = [], {}
+    for entry in audit:  # the records of all apparatus interleave: each names its unit
+        unit = entry["unit"]
+        if entry["event"] == "reset":
+            position[unit] = None
+        elif entry["event"] == "write" and entry["sent"]:
+            if position[unit] is not None:
+                steps.append(abs(entry["value"]["defocus"] - position[unit]))
+            position[unit] = entry["value"]["defocus"]
+    assert steps and max(steps) <= 4.0 + 1e-9
+    training = {unit.unit for unit in units}
+    measured = sum(e["event"] == "measure" and e["unit"] in training for e in audit)
+    assert measured == sum(unit.inner.calls for unit in units) >= 300  # every image on record
+    # The evaluation sessions' apparatus is shielded and on record too.
+    assert {e["unit"] for e in audit} - training
+
+
+def test_limits_that_do_not_fit_the_instrument_write_nothing(
+    small_source: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    code = main(
+        [
+            "adapt",
+            "--from",
+            str(small_source),
+            "--apparatus",
+            LENS,
+            "--steps",
+            "50",
+            "--spec-px",
+            "3",
+            "--limits",
+            '{"defocus": [-10, 50]}',
+            "--runs-dir",
+            str(tmp_path / "runs"),
+            "--quiet",
+        ]
+    )
+    assert code == 2
+    assert "inside the apparatus's interval" in capsys.readouterr().err
+    assert not (tmp_path / "runs").exists() or not any((tmp_path / "runs").rglob("*.yaml"))
+
+
+def test_adapt_runs_from_the_command_line_and_resumes(small_source: Path, tmp_path: Path) -> None:
+    args = ["--runs-dir", str(tmp_path), "--quiet", "--json"]
+    common = ["adapt", "--from", str(small_source), "--apparatus", LENS, "--spec-px", "3"]
+    assert main([*common, "--steps", "120", "--eval-scenarios", "3", *args]) == 0
+    member = resolve_source(small_source).agent.id
+    run = tmp_path / f"{member}-on-fake_drivers-ParabolicLens"
+    assert (run / "audit.jsonl").exists() and (run / "checkpoints" / "last.pt").exists()
+    # A second start of the same run is refused; --resume continues it (here: already done).
+    assert main([*common, "--steps", "120", *args]) == 2
+    assert main(["adapt", "--resume", str(run), "--quiet", "--json"]) == 0
+
+
+def _near_focus_successes(agent: Agent, gain: float, scenarios: int = 40) -> int:
+    task = TaskOptions(success_absolute_px=SPEC_PX).apply(get_task("focus"))
+    lens = make_apparatus(LENS, {"gain_px_per_v": gain})
+    env = AlignmentEnv(apparatus=lens, task=task, complexity=0.2)
+    successes = 0
+    for index in range(scenarios):
+        observation, _ = env.reset(seed=5000 + index)
+        while True:
+            observation, _, terminated, _, info = env.step(agent.act(observation))
+            if terminated:
+                break
+        successes += int(info["success"])
+    return successes
+
+
+@pytest.mark.slow
+def test_adaptation_lifts_success_on_a_new_lens(tmp_path: Path) -> None:
+    """An aligner pre-trained briefly on the recordings (near focus, as in test_training)
+    meets an analytic lens with another focus curve; 3000 shielded steps there lift it."""
+    source = _pretrained(
+        tmp_path,
+        3000,
+        {
+            "encoder_kwargs": {"hidden": [64]},
+            "hidden": [64, 64],
+            "batch_size": 128,
+            "learning_starts": 300,
+            "random_steps": 600,
+        },
+        complexity=0.2,
+    )
+    before = _near_focus_successes(resolve_source(source).agent, gain=0.2)
+    trainer = _adapt(source, tmp_path, 3000, apparatus_args={"gain_px_per_v": 0.2}, complexity=0.2)
+    trainer.run(progress=False)
+    after = _near_focus_successes(trainer.agent, gain=0.2)
+    assert before <= 20, before
+    assert after >= before + 6, (before, after)
