@@ -46,13 +46,17 @@ def adaptation_config(
     max_step: dict[str, float] | None = None,
     spec_px: float | None = None,
     complexity: float = 1.0,
+    updates_per_step: float | None = None,
 ) -> ExperimentConfig:
     """The run config of an adaptation: the source's learner, task and history (from
     `alignrl.deploy.export.resolve_source`, which `export` and `align` use too) on
     `apparatus`. `spec_px`: an absolute success spec (edge width, px) for an apparatus that
-    cannot tell its best edge width, as a real column cannot."""
+    cannot tell its best edge width, as a real column cannot. `updates_per_step` (SAC): more
+    gradient updates per acquisition than in pre-training."""
     spec = source.agent.spec
     learner = LearnerConfig(algorithm=spec.algorithm, **spec.hyperparameters)  # type: ignore[arg-type]
+    if updates_per_step is not None:  # images are dear on an instrument, updates are cheap
+        learner = LearnerConfig(**{**learner.model_dump(), "updates_per_step": updates_per_step})
     every = eval_every or max(steps // 4, 1)
     task_options = source.config.task_options.model_dump(exclude_none=True)
     if spec_px is not None:  # a real column cannot tell its best width: an absolute spec
@@ -90,14 +94,19 @@ def adaptation_config(
 
 
 def start_adaptation(config: ExperimentConfig, source: PolicySource, runs_root: str | Path):
-    """A new adaptation run: the Trainer with the source's weights, checkpointed at once so
-    that a run killed before its first scheduled checkpoint resumes from the source."""
+    """A new adaptation run: the Trainer with the source's weights, evaluated zero-shot and
+    checkpointed at once, so that a run killed before its first scheduled checkpoint resumes
+    from the source."""
     from alignrl.training import Trainer
 
     if config.adaptation is None:
         raise ValueError(f"{config.name}: not an adaptation config (no `adaptation:` section)")
     trainer = Trainer.create(config, runs_root)
     trainer.agent.load_state_dict(source.agent.state_dict(replay=False))
+    # The zero-shot evaluation, at 0 env steps: on record in metrics/evaluations.csv, and the
+    # source is best.pt until an adapted aligner does strictly better, so the best an
+    # adaptation gives back is never worse than what it started from on that session.
+    trainer.evaluate_and_keep_best()
     trainer.checkpoint()
     return trainer
 

@@ -312,16 +312,15 @@ def _run_evaluations(
     return results, time.perf_counter() - started
 
 
-def _trained_controller(path: Path):
+def _trained_controller(spec: str):
+    """A trained aligner as a session controller: whatever `align` runs (a run directory, a
+    checkpoint, an exported policy, champion:NAME), resolved the same way."""
+    from alignrl.deploy.policy import load_deployable
     from alignrl.evaluation.controllers import PolicyController
-    from alignrl.training import load_policy
 
-    agent, config = load_policy(path)
+    policy = load_deployable(spec)
     return PolicyController(
-        name=config.name,
-        act=lambda history: agent.act(history, deterministic=True),
-        task=config.resolved_task(),
-        history=config.history,
+        name=policy.name, act=policy.act, task=policy.task, history=policy.history
     )
 
 
@@ -426,6 +425,7 @@ def cmd_adapt(args: argparse.Namespace) -> int:
         limits=_json_object(args.limits, "--limits"),
         max_step=_json_object(args.max_step, "--max-step"),
         spec_px=args.spec_px,
+        updates_per_step=args.updates_per_step,
     )
     trainer = start_adaptation(config, source, args.runs_dir)
     return _train_to_the_end(trainer, args, "alignrl adapt --resume")
@@ -442,12 +442,12 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
     if args.policy in BASELINES:
         controller = BASELINES[args.policy]()
-    elif Path(args.policy).exists():
-        controller = _trained_controller(Path(args.policy))
+    elif args.policy.startswith("champion:") or Path(args.policy).exists():
+        controller = _trained_controller(args.policy)
     else:
         raise CommandError(
-            f"unknown policy {args.policy!r}: give a run directory, a checkpoint file, or one "
-            f"of {', '.join(sorted(BASELINES))}"
+            f"unknown policy {args.policy!r}: give a run directory, a checkpoint file, an "
+            f"exported policy directory, champion:NAME, or one of {', '.join(sorted(BASELINES))}"
         )
     try:
         (result,), _ = _run_evaluations(args, [controller])
@@ -884,7 +884,8 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument(
         "--policy",
         required=True,
-        help="a run directory (its best checkpoint), a checkpoint file, or a classical "
+        help="a run directory (training: its best checkpoint; league: its champion), a "
+        "checkpoint file, an exported policy directory, champion:NAME, or a classical "
         "controller: golden-section, hyperbola, hill-climb",
     )
     _add_session_options(evaluate)
@@ -951,6 +952,11 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         help="absolute success spec, edge width in px (needed where the apparatus cannot "
         "tell its best width)",
+    )
+    adapt.add_argument(
+        "--updates-per-step",
+        type=float,
+        help="(SAC) gradient updates per acquisition (default: the source's)",
     )
     adapt.add_argument("--resume", metavar="RUN", help="continue an adaptation run")
     adapt.add_argument("--quiet", action="store_true", help="no progress bar")

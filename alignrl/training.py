@@ -217,7 +217,7 @@ class Trainer:
                 shield=self.shield,
             )
 
-    def _evaluate_and_keep_best(self) -> SessionResult:
+    def evaluate_and_keep_best(self) -> SessionResult:
         result = self.evaluate()
         median_final = result.final_width_stats()["median"]
         summary = {
@@ -326,7 +326,7 @@ class Trainer:
                     level=f"{self.env.episodes.complexity:.2f}",
                 )
             if self.env_steps >= next_eval:
-                result = self._evaluate_and_keep_best()
+                result = self.evaluate_and_keep_best()
                 if log:
                     log(
                         f"{self.env_steps} steps: {result.successes}/{result.scenarios} held-out "
@@ -340,7 +340,7 @@ class Trainer:
                 next_checkpoint += budget.checkpoint_every
         bar.close()
         if result is None or self.env_steps % budget.eval_every:
-            result = self._evaluate_and_keep_best()
+            result = self.evaluate_and_keep_best()
             self.checkpoint()
         if self._tensorboard is not None:
             self._tensorboard.flush()

@@ -1,12 +1,14 @@
 """Does the adversary earn its place? The league's champion aligner against an aligner of the
 same member, trained alone for the same number of env steps against uniform misalignment.
 
-    python -m benchmarks.adversary runs/league-default [--matches 200] [--out FILE]
+    python -m benchmarks.adversary runs/league-default [--matches 1000] [--out FILE]
 
-Both are judged (deterministic actions) on held-out scenarios in two ways: against the
-starts the league's strongest misaligner chooses, and in the usual evaluation session
-(uniform starts). The solo aligner is trained here with `alignrl train` machinery, from the
-champion's own roster entry, in runs/<league>-solo/ (reused if it is already complete).
+Both are judged (deterministic actions) on held-out scenarios in three ways: against the
+starts the league's strongest misaligner chooses with its mean action (how a member is
+judged), against the starts it samples (how it plays in the league), and in the usual
+evaluation session (uniform starts). The solo aligner is trained here with `alignrl train`
+machinery, from the champion's own roster entry, in runs/<league>-solo-<steps>/ (reused if
+it is already complete).
 """
 
 from __future__ import annotations
@@ -33,7 +35,7 @@ def _solo(league: League, champion: Agent, steps: int, runs_dir: Path) -> Agent:
     base = champion.id.split("-pbt")[0]
     roster = yaml.safe_load((league.run_dir / "aligners.yaml").read_text())
     learner = next(m["learner"] for m in roster["members"] if m["id"] == base)
-    name = f"{cfg.name}-solo"
+    name = f"{cfg.name}-solo-{steps}"
     run_dir = runs_dir / name
     if (run_dir / "checkpoints" / "best.pt").exists():
         trainer = Trainer.resume(run_dir)
@@ -66,10 +68,20 @@ def _solo(league: League, champion: Agent, steps: int, runs_dir: Path) -> Agent:
     return trainer.agent
 
 
+class _MeanActions:
+    """An aligner that always acts with its mean action, whatever it is asked."""
+
+    def __init__(self, agent: Agent) -> None:
+        self.id, self.agent = agent.id, agent
+
+    def act(self, observation: np.ndarray, deterministic: bool = True) -> np.ndarray:
+        return self.agent.act(observation, deterministic=True)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("league", help="a league run directory")
-    parser.add_argument("--matches", type=int, default=200, help="matches per judgement")
+    parser.add_argument("--matches", type=int, default=1000, help="matches per judgement")
     parser.add_argument("--runs-dir", default="runs", help="where the solo run goes")
     parser.add_argument("--out", help="also write the Markdown table here")
     args = parser.parse_args(argv)
@@ -93,6 +105,14 @@ def main(argv: list[str] | None = None) -> int:
         adversarial = backend.play(
             agent, strongest, args.matches, np.random.default_rng(7), set(), deterministic=True
         )
+        sampled = backend.play(
+            _MeanActions(agent),  # type: ignore[arg-type]
+            strongest,
+            args.matches,
+            np.random.default_rng(8),
+            set(),
+            deterministic=False,
+        )
         session = evaluate_policy(
             lambda observation, agent=agent: agent.act(observation, deterministic=True),
             cfg.eval_apparatus,
@@ -105,7 +125,9 @@ def main(argv: list[str] | None = None) -> int:
         rows.append(
             f"| {label} ({agent.id}) | {steps:,} | "
             f"{sum(adversarial.successes)}/{adversarial.matches} | "
-            f"{np.median(adversarial.acquisitions):g} | {session.successes}/100 | "
+            f"{np.median(adversarial.acquisitions):g} | "
+            f"{sum(sampled.successes)}/{sampled.matches} | "
+            f"{np.median(sampled.acquisitions):g} | {session.successes}/100 | "
             f"{session.median_acquisitions:g} |"
         )
     table = "\n".join(
@@ -114,9 +136,10 @@ def main(argv: list[str] | None = None) -> int:
             f"{platform.processor() or platform.machine()}, {time.strftime('%Y-%m-%d')}, "
             f"{time.perf_counter() - started:.0f} s. Strongest misaligner: {strongest_id}.",
             "",
-            "| aligner | env steps | vs strongest misaligner | median acquisitions | "
-            "held-out session | median acquisitions |",
-            "| --- | --- | --- | --- | --- | --- |",
+            "| aligner | env steps | vs strongest misaligner (its mean starts) | median "
+            "acquisitions | vs strongest misaligner (its sampled starts) | median acquisitions "
+            "| held-out session | median acquisitions |",
+            "| --- | --- | --- | --- | --- | --- | --- | --- |",
             *rows,
         ]
     )

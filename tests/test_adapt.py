@@ -7,6 +7,7 @@ simulated, knows its optimum (the critics' secret passes the shield).
 
 from __future__ import annotations
 
+import csv
 import json
 from pathlib import Path
 
@@ -18,6 +19,7 @@ import yaml
 from alignrl.adaptation import adaptation_config, start_adaptation
 from alignrl.agents.agent import Agent
 from alignrl.apparatus import make_apparatus
+from alignrl.checkpoints import load_checkpoint
 from alignrl.cli import main
 from alignrl.config import TaskOptions, parse_experiment
 from alignrl.deploy.export import resolve_source
@@ -98,6 +100,14 @@ def test_an_adaptation_starts_from_the_source_with_an_empty_replay(
     assert trainer.env_steps >= 100
     assert trainer.agent.steps_seen == source.agent.steps_seen + trainer.env_steps
     assert trainer.agent.replay.size == trainer.env_steps
+    # The zero-shot session is on record at 0 steps, and what the run keeps as its best is
+    # never worse on that session than what it started from.
+    with (tmp_path / "adapted" / "metrics" / "evaluations.csv").open() as handle:
+        rows = list(csv.DictReader(handle))
+    assert rows[0]["env_steps"] == "0" and len(rows) >= 2
+    assert trainer.best_successes == max(int(row["successes"]) for row in rows)
+    best = load_checkpoint(tmp_path / "adapted" / "checkpoints" / "best.pt")
+    assert best["evaluation"]["successes"] == trainer.best_successes >= int(rows[0]["successes"])
 
 
 def test_every_call_of_an_adaptation_passes_the_shield_and_is_on_record(
@@ -215,3 +225,25 @@ def test_adaptation_lifts_success_on_a_new_lens(tmp_path: Path) -> None:
     after = _near_focus_successes(trainer.agent, gain=0.2)
     assert before <= 20, before
     assert after >= before + 6, (before, after)
+
+
+def test_a_shielded_evaluation_session_is_the_same_session(
+    small_source: Path, tmp_path: Path
+) -> None:
+    # Sessions on the recordings walk the held-out rows in order (reset_to): the shield must
+    # pass that through, or an adaptation's zero-shot figure would be another session's.
+    from alignrl.adaptation import training_shield
+    from alignrl.config import AdaptationConfig
+    from alignrl.training import evaluate_policy
+
+    source = resolve_source(small_source)
+    act = lambda history: source.agent.act(history, deterministic=True)  # noqa: E731
+    args = {"noise": 0.02, "split": "test"}
+    shield = training_shield(
+        AdaptationConfig(source="s", source_member="m", source_steps=0), tmp_path / "a.jsonl"
+    )
+    plain = evaluate_policy(act, "csv:default", args, source.task, 8, 6)
+    shielded = evaluate_policy(act, "csv:default", args, source.task, 8, 6, shield=shield)
+    assert [r.trajectory for r in plain.records] == [r.trajectory for r in shielded.records]
+    records = (tmp_path / "a.jsonl").read_text().splitlines()
+    assert any(json.loads(line).get("row") is not None for line in records)

@@ -538,20 +538,28 @@ class TrainingShield(ShieldedApparatus):
 
     def __getattr__(self, name: str) -> Any:
         # A simulated instrument's secret (the optimum, the best edge width) passes through,
-        # for the critics and for relative success thresholds; a real column has none, and
-        # then neither has its shield.
-        if name in ("optimum", "best_quality"):
+        # for the critics and for relative success thresholds, and so do a scenario
+        # simulator's rows (`indices`), which evaluation sessions walk in order with
+        # `reset_to`; a real column has none of them, and then neither has its shield.
+        if name in ("optimum", "best_quality", "indices"):
             return getattr(self.__dict__["inner"], name)
         raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
 
     def reset(self, seed: int | None = None) -> None:
-        self._stop_if_due("reset", None, seed=seed)
+        self._new_scenario(lambda: self.inner.reset(seed), seed=seed)
+
+    def reset_to(self, row: int, seed: int | None = None) -> None:
+        """A scenario simulator's recorded scenario `row` (evaluation sessions)."""
+        self._new_scenario(lambda: self.inner.reset_to(row, seed), seed=seed, row=row)  # type: ignore[attr-defined]
+
+    def _new_scenario(self, start: Callable[[], None], **fields: Any) -> None:
+        self._stop_if_due("reset", None, **fields)
         try:
-            self.inner.reset(seed)
+            start()
         except ApparatusError as error:
-            self.log("reset", sent=True, seed=seed, error=str(error))
+            self.log("reset", sent=True, error=str(error), **fields)
             raise DriverFailure(f"the driver failed to start a new scenario: {error}") from None
-        self.log("reset", sent=True, seed=seed)
+        self.log("reset", sent=True, **fields)
         self.watchdog.start()
         self.start = self.read()
         self.setting = dict(self.start)

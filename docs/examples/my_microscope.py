@@ -28,7 +28,9 @@ from alignrl.apparatus.synthetic import PRESET_DIR, SyntheticSEM, load_sem_confi
 
 # --- the vendor's side (replace with the real SDK) ---------------------------------------
 
-_LENS_LIMITS_MV = (0, 100_000)  # OBJ_FOCUS limits the service engineer set, millivolts
+# The stand-in's two "microscopes": the host names it answers to, and the synthetic SEM preset
+# behind each (`simulated-b` is a visibly different column: the target of `alignrl adapt`).
+_SIMULATED_COLUMNS = {"simulated": "synthetic", "simulated-b": "synthetic-b"}
 _DWELL_US = 10.0  # pixel dwell time, microseconds: a 256x256 frame takes 0.66 s
 _COUNTS_PER_YIELD = 4000.0  # detector gain: counts per unit of secondary-electron yield
 _DARK_COUNTS = 1000.0  # detector offset, counts
@@ -46,14 +48,16 @@ class _VendorClient:
     """
 
     def __init__(self, host: str, seed: int | None = None) -> None:
-        if host != "simulated":
+        if host not in _SIMULATED_COLUMNS:
             raise ConnectionError(f"no microscope answers at {host!r}")
-        config = load_sem_config(PRESET_DIR / "synthetic.yaml")
+        config = load_sem_config(PRESET_DIR / f"{_SIMULATED_COLUMNS[host]}.yaml")
         self._column = SyntheticSEM(config, seed=seed)
         self._frame_pixels = config.image_size_px**2
+        low_v, high_v = config.defocus_interval_v
+        self._limits_mv = (round(low_v * 1000), round(high_v * 1000))
 
     def lens_limits(self, lens: str) -> tuple[int, int]:
-        return _LENS_LIMITS_MV
+        return self._limits_mv
 
     def get_lens(self, lens: str) -> int:
         return round(self._column.read()["defocus"] * 1000.0)
@@ -90,7 +94,8 @@ class MyMicroscope:
 
     Parameters
     ----------
-    host: where the microscope PC answers; "simulated" uses the built-in stand-in.
+    host: where the microscope PC answers; "simulated" uses the built-in stand-in, and
+        "simulated-b" a second, different one.
     timeout_s: how long to wait for a frame before giving up, seconds.
     seed: picks the specimen areas that `reset(None)` visits, for reproducible sessions.
     """
