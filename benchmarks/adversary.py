@@ -26,7 +26,7 @@ import yaml
 from alignrl.agents.agent import Agent
 from alignrl.config import parse_experiment
 from alignrl.league.loop import InProcessBackend, League
-from alignrl.training import Trainer, evaluate_policy
+from alignrl.training import Trainer
 
 
 def _solo(league: League, champion: Agent, steps: int, runs_dir: Path) -> Agent:
@@ -113,15 +113,7 @@ def main(argv: list[str] | None = None) -> int:
             set(),
             deterministic=False,
         )
-        session = evaluate_policy(
-            lambda observation, agent=agent: agent.act(observation, deterministic=True),
-            cfg.eval_apparatus,
-            cfg.eval_apparatus_args,
-            cfg.resolved_task(),
-            cfg.history,
-            100,
-            name=label,
-        )
+        session = league.session(agent, scenarios=100, name=label)
         rows.append(
             f"| {label} ({agent.id}) | {steps:,} | "
             f"{sum(adversarial.successes)}/{adversarial.matches} | "

@@ -603,24 +603,28 @@ class League:
                 changes.append(change)
         return changes
 
+    def session(self, agent: Agent, scenarios: int | None = None, name: str | None = None):
+        """A held-out evaluation session of `agent` (mean actions) on the league's
+        eval_apparatus, judged at the task's spec; training's random streams are untouched."""
+        cfg = self.config
+        with torch.random.fork_rng(devices=[]):
+            return evaluate_policy(
+                lambda observation: agent.act(observation, deterministic=True),
+                cfg.eval_apparatus,
+                cfg.eval_apparatus_args,
+                cfg.resolved_task(),
+                cfg.history,
+                scenarios or cfg.schedule.eval_scenarios,
+                name=name or agent.id,
+            )
+
     def evaluate(self) -> list[dict[str, Any]]:
         """The top aligners by rating run an evaluation session each; the best by
         evaluation are kept in best/."""
         cfg, rows = self.config, []
-        task = cfg.resolved_task()
         top = self.ratings.ranking(self.pool.active("aligner"))[: cfg.schedule.keep_best]
         for member_id, rating in top:
-            agent = self.members[member_id]
-            with torch.random.fork_rng(devices=[]):  # evaluating must not move training's stream
-                result = evaluate_policy(
-                    lambda observation, agent=agent: agent.act(observation, deterministic=True),
-                    cfg.eval_apparatus,
-                    cfg.eval_apparatus_args,
-                    task,
-                    cfg.history,
-                    cfg.schedule.eval_scenarios,
-                    name=member_id,
-                )
+            result = self.session(self.members[member_id], name=member_id)
             row = {
                 "iteration": self.iteration,
                 "member": member_id,
@@ -637,7 +641,7 @@ class League:
                 -previous["median_acquisitions"],
             ):
                 self.best[member_id] = row
-                agent.save(self.run_dir / "best" / f"{member_id}.pt")
+                self.members[member_id].save(self.run_dir / "best" / f"{member_id}.pt")
         self.evaluation_log.write(rows)
         ranked = sorted(
             self.best.values(), key=lambda r: (-r["successes"], r["median_acquisitions"])
@@ -666,18 +670,9 @@ class League:
         champion = Agent.load(self.run_dir / "best" / f"{best['member']}.pt")
         base = best["member"].split("-pbt")[0]
         untrained = Agent.load(self.run_dir / "initial" / f"{base}.pt")
-        cfg = self.config
         sessions = {}
         for label, agent in (("champion", champion), ("untrained", untrained)):
-            result = evaluate_policy(
-                lambda observation, agent=agent: agent.act(observation, deterministic=True),
-                cfg.eval_apparatus,
-                cfg.eval_apparatus_args,
-                cfg.resolved_task(),
-                cfg.history,
-                cfg.schedule.eval_scenarios,
-                name=agent.id,
-            )
+            result = self.session(agent)
             sessions[label] = {
                 "member": agent.id,
                 "successes": result.successes,
