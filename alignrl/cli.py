@@ -3,8 +3,10 @@
 
     alignrl record --apparatus SPEC --scenarios N --out FILE.csv [--seed S] [--step adaptive]
     alignrl scenarios validate FILE [--plot PNG] [--json]
-    alignrl evaluate --policy NAME --apparatus SPEC --scenarios N [--seed S] [--spec-px X]
-    alignrl baselines --apparatus SPEC --scenarios N [--seed S] [--spec-px X] [--plot-dir DIR]
+    alignrl evaluate --policy NAME --apparatus SPEC [--task T] --scenarios N [--seed S]
+                     [--spec-px X]
+    alignrl baselines --apparatus SPEC [--task T] --scenarios N [--seed S] [--spec-px X]
+                      [--plot-dir DIR]
     alignrl report RUN [--out DIR] [--json]
     alignrl export RUN [--member ID] --format onnx|torchscript|safetensors --out DIR
                    [--force] [--json]
@@ -266,20 +268,17 @@ def cmd_scenarios_validate(args: argparse.Namespace) -> int:
 
 
 def _run_evaluations(
-    args: argparse.Namespace, controllers: Sequence[Any]
+    args: argparse.Namespace, controllers: Sequence[Any], task: Any
 ) -> tuple[list[Any], float]:
-    """Run one session per controller on the same scenarios, with a progress bar."""
+    """Run one session per controller on the same scenarios of `task`, with a progress bar."""
     from tqdm import tqdm
 
-    from alignrl.envs.task import get_task
-    from alignrl.evaluation.session import DEFAULT_BUDGET, run_session
+    from alignrl.evaluation.session import run_session
 
-    budget = DEFAULT_BUDGET if args.budget is None else args.budget
     if args.scenarios < 1:
         raise CommandError("--scenarios must be at least 1")
-    if budget < 1:
+    if args.budget is not None and args.budget < 1:
         raise CommandError("--budget must be at least 1 acquisition")
-    task = get_task(args.task)
     apparatus = make_apparatus(
         args.apparatus, _json_object(args.apparatus_args, "--apparatus-args")
     )
@@ -303,7 +302,7 @@ def _run_evaluations(
                     scenarios=args.scenarios,
                     seed=args.seed,
                     spec_px=args.spec_px,
-                    budget=budget,
+                    budget=args.budget,
                     on_scenario=lambda _record: bar.update(1),
                 )
             )
@@ -432,7 +431,8 @@ def cmd_adapt(args: argparse.Namespace) -> int:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from alignrl.evaluation.baselines import BASELINES
+    from alignrl.envs.task import get_task
+    from alignrl.evaluation.baselines import CLASSICAL
     from alignrl.evaluation.report import (
         plot_trajectories,
         session_notes,
@@ -440,17 +440,21 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         summary_table,
     )
 
-    if args.policy in BASELINES:
-        controller = BASELINES[args.policy]()
+    if args.policy in CLASSICAL:
+        controller = CLASSICAL[args.policy]()
+        task = get_task(args.task or "focus")
     elif args.policy.startswith("champion:") or Path(args.policy).exists():
         controller = _trained_controller(args.policy)
+        # Unless one is named, the built-in task of the aligner's (judged by its rule, as a
+        # focus aligner always was, whatever options it trained with).
+        task = get_task(args.task or controller.task.name)
     else:
         raise CommandError(
             f"unknown policy {args.policy!r}: give a run directory, a checkpoint file, an "
-            f"exported policy directory, champion:NAME, or one of {', '.join(sorted(BASELINES))}"
+            f"exported policy directory, champion:NAME, or one of {', '.join(sorted(CLASSICAL))}"
         )
     try:
-        (result,), _ = _run_evaluations(args, [controller])
+        (result,), _ = _run_evaluations(args, [controller], task)
     except KeyboardInterrupt:
         print("\ninterrupted: no report (a session counts only when complete)", file=sys.stderr)
         return EXIT_INTERRUPTED
@@ -471,7 +475,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def cmd_baselines(args: argparse.Namespace) -> int:
-    from alignrl.evaluation.baselines import BASELINES
+    from alignrl.envs.task import get_task
+    from alignrl.evaluation.baselines import task_baselines
     from alignrl.evaluation.report import (
         plot_trajectories,
         session_notes,
@@ -479,21 +484,25 @@ def cmd_baselines(args: argparse.Namespace) -> int:
         summary_table,
     )
 
+    task = get_task(args.task or "focus")
+    controllers = [make() for make in task_baselines(task.name).values()]
     try:
-        results, elapsed = _run_evaluations(args, [make() for make in BASELINES.values()])
+        results, elapsed = _run_evaluations(args, controllers, task)
     except KeyboardInterrupt:
         print("\ninterrupted: no report (a session counts only when complete)", file=sys.stderr)
         return EXIT_INTERRUPTED
     payload: dict[str, Any] = {
         "apparatus": args.apparatus,
+        "task": task.name,
         "scenarios": args.scenarios,
         "seed": args.seed,
         "controllers": {r.controller: session_summary(r, args.apparatus) for r in results},
         "seconds": round(elapsed, 3),
     }
     threshold = float(np.median([r.median_threshold_px for r in results]))
+    what = "autofocus" if task.name == "focus" else f"{task.name} alignment"
     lines = [
-        f"classical autofocus on {args.apparatus}: {args.scenarios} scenarios, seed "
+        f"classical {what} on {args.apparatus}: {args.scenarios} scenarios, seed "
         f"{args.seed}, threshold {threshold:.2f} px (median)",
         "",
         *summary_table(results),
@@ -818,7 +827,12 @@ def cmd_export(args: argparse.Namespace) -> int:
 def _add_session_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--apparatus", required=True, help="apparatus spec, e.g. synthetic")
     parser.add_argument("--apparatus-args", default="{}", help="JSON keyword arguments")
-    parser.add_argument("--task", default="focus", help="alignment task (default: focus)")
+    parser.add_argument(
+        "--task",
+        default=None,
+        help="alignment task: focus, stigmation, aperture or column (default: focus; for a "
+        "trained aligner, its own task)",
+    )
     parser.add_argument(
         "--scenarios", type=int, default=100, help="alignments in the session (default: 100)"
     )
@@ -833,7 +847,11 @@ def _add_session_options(parser: argparse.ArgumentParser) -> None:
     # The default is resolved by the handler: importing the session here would load the
     # RL environments (gymnasium) for every verb.
     parser.add_argument(
-        "--budget", type=int, default=None, help="most acquisitions per alignment (default: 50)"
+        "--budget",
+        type=int,
+        default=None,
+        help="most acquisitions per alignment (default: 50; column: 63, the most a column "
+        "episode takes)",
     )
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.add_argument("--json", action="store_true", help="machine-readable summary")
@@ -886,14 +904,15 @@ def build_parser() -> argparse.ArgumentParser:
         required=True,
         help="a run directory (training: its best checkpoint; league: its champion), a "
         "checkpoint file, an exported policy directory, champion:NAME, or a classical "
-        "controller: golden-section, hyperbola, hill-climb",
+        "controller: golden-section, hyperbola, hill-climb (focus), stigmator-search "
+        "(stigmation), wobble-center (aperture), column-sequence (column)",
     )
     _add_session_options(evaluate)
     evaluate.add_argument("--plot", help="write the trajectories to this PNG")
     evaluate.set_defaults(handler=cmd_evaluate)
 
     baselines = verbs.add_parser(
-        "baselines", help="classical autofocus side by side, on the same scenarios"
+        "baselines", help="a task's classical controllers side by side, on the same scenarios"
     )
     _add_session_options(baselines)
     baselines.add_argument("--plot-dir", help="write one trajectory PNG per controller here")

@@ -116,6 +116,14 @@ class TaskOptions(_Strict):
     )
     success_relative: float | None = Field(None, gt=1, description="threshold x best width")
     success_absolute_px: float | None = Field(None, gt=0, description="absolute spec, px")
+    directional_relative: float | None = Field(
+        None, gt=1, description="spec of every directional width, x best width"
+    )
+    wobble_amplitude_v: float | None = Field(None, gt=0, description="wobble swing each way, V")
+    wobble_spec_px: float | None = Field(None, gt=0, description="spec of the wobble shift, px")
+    wobble_weight: float | None = Field(
+        None, ge=0, description="cost px per px of wobble shift (rewards)"
+    )
 
     def apply(self, task: Any) -> Any:
         """The task with these changes (a new object; the registry's task is untouched)."""
@@ -126,6 +134,17 @@ class TaskOptions(_Strict):
             for name, value in self.model_dump().items()
             if value is not None and name not in ("success_relative", "success_absolute_px")
         }
+        for name, measure in (
+            ("directional_relative", "directional"),
+            ("wobble_amplitude_v", "wobble"),
+            ("wobble_spec_px", "wobble"),
+            ("wobble_weight", "wobble"),
+        ):
+            if changes.get(name) is not None and measure not in task.measures:
+                raise ValueError(
+                    f"task_options.{name}: task {task.name!r} takes no {measure} measure "
+                    f"(it measures {', '.join(task.measures)})"
+                )
         success = task.success
         if self.success_relative is not None:
             success = dataclasses.replace(success, relative=self.success_relative)
@@ -197,6 +216,7 @@ class RunConfig(_Strict):
             raise ValueError(f"name {self.name!r}: use letters, digits, '-', '_' and '.'")
         if self.curriculum.lower_at >= self.curriculum.raise_at:
             raise ValueError("curriculum.lower_at must be below curriculum.raise_at")
+        self.resolved_task()  # an unknown task, or options it cannot take
         return self
 
 

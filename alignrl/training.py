@@ -70,8 +70,9 @@ def evaluate_policy(
 def member_spec(config: ExperimentConfig, member_id: str | None = None) -> MemberSpec:
     """The aligner an experiment trains. Its shapes follow from the task and the history
     alone, so no apparatus needs to be opened to build or load it."""
-    knobs = len(config.resolved_task().knobs)
-    observation_space, action_space = aligner_spaces(knobs, config.history)
+    task = config.resolved_task()
+    knobs = len(task.knobs)
+    observation_space, action_space = aligner_spaces(knobs, config.history, task.extra_features)
     return MemberSpec(
         id=member_id or config.name,
         team="aligner",

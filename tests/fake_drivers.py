@@ -92,3 +92,106 @@ class EmptyInterval(ParabolicLens):
     def __init__(self) -> None:
         super().__init__()
         self.knobs = {"defocus": (5.0, 5.0)}
+
+
+class FiveKnobColumn:
+    """A noiseless five-knob column without images (native directional and wobble measures),
+    so that the multi-knob tasks' numbers are exact.
+
+    Probe sigma^2 along the axes of the astigmatism residual r (V, stigmators at
+    `stig_v_per_pct` V per percent): s0^2 + (gain (dV -/+ |r|/2))^2 + (blur |d|)^2, with d
+    the aperture residual (um); the wobble shift is shift_gain x 2 amplitude x d.
+    """
+
+    knobs: Mapping[str, tuple[float, float]] = {
+        "defocus": (0.0, 100.0),
+        "stigmator_x": (-100.0, 100.0),
+        "stigmator_y": (-100.0, 100.0),
+        "aperture_x": (-50.0, 50.0),
+        "aperture_y": (-50.0, 50.0),
+    }
+
+    def __init__(
+        self,
+        gain: float = 0.2,
+        stig_v_per_pct: float = 0.2,
+        blur: float = 0.05,
+        shift_gain: float = 0.02,
+        sigma0: float = 1.0,
+    ) -> None:
+        self.gain, self.stig, self.blur, self.shift_gain, self.sigma0 = (
+            gain,
+            stig_v_per_pct,
+            blur,
+            shift_gain,
+            sigma0,
+        )
+        self.acquisitions = 0
+        self.reset(0)
+
+    def reset(self, seed: int | None = None) -> None:
+        rng = np.random.default_rng(seed)
+        self.best = {
+            "defocus": float(rng.uniform(30, 70)),
+            "stigmator_x": float(rng.uniform(-50, 50)),
+            "stigmator_y": float(rng.uniform(-50, 50)),
+            "aperture_x": float(rng.uniform(-30, 30)),
+            "aperture_y": float(rng.uniform(-30, 30)),
+        }
+        self.setting = {
+            "defocus": 50.0,
+            "stigmator_x": 0.0,
+            "stigmator_y": 0.0,
+            "aperture_x": 0.0,
+            "aperture_y": 0.0,
+        }
+
+    def read(self) -> dict[str, float]:
+        return dict(self.setting)
+
+    def write(self, values: Mapping[str, float]) -> None:
+        check_write(self.knobs, values)
+        self.setting.update({name: float(value) for name, value in values.items()})
+
+    def _residuals(self) -> tuple[float, np.ndarray, np.ndarray]:
+        s, b = self.setting, self.best
+        focus = s["defocus"] - b["defocus"]
+        stig = self.stig * np.array(
+            [s["stigmator_x"] - b["stigmator_x"], s["stigmator_y"] - b["stigmator_y"]]
+        )
+        aperture = np.array([s["aperture_x"] - b["aperture_x"], s["aperture_y"] - b["aperture_y"]])
+        return focus, stig, aperture
+
+    def _covariance(self, focus: float) -> np.ndarray:
+        _, stig, aperture = self._residuals()
+        half = 0.5 * float(np.hypot(*stig))
+        base = self.sigma0**2 + (self.blur * float(np.hypot(*aperture))) ** 2
+        su2 = base + (self.gain * (focus - half)) ** 2
+        sv2 = base + (self.gain * (focus + half)) ** 2
+        axis = 0.5 * math.atan2(stig[1], stig[0])
+        rotation = np.array([[math.cos(axis), -math.sin(axis)], [math.sin(axis), math.cos(axis)]])
+        return rotation @ np.diag([su2, sv2]) @ rotation.T
+
+    def measure_directional(self) -> tuple[float, np.ndarray]:
+        self.acquisitions += 1
+        cov = self._covariance(self._residuals()[0])
+        angles = np.radians([0.0, 45.0, 90.0, 135.0])
+        normals = np.stack([np.cos(angles), np.sin(angles)], axis=1)
+        widths = TEN_NINETY * np.sqrt(np.einsum("bi,ij,bj->b", normals, cov, normals))
+        return float(widths.mean()), widths
+
+    def measure(self) -> float:
+        return self.measure_directional()[0]
+
+    def measure_wobble(self, amplitude_v: float) -> np.ndarray:
+        self.acquisitions += 2
+        return self.shift_gain * 2.0 * amplitude_v * self._residuals()[2]
+
+    def image(self) -> np.ndarray | None:
+        return None
+
+    def optimum(self) -> dict[str, float]:
+        return dict(self.best)
+
+    def best_quality(self) -> float:
+        return TEN_NINETY * self.sigma0

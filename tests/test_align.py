@@ -22,6 +22,8 @@ DRIVER = "test_shield:RecordingDriver"
 JSON_KEYS = {
     "success",
     "final_width_px",
+    "final_directional_px",
+    "final_wobble_px",
     "threshold_px",
     "acquisitions",
     "writes",

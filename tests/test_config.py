@@ -9,8 +9,13 @@ import pytest
 from alignrl.config import ConfigError, dump_experiment, load_experiment, parse_experiment
 
 ROOT = Path(__file__).resolve().parents[1]
-# league-*.yaml are league experiments (tests/test_league.py); the rest train one aligner.
-EXPERIMENTS = sorted(p for p in ROOT.glob("experiments/*.yaml") if not p.name.startswith("league-"))
+# Experiments that name rosters (`aligners:`) are leagues (tests/test_league.py); the rest
+# train one aligner.
+EXPERIMENTS = sorted(
+    path
+    for path in ROOT.glob("experiments/*.yaml")
+    if "aligners" not in __import__("yaml").safe_load(path.read_text())
+)
 
 
 @pytest.mark.parametrize("path", EXPERIMENTS, ids=lambda path: path.name)

@@ -38,7 +38,7 @@ def test_sem_spec_reads_a_users_instrument_file(tmp_path: Path) -> None:
     config = tmp_path / "lab-sem.yaml"
     config.write_text("name: lab-sem\ndefocus_interval_v: [-40, 40]\noptimum_v: 0\n")
     sem = make_apparatus(f"sem:{config}")
-    assert sem.knobs == {"defocus": (-40.0, 40.0)}
+    assert sem.knobs["defocus"] == (-40.0, 40.0)
 
 
 def _tiny_recording(path: Path) -> None:

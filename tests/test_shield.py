@@ -530,3 +530,50 @@ def test_a_bug_in_the_policy_surfaces_but_the_log_ends_and_nothing_follows() -> 
     assert driver.writes() == [55.0]  # and no restore: a bug is not an operator's abort
     assert [e["event"] for e in audit.entries[-2:]] == ["abort", "end"]
     assert "RuntimeError" in audit.entries[-1]["error"]
+
+
+# --- the measures of the multi-knob tasks -------------------------------------------------
+
+
+def _column_shield(**kwargs: Any) -> tuple[ShieldedApparatus, MemoryAudit, Any]:
+    from fake_drivers import FiveKnobColumn
+
+    column = FiveKnobColumn()
+    column.write({"defocus": 50.0, "aperture_x": 10.0})
+    audit = MemoryAudit()
+    site = kwargs.pop("site", None)
+    shield = ShieldedApparatus(column, resolve_limits(column.knobs, site), audit, **kwargs)
+    shield.begin()
+    return shield, audit, column
+
+
+def test_a_wobble_stays_inside_the_limits_and_is_on_record() -> None:
+    shield, audit, column = _column_shield(site={"defocus": [47.0, 70.0]})
+    expected = column.measure_wobble(3.0)  # the swing the limits leave: 50 - 47 = 3 V
+    shift = shield.measure_wobble(5.0)
+    assert shift == pytest.approx(expected)
+    assert shield.acquisitions == 2
+    wobble = [entry for entry in audit.entries if entry["event"] == "wobble"]
+    assert wobble[0]["decision"] == "clamped" and wobble[0]["swing"] == [47.0, 53.0]
+    assert column.read()["defocus"] == 50.0  # back where it was
+
+
+def test_a_dry_run_makes_no_wobble_and_a_limit_leaves_no_room() -> None:
+    from alignrl.apparatus import MeasurementError
+
+    shield, _, column = _column_shield(dry_run=True)
+    before = column.acquisitions
+    with pytest.raises(MeasurementError, match="dry run"):
+        shield.measure_wobble(5.0)
+    assert column.acquisitions == before
+    shield, _, _ = _column_shield(site={"defocus": [50.0, 60.0]})
+    with pytest.raises(MeasurementError, match="sits on a limit"):
+        shield.measure_wobble(5.0)
+
+
+def test_directional_measures_count_and_log() -> None:
+    shield, audit, column = _column_shield()
+    width, widths = shield.measure_directional()
+    assert (width, list(widths)) == (column.measure_directional()[0], list(widths))
+    assert shield.acquisitions == 1
+    assert audit.entries[-1]["directional_px"] == pytest.approx(list(widths))

@@ -8,7 +8,9 @@
   arguments of `apparatus_args` / `--apparatus-args JSON`. alignrl needs no change for it.
 
 For presets, `sem:` and `csv:` the same arguments override instrument or simulator settings
-(for example `{"dose_electrons_per_px": 50}` or `{"noise": 0.02, "split": "test"}`).
+(for example `{"dose_electrons_per_px": 50}` or `{"noise": 0.02, "split": "test"}`). For presets
+and `sem:` the argument `analytic` (true or false) switches the synthetic SEM to its analytic
+mode: readings computed from the probe, without images (docs/physics.md).
 """
 
 from __future__ import annotations
@@ -128,8 +130,12 @@ def make_apparatus(
         location = spec[len("csv:") :]
         path = default_scenarios_path() if location == "default" else Path(location)
         return _construct(ScenarioSimulator, spec, args, path=path, seed=seed, scenarios=None)
-    if form == "sem":
-        return SyntheticSEM(load_sem_config(spec[len("sem:") :], **args), seed=seed)
-    if form == "preset":
-        return SyntheticSEM(load_sem_config(PRESET_DIR / f"{spec}.yaml", **args), seed=seed)
+    if form in ("sem", "preset"):
+        path = Path(spec[len("sem:") :]) if form == "sem" else PRESET_DIR / f"{spec}.yaml"
+        analytic = args.pop("analytic", False)
+        if not isinstance(analytic, bool):
+            raise ValueError(
+                f"apparatus {spec!r}: analytic must be true or false, got {analytic!r}"
+            )
+        return SyntheticSEM(load_sem_config(path, **args), seed=seed, analytic=analytic)
     return _import_driver(spec, args)

@@ -48,6 +48,8 @@ from alignrl.deploy.shield import (
     Watchdog,
 )
 from alignrl.envs.core import AlignmentEpisodes
+from alignrl.envs.task import Task
+from alignrl.evaluation.session import verify_task
 
 __all__ = [
     "EXIT_ABORTED",
@@ -172,6 +174,8 @@ class AlignResult:
     log: str | None
     policy: str
     apparatus: str
+    final_directional_px: list[float] | None = None  # tasks that measure them: per bin
+    final_wobble_px: list[float] | None = None  # tasks that wobble: the final shift (dx, dy)
 
     @property
     def success(self) -> bool:
@@ -281,7 +285,7 @@ def align(
     if spec_px is not None and not (math.isfinite(spec_px) and spec_px > 0):
         raise ValueError(f"--spec-px must be a positive edge width in px, got {spec_px}")
     if max_acquisitions is None:
-        max_acquisitions = task.episode_steps + 1
+        max_acquisitions = (task.episode_steps + 1) * task.acquisitions_per_step
     watchdog = Watchdog(timeout_s, max_acquisitions, clock or time.monotonic)
     shield = ShieldedApparatus(apparatus, limits, audit, watchdog, dry_run)
     episodes = AlignmentEpisodes([shield], task, policy.history)  # checks the task's knobs
@@ -304,6 +308,8 @@ def align(
             log=log_path,
             policy=policy.name,
             apparatus=apparatus_spec,
+            final_directional_px=fields.get("final_directional_px"),
+            final_wobble_px=fields.get("final_wobble_px"),
         )
         shield.log("end", result=done.to_dict())
         return done
@@ -328,7 +334,8 @@ def align(
         shield.begin()
         threshold = _spec_threshold(policy, apparatus, spec_px, shield)
         reason = _run_policy(policy, episodes, shield)
-        final_width = shield.verify()
+        with shield.final_measures():
+            final_width, directional, shift = verify_task(shield, task)
     except StartOutsideLimits as error:
         return result("config-error", str(error))
     except DriverFailure as error:
@@ -351,9 +358,16 @@ def align(
         shield.abort(f"internal error: {type(error).__name__}: {error}")
         shield.log("end", error=f"{type(error).__name__}: {error}")
         raise
+    measured = {
+        "final_directional_px": None if directional is None else directional.tolist(),
+        "final_wobble_px": None if shift is None else shift.tolist(),
+    }
     if final_width is None or not math.isfinite(final_width):
         return result(
-            "not-aligned", f"{reason}; the final image had no edges", threshold_px=threshold
+            "not-aligned",
+            f"{reason}; the final image had no edges",
+            threshold_px=threshold,
+            **measured,
         )
     if threshold is None:
         return result(
@@ -361,12 +375,61 @@ def align(
             f"{reason}; spec unknown: the apparatus cannot say its best edge width, give "
             "--spec-px to judge",
             final_width_px=final_width,
+            **measured,
         )
-    met = final_width <= threshold
+    verdicts = _judge(task, final_width, threshold, directional, shift, apparatus)
+    met = all(ok for ok, _ in verdicts)
     return result(
         "aligned" if met else "not-aligned",
-        f"{reason}; final edge width {final_width:.3g} px {'<=' if met else '>'} spec "
-        f"{threshold:.3g} px",
+        f"{reason}; " + "; ".join(words for _, words in verdicts),
         final_width_px=final_width,
         threshold_px=threshold,
+        **measured,
     )
+
+
+def _judge(
+    task: Task,
+    width: float,
+    threshold: float,
+    directional: np.ndarray | None,
+    shift: np.ndarray | None,
+    apparatus: Apparatus,
+) -> list[tuple[bool, str]]:
+    """Each measure of the task against its spec: (met, in words). A measure the task takes
+    that failed is not met."""
+    verdicts = [
+        (
+            width <= threshold,
+            f"final edge width {width:.3g} px "
+            f"{'<=' if width <= threshold else '>'} spec {threshold:.3g} px",
+        )
+    ]
+    if task.directional:
+        best = getattr(apparatus, "best_quality", None)
+        limit = task.directional_threshold_px(threshold, float(best()) if callable(best) else None)
+        if directional is None:
+            verdicts.append((False, "the directional widths could not be measured"))
+        else:
+            widest = float(np.max(directional))
+            verdicts.append(
+                (
+                    widest <= limit,
+                    f"widest directional width {widest:.3g} px "
+                    f"{'<=' if widest <= limit else '>'} spec {limit:.3g} px",
+                )
+            )
+    if task.wobble:
+        if shift is None:
+            verdicts.append((False, "the wobble could not be measured"))
+        else:
+            size = float(np.hypot(*shift))
+            ok = size <= task.wobble_spec_px
+            verdicts.append(
+                (
+                    ok,
+                    f"wobble shift {size:.3g} px "
+                    f"{'<=' if ok else '>'} spec {task.wobble_spec_px:.3g} px",
+                )
+            )
+    return verdicts

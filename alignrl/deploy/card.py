@@ -236,7 +236,8 @@ def build_card(
         "history": graph.history,
         "features": graph.features,
         "feature_layout": {
-            name: [part.start, part.stop] for name, part in feature_layout(k).items()
+            name: [part.start, part.stop]
+            for name, part in feature_layout(k, task.extra_features).items()
         },
         "inputs": signature["inputs"],
         "outputs": signature["outputs"],

@@ -417,16 +417,17 @@ class PolicyGraph(nn.Module):
 
 
 def random_histories(
-    count: int, history: int, features: int, rng: np.random.Generator
+    count: int, history: int, features: int, rng: np.random.Generator, knobs: int = 1
 ) -> np.ndarray:
     """Histories such as the env produces: (count, history, features) float32, each with 1 to
     `history` valid rows at the end and zero padding in front, feature values drawn within
-    their bounds (alignrl/envs/core.py). About 1 in 100 is all padding."""
-    knobs = (features - 5) // 2
-    if features != 5 + 2 * knobs or knobs < 1:
-        raise ValueError(f"a history row of {features} features does not fit any knob count")
-    low, high = observation_bounds(knobs)
-    layout = feature_layout(knobs)
+    their bounds (alignrl/envs/core.py); features beyond a row of `knobs` knobs are the
+    task's extras. About 1 in 100 is all padding."""
+    extras = features - 5 - 2 * knobs
+    if knobs < 1 or extras < 0:
+        raise ValueError(f"a history row of {features} features does not fit {knobs} knob(s)")
+    low, high = observation_bounds(knobs, extras)
+    layout = feature_layout(knobs, extras)
     rows = rng.uniform(low, high, (count, history, features)).astype(np.float32)
     rows[..., layout["valid"]] = 1.0
     rows[..., layout["measured"]] = rng.integers(0, 2, (count, history, 1))
@@ -644,7 +645,7 @@ def check_parity(
     """Compare an exported graph (`run`) with the member on `histories` random histories
     (random_histories), empty memory; with memory, also with random memory inputs."""
     rng = np.random.default_rng(seed)
-    inputs = random_histories(histories, graph.history, graph.features, rng)
+    inputs = random_histories(histories, graph.history, graph.features, rng, graph.knobs)
     expected = agent.act(inputs, deterministic=True).astype(np.float64)  #   (histories, k+1)
     outputs = run({"history": inputs, **graph.empty_memory(histories)})
     max_step = graph.max_step.numpy().astype(np.float64)
@@ -713,7 +714,7 @@ def _write_graph(graph: PolicyGraph, path: Path, export_format: str) -> None:
     # runs it at 1000).
     rng = np.random.default_rng(0)
     example = (
-        torch.from_numpy(random_histories(2, graph.history, graph.features, rng)),
+        torch.from_numpy(random_histories(2, graph.history, graph.features, rng, graph.knobs)),
         *(torch.from_numpy(value) for value in graph.empty_memory(2).values()),
     )
     with warnings.catch_warnings(), torch.no_grad():

@@ -22,16 +22,18 @@ Pure logic: the only I/O is through the wrapped apparatus and the audit sink.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from typing import Any, Protocol
 
 import numpy as np
 
-from alignrl.apparatus.base import Apparatus, ApparatusError
+from alignrl.apparatus.base import Apparatus, ApparatusError, MeasurementError
+from alignrl.apparatus.measures import WOBBLE_KNOB, measure_directional, measure_wobble
 
 __all__ = [
     "Aborted",
@@ -318,6 +320,7 @@ class ShieldedApparatus:
         self.abort_reason: str | None = None
         self.restored = False  # the start was written back after an abort
         self._restore_tried = False
+        self._final = False  # inside final_measures()
 
     @property
     def aborted(self) -> bool:
@@ -432,18 +435,36 @@ class ShieldedApparatus:
     def measure(self) -> float:
         """An alignment image (counted by the watchdog). Measurement failures are logged and
         raised as they came, so the alignment records an unmeasured row and goes on."""
-        self._stop_if_due("measure", self.acquisitions, purpose="alignment")
-        self.acquisitions += 1
-        return self._acquire("alignment")
+        purpose = self._count("measure", 1)
+        return self._acquire(purpose)
+
+    @contextlib.contextmanager
+    def final_measures(self) -> Iterator[None]:
+        """Measurements inside are the final ones, judged against the spec: not counted
+        against the acquisitions, but after an abort or past the time limit not taken."""
+        self._final = True
+        try:
+            yield
+        finally:
+            self._final = False
 
     def verify(self) -> float | None:
-        """The final image, judged against the spec: not counted against the acquisitions,
-        but after an abort or past the time limit it is not taken. None: it had no edges."""
-        self._stop_if_due("measure", None, purpose="final")
-        try:
-            return self._acquire("final")
-        except ApparatusError:
-            return None
+        """The final image (see `final_measures`). None: it had no edges."""
+        with self.final_measures():
+            try:
+                return self.measure()
+            except ApparatusError:
+                return None
+
+    def _count(self, event: str, images: int, count: bool = True, **fields: Any) -> str:
+        """Rules 1 and 2 for a measurement of `images` acquisitions; counts them (with
+        `count`) unless they are final. Returns the purpose the audit log names."""
+        if self._final:
+            self._stop_if_due(event, None, purpose="final", **fields)
+            return "final"
+        self._stop_if_due(event, self.acquisitions + images - 1, purpose="alignment", **fields)
+        self.acquisitions += images if count else 0
+        return "alignment"
 
     def _acquire(self, purpose: str) -> float:
         try:
@@ -456,6 +477,71 @@ class ShieldedApparatus:
             raise
         self.log("measure", purpose=purpose, sent=True, width_px=width)
         return width
+
+    def measure_directional(self) -> tuple[float, np.ndarray]:
+        """An alignment image measured in four edge orientations (one acquisition)."""
+        purpose = self._count("measure", 1)
+        try:
+            width, widths = measure_directional(self.inner)
+        except KeyboardInterrupt:
+            self.log("measure", purpose=purpose, sent=True, error="interrupted by the operator")
+            raise
+        except ApparatusError as error:
+            self.log("measure", purpose=purpose, sent=True, error=str(error))
+            raise
+        self.log(
+            "measure",
+            purpose=purpose,
+            sent=True,
+            width_px=width,
+            directional_px=[float(w) for w in widths],
+        )
+        return width, widths
+
+    def measure_wobble(self, amplitude_v: float) -> np.ndarray:
+        """A wobble (two acquisitions): the defocus swings +/- amplitude around its setting
+        and comes back. The swing is a measurement, not a move, so the maximum step does not
+        apply, but it never leaves the limits: the amplitude shrinks to fit them (logged). In
+        a dry run nothing is written, so there is no wobble: MeasurementError."""
+        purpose = self._count("wobble", 2, count=False, amplitude_v=amplitude_v)
+        if self.dry_run:
+            self.log("wobble", decision="dry-run", sent=False, amplitude_v=amplitude_v)
+            raise MeasurementError("dry run: a wobble swings the defocus, so none is made")
+        if self.setting is None:
+            raise DriverFailure("the column's setting is unknown after a failed write")
+        centre = self.setting.get(WOBBLE_KNOB)
+        if centre is None or WOBBLE_KNOB not in self.limits:
+            raise MeasurementError(f"a wobble swings {WOBBLE_KNOB!r}, which is not shielded here")
+        limits = self.limits[WOBBLE_KNOB]
+        safe = max(0.0, min(float(amplitude_v), centre - limits.low, limits.high - centre))
+        if safe <= 0:
+            self.log(
+                "wobble",
+                decision="refused",
+                sent=False,
+                amplitude_v=amplitude_v,
+                reason="the defocus sits on a limit: no room to swing",
+            )
+            raise MeasurementError("wobble refused: the defocus sits on a limit")
+        decision = "clamped" if safe < amplitude_v else "allowed"
+        self.log(
+            "wobble",
+            decision=decision,
+            sent=True,
+            amplitude_v=safe,
+            swing=[centre - safe, centre + safe],
+        )
+        self.acquisitions += 2 if purpose == "alignment" else 0
+        try:
+            shift = measure_wobble(self.inner, safe)
+        except KeyboardInterrupt:
+            self.log("wobble-error", error="interrupted by the operator")
+            raise
+        except ApparatusError as error:
+            self.log("wobble-error", error=str(error))
+            raise
+        self.log("measure", purpose=purpose, sent=True, shift_px=[float(v) for v in shift])
+        return shift
 
     def image(self) -> np.ndarray | None:
         return self.inner.image()

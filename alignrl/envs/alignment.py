@@ -46,9 +46,10 @@ def resolve_task(task: Task | str) -> Task:
     return get_task(task) if isinstance(task, str) else task
 
 
-def aligner_spaces(n_knobs: int, history: int) -> tuple[spaces.Box, spaces.Box]:
-    """(observation, action) spaces of an aligner: a history, and knob changes plus stop."""
-    low, high = observation_bounds(n_knobs)
+def aligner_spaces(n_knobs: int, history: int, extras: int = 0) -> tuple[spaces.Box, spaces.Box]:
+    """(observation, action) spaces of an aligner: a history, and knob changes plus stop.
+    `extras`: the task's extra features per row (Task.extra_features)."""
+    low, high = observation_bounds(n_knobs, extras)
     observation = spaces.Box(
         np.tile(low, (history, 1)), np.tile(high, (history, 1)), dtype=np.float32
     )
@@ -115,7 +116,9 @@ class AlignmentEnv(gym.Env):
         self.episodes = single_episode(apparatus, task, history, complexity, apparatus_args)
         self.task, self.apparatus = self.episodes.task, self.episodes.apparatus[0]
         self.misalignment = misalignment
-        self.observation_space, self.action_space = aligner_spaces(self.episodes.k, history)
+        self.observation_space, self.action_space = aligner_spaces(
+            self.episodes.k, history, self.episodes.n_extra
+        )
         self.misaligner_observation_space, _ = misaligner_spaces(self.episodes.k)
         self._index = np.array([0])
 

@@ -13,8 +13,15 @@ An episode (seed section 4.3):
 
 Observations are histories of H steps, oldest first, zero-padded at the front; each row is
 FEATURES: [valid, knob settings (k, in [-1, 1]), log(width / ref), measured, last action
-(k + 1), steps left (fraction)]. The secret (optimum - setting, as a fraction of the
-interval) goes to info["secret"], never into an observation.
+(k + 1), steps left (fraction), extras]. The extras are the task's further measures
+(alignrl/envs/task.py): log(directional width / width) per orientation bin (4, clipped to
+[-1, 1]) and tanh(wobble shift / ref) for x and y (2); a focus task has none, so its rows are
+as they always were. The secret (optimum - setting, as a fraction of the interval) goes to
+info["secret"], never into an observation.
+
+Rewards are paid on the task's cost in px: the edge width, plus `wobble_weight` x the wobble
+shift where the task wobbles. Knobs the task does not control are set to their optimum at the
+start of an episode where the apparatus knows it (a stigmation episode starts in focus).
 
 A measurement that fails (no edges, a driver fault) is a defined outcome: the row is marked
 unmeasured, its width counts as the task's `no_edges_px`, and the episode goes on.
@@ -28,19 +35,20 @@ from dataclasses import dataclass
 import numpy as np
 
 from alignrl.apparatus.base import Apparatus, ApparatusError, MeasurementError
+from alignrl.apparatus.measures import measure_directional, measure_wobble
 from alignrl.apparatus.simulator import ScenarioSimulator, measure_batch
 from alignrl.envs import rewards
 from alignrl.envs.task import Task
 
-__all__ = ["AlignmentEpisodes", "EpisodeInfo", "feature_layout"]
+__all__ = ["AlignmentEpisodes", "EpisodeInfo", "align_others", "feature_layout"]
 
 QUALITY_LOG_RANGE = (-2.0, 4.0)  # log(width / ref) is clipped here: 0.35x to 55x the reference
 
 
-def feature_layout(n_knobs: int) -> dict[str, slice]:
-    """Column slices of one history row."""
+def feature_layout(n_knobs: int, extras: int = 0) -> dict[str, slice]:
+    """Column slices of one history row (`extras`: the task's extra_features)."""
     k = n_knobs
-    return {
+    layout = {
         "valid": slice(0, 1),
         "knobs": slice(1, 1 + k),
         "quality": slice(1 + k, 2 + k),
@@ -48,17 +56,37 @@ def feature_layout(n_knobs: int) -> dict[str, slice]:
         "action": slice(3 + k, 4 + 2 * k),
         "steps_left": slice(4 + 2 * k, 5 + 2 * k),
     }
+    if extras:
+        layout["extras"] = slice(5 + 2 * k, 5 + 2 * k + extras)
+    return layout
 
 
-def observation_bounds(n_knobs: int) -> tuple[np.ndarray, np.ndarray]:
+def observation_bounds(n_knobs: int, extras: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Per-feature (low, high) of a history row."""
-    layout = feature_layout(n_knobs)
-    width = 5 + 2 * n_knobs
+    layout = feature_layout(n_knobs, extras)
+    width = 5 + 2 * n_knobs + extras
     low, high = np.full(width, -1.0, np.float32), np.ones(width, np.float32)
     for name in ("valid", "measured", "steps_left"):
         low[layout[name]] = 0.0
     low[layout["quality"]], high[layout["quality"]] = QUALITY_LOG_RANGE
     return low, high
+
+
+def align_others(unit: Apparatus, knobs: Sequence[str]) -> None:
+    """Set the knobs of `unit` outside `knobs` (a task's) to their optimum, where the
+    apparatus knows it: a stigmation episode starts in focus. Nothing is written where the
+    knobs are there already, or where the apparatus has no secret (a real column)."""
+    optimum = getattr(unit, "optimum", None)
+    if not callable(optimum) or set(unit.knobs) <= set(knobs):
+        return
+    current = unit.read()
+    others = {
+        knob: float(value)
+        for knob, value in optimum().items()
+        if knob in unit.knobs and knob not in knobs and value != current[knob]
+    }
+    if others:
+        unit.write(others)
 
 
 @dataclass
@@ -90,8 +118,9 @@ class AlignmentEpisodes:
         self.n = len(self.apparatus)
         self.k = len(task.knobs)
         self.history_length = history
-        self.layout = feature_layout(self.k)
-        self.n_features = 5 + 2 * self.k
+        self.n_extra = task.extra_features
+        self.layout = feature_layout(self.k, self.n_extra)
+        self.n_features = 5 + 2 * self.k + self.n_extra
         intervals = np.array([[a.knobs[k] for k in task.knobs] for a in self.apparatus], float)
         self.low, self.high = intervals[..., 0], intervals[..., 1]  # (N, k)
         self.span = self.high - self.low
@@ -105,7 +134,12 @@ class AlignmentEpisodes:
         self.aligned = np.zeros((self.n, self.k))
         self.width_before = np.full(self.n, np.nan)
         self.width = np.full(self.n, np.nan)
+        self.directional = np.full((self.n, 4 * task.directional), np.nan)  # px per bin
+        self.wobble = np.full((self.n, 2 * task.wobble), np.nan)  # shift (dx, dy) px
+        self.cost_before = np.full(self.n, np.nan)  # px; what rewards are paid on
+        self.cost = np.full(self.n, np.nan)
         self.threshold = np.full(self.n, np.nan)
+        self.directional_threshold = np.full(self.n, np.nan)  # px, every bin
         self.bonus_threshold = np.full(self.n, np.nan)  # px; the success bonus is paid within
         self.best_width = np.full(self.n, np.nan)  # px at the optimum; NaN where unknown
         self.steps = np.zeros(self.n, np.int64)
@@ -128,6 +162,7 @@ class AlignmentEpisodes:
         indices = np.asarray(indices, dtype=np.int64)
         for index, seed in zip(indices, seeds, strict=True):
             self.apparatus[index].reset(seed)
+            align_others(self.apparatus[index], self.task.knobs)
         if self._batched:
             rows = np.array([self.apparatus[i].row for i in indices])  # type: ignore[attr-defined]
             simulator = self.apparatus[indices[0]]
@@ -149,6 +184,10 @@ class AlignmentEpisodes:
         self.best_width[indices] = best
         self.threshold[indices] = [
             rule.threshold_px(None if np.isnan(value) else float(value)) for value in best
+        ]
+        self.directional_threshold[indices] = [
+            self.task.directional_threshold_px(float(limit), float(value))
+            for limit, value in zip(self.threshold[indices], best, strict=True)
         ]
         tighter = self.task.bonus_relative
         self.bonus_threshold[indices] = (
@@ -174,6 +213,7 @@ class AlignmentEpisodes:
             self.aligned[index] = self.setting[index]
             self.info[index] = EpisodeInfo()
         self.threshold[indices] = np.nan
+        self.directional_threshold[indices] = np.nan
         self.bonus_threshold[indices] = np.nan
         self.best_width[indices] = np.nan
         self.history[indices] = 0.0
@@ -181,6 +221,7 @@ class AlignmentEpisodes:
         self.acquisitions[indices] = 0
         widths = self._measure(indices)
         self.width_before[indices] = self.width[indices] = widths
+        self.cost_before[indices] = self.cost[indices]
         self._record(indices, widths, np.zeros((len(indices), self.k + 1)))
         self.active[indices] = True
 
@@ -200,6 +241,7 @@ class AlignmentEpisodes:
         self.setting[indices] = np.clip(start, self.low[indices], self.high[indices])
         widths = self._measure(indices)
         self.width_before[indices] = self.width[indices] = widths
+        self.cost_before[indices] = self.cost[indices]
         for position, index in enumerate(indices):
             info = self.info[index]
             info.width_before_px = info.width_px = float(widths[position])
@@ -212,7 +254,7 @@ class AlignmentEpisodes:
         (see `rewards.misalignment_score`); the aligner is charged the same."""
         indices = np.asarray(indices, dtype=np.int64)
         return rewards.misalignment_score(
-            self._scored(self.width_before[indices]),
+            self.cost_before[indices],
             self.best_width[indices],
             self.task.final_reward_scale,
         )
@@ -245,13 +287,10 @@ class AlignmentEpisodes:
         done = stop | (self.steps[indices] >= task.episode_steps)
         finished = indices[done]
         reward[done] += rewards.final_reward(
-            self._scored(self.width_before[finished]),
-            self._scored(self.width[finished]),
-            task.final_reward_scale,
+            self.cost_before[finished], self.cost[finished], task.final_reward_scale
         )
         if task.success_bonus:
-            with np.errstate(invalid="ignore"):
-                within = self.width[finished] <= self.bonus_threshold[finished]  # NaN: no
+            within = self._within(finished, self.bonus_threshold[finished])
             reward[done] += rewards.success_bonus(within, task.success_bonus)
         self.active[finished] = False
         for index in indices:
@@ -261,14 +300,28 @@ class AlignmentEpisodes:
             info.width_px = float(self.width[index])
         return reward, done
 
-    def _scored(self, widths: np.ndarray) -> np.ndarray:
-        """Widths for rewards: a failed measurement counts as the task's no-edges width."""
-        return np.where(np.isfinite(widths), widths, self.task.no_edges_px)
+    def _costs(self, indices: np.ndarray) -> np.ndarray:
+        """The task's cost (px) of the latest measurement of `indices`: the width, plus the
+        weighted wobble shift; a failed measurement counts as the task's no-edges width."""
+        cost = self.width[indices].copy()
+        if self.task.wobble:
+            cost += self.task.wobble_weight * np.hypot(*self.wobble[indices].T)
+        return np.where(np.isfinite(cost), cost, self.task.no_edges_px)
+
+    def _within(self, indices: np.ndarray, width_threshold: np.ndarray) -> np.ndarray:
+        """Whether every measured quality of `indices` is within spec, the width within
+        `width_threshold` (Task.within_spec)."""
+        return self.task.within_spec(
+            self.width[indices],
+            width_threshold,
+            self.directional[indices],
+            self.directional_threshold[indices],
+            self.wobble[indices],
+        )
 
     def successes(self) -> np.ndarray:
-        """Whether each slot's latest edge width meets its threshold."""
-        with np.errstate(invalid="ignore"):
-            return np.isfinite(self.width) & (self.width <= self.threshold)
+        """Whether each slot's latest measurement meets every spec of the task."""
+        return self._within(np.arange(self.n), self.threshold)
 
     def secrets(self) -> np.ndarray:
         """`secret` of every slot, (N, k); one array lookup for batched simulators."""
@@ -297,16 +350,22 @@ class AlignmentEpisodes:
     # --- measurement and history --------------------------------------------------------
 
     def _measure(self, indices: np.ndarray) -> np.ndarray:
-        """Write the settings of `indices` and acquire one image each; NaN where it failed."""
-        self.acquisitions[indices] += 1
+        """Write the settings of `indices` and take the task's measures: one image each (two
+        more for a wobble). Returns the widths, NaN where a measure failed; the directional
+        widths, wobble shifts and costs of `indices` are updated alongside."""
+        self.acquisitions[indices] += self.task.acquisitions_per_step
         if self._batched:
             simulators = [self.apparatus[i] for i in indices]
             widths = measure_batch(simulators, self.setting[indices, 0])  # type: ignore[arg-type]
             for index in indices[~np.isfinite(widths)]:
                 self.info[index].failed_measurements += 1
                 self.info[index].last_error = "no edges"
+            self.width[indices] = widths
+            self.cost[indices] = self._costs(indices)
             return widths
         widths = np.full(len(indices), np.nan)
+        self.directional[indices] = np.nan
+        self.wobble[indices] = np.nan
         for position, index in enumerate(indices):
             unit = self.apparatus[index]
             values = dict(zip(self.task.knobs, self.setting[index].tolist(), strict=True))
@@ -317,13 +376,30 @@ class AlignmentEpisodes:
                     # the history must show where the column really is.
                     applied = unit.applied_setting()
                     self.setting[index] = [applied[k] for k in self.task.knobs]
-                widths[position] = float(unit.measure())
+                width, directional, shift = self._take_measures(unit)
             except (MeasurementError, ApparatusError) as error:
                 # A defined outcome on real hardware: no edges far from focus, or a driver
                 # fault. The episode goes on with an unmeasured row.
                 self.info[index].failed_measurements += 1
                 self.info[index].last_error = str(error)
+                continue
+            widths[position] = width
+            self.directional[index] = directional
+            self.wobble[index] = shift
+        self.width[indices] = widths
+        self.cost[indices] = self._costs(indices)
         return widths
+
+    def _take_measures(self, unit: Apparatus) -> tuple[float, np.ndarray, np.ndarray]:
+        """(width px, directional widths px, wobble shift px) of one apparatus; the arrays
+        are empty where the task does not take that measure."""
+        task = self.task
+        if task.directional:
+            width, directional = measure_directional(unit)
+        else:
+            width, directional = float(unit.measure()), np.empty(0)
+        shift = measure_wobble(unit, task.wobble_amplitude_v) if task.wobble else np.empty(0)
+        return width, directional, shift
 
     def _record(self, indices: np.ndarray, widths: np.ndarray, actions: np.ndarray) -> None:
         layout = self.layout
@@ -341,6 +417,21 @@ class AlignmentEpisodes:
         rows[:, layout["action"]] = actions
         left = 1.0 - self.steps[indices] / self.task.episode_steps
         rows[:, layout["steps_left"]] = left[:, None]
+        if self.n_extra:
+            rows[:, layout["extras"]] = self._extra_features(indices, measured)
         # Oldest first: shift the window left by one and append the new row.
         self.history[indices, :-1] = self.history[indices, 1:]
         self.history[indices, -1] = rows
+
+    def _extra_features(self, indices: np.ndarray, measured: np.ndarray) -> np.ndarray:
+        """Directional widths as log(w_bin / w) in [-1, 1], wobble shifts as tanh(shift /
+        ref); zeros in an unmeasured row."""
+        parts = []
+        with np.errstate(invalid="ignore", divide="ignore"):
+            if self.task.directional:
+                ratio = np.log(self.directional[indices] / self.width[indices, None])
+                parts.append(np.clip(ratio, -1.0, 1.0))
+            if self.task.wobble:
+                parts.append(np.tanh(self.wobble[indices] / self.task.wobble_ref_px))
+        extras = np.concatenate(parts, axis=1)
+        return np.where(measured[:, None] & np.isfinite(extras), extras, 0.0)

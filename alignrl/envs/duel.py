@@ -58,7 +58,7 @@ class raw_env(AECEnv):
         self.task, self.apparatus = self.episodes.task, self.episodes.apparatus[0]
         spaces_of = {
             MISALIGNER: misaligner_spaces(self.episodes.k),
-            ALIGNER: aligner_spaces(self.episodes.k, history),
+            ALIGNER: aligner_spaces(self.episodes.k, history, self.episodes.n_extra),
         }
         self._observation_spaces = {agent: pair[0] for agent, pair in spaces_of.items()}
         self._action_spaces = {agent: pair[1] for agent, pair in spaces_of.items()}

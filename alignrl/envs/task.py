@@ -2,7 +2,18 @@
 an episode may last, and what counts as aligned (seed sections 4.3 and 6.2).
 
 A task is a frozen record; `TASKS` maps names to the built-in ones, so a new task is one
-entry. Knob changes are in the apparatus's units (volts for lenses).
+entry. Knob changes are in the apparatus's units (volts for lenses, percent of full excitation
+for stigmators, micrometres for the aperture).
+
+What a task measures after each action (`measures`):
+* "width": the average edge width of one image (px), every task's first quality;
+* "directional": the edge widths in four orientation bins of the edge normal, from the same
+  image (alignrl/apparatus/quality.py): what shows the axis of an astigmatic probe;
+* "wobble": the image shift (px) between frames acquired at defocus +d and -d, the symptom of
+  an off-axis objective aperture. It costs two more acquisitions, counted as such.
+Success needs every measured quality within its spec: the width within the success rule, every
+directional width within `directional_relative` x the best width, the wobble shift at most
+`wobble_spec_px`.
 """
 
 from __future__ import annotations
@@ -11,7 +22,12 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
-__all__ = ["TASKS", "SuccessRule", "Task", "get_task"]
+import numpy as np
+
+__all__ = ["MEASURES", "TASKS", "SuccessRule", "Task", "get_task"]
+
+MEASURES = ("width", "directional", "wobble")
+DIRECTIONAL_BINS = 4  # edge-normal orientation bins of quality.directional_widths
 
 
 @dataclass(frozen=True)
@@ -63,6 +79,12 @@ class Task:
     bonus_relative: float | None = None
     quality_ref_px: float = 2.5  # quality observations are log(width / this)
     no_edges_px: float = 25.0  # a frame without edges counts as this wide in rewards
+    measures: tuple[str, ...] = ("width",)  # what each step measures (see the module doc)
+    directional_relative: float = 1.3  # success: every directional width within this x best
+    wobble_amplitude_v: float = 5.0  # the wobble swings the defocus this far each way, V
+    wobble_spec_px: float = 0.5  # success: wobble shift magnitude at most this, px
+    wobble_weight: float = 1.0  # the task's cost counts this many px of width per px of shift
+    wobble_ref_px: float = 12.0  # wobble observations are tanh(shift / this)
 
     def __post_init__(self) -> None:
         if not self.knobs:
@@ -82,6 +104,66 @@ class Task:
             raise ValueError(f"task {self.name!r}: bonus_relative must be above 1 (x best width)")
         if not self.quality_ref_px > 0 or not self.no_edges_px > 0:
             raise ValueError(f"task {self.name!r}: quality_ref_px and no_edges_px must be > 0")
+        unknown = [name for name in self.measures if name not in MEASURES]
+        if unknown or "width" not in self.measures or len(set(self.measures)) != len(self.measures):
+            raise ValueError(
+                f"task {self.name!r}: measures must name 'width' and any of "
+                f"{', '.join(MEASURES[1:])}, each once; got {list(self.measures)}"
+            )
+        if not self.directional_relative > 1:
+            raise ValueError(f"task {self.name!r}: directional_relative must be above 1")
+        for name in ("wobble_amplitude_v", "wobble_spec_px", "wobble_ref_px"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"task {self.name!r}: {name} must be positive")
+        if self.wobble_weight < 0:
+            raise ValueError(f"task {self.name!r}: wobble_weight is a magnitude (>= 0)")
+
+    @property
+    def directional(self) -> bool:
+        return "directional" in self.measures
+
+    @property
+    def wobble(self) -> bool:
+        return "wobble" in self.measures
+
+    @property
+    def extra_features(self) -> int:
+        """Observation features beyond the width: 4 directional widths, 2 wobble shifts."""
+        return DIRECTIONAL_BINS * self.directional + 2 * self.wobble
+
+    @property
+    def acquisitions_per_step(self) -> int:
+        """Images one measurement costs: one, and two more for a wobble."""
+        return 1 + 2 * self.wobble
+
+    def directional_threshold_px(self, width_threshold_px: float, best_px: float | None) -> float:
+        """The spec of every directional width: `directional_relative` x the best width, or,
+        where the best is unknown, that share of an absolute width spec."""
+        if best_px is None or not math.isfinite(best_px):
+            return self.directional_relative * width_threshold_px / self.success.relative
+        return self.directional_relative * best_px
+
+    def within_spec(
+        self,
+        width_px: np.ndarray,
+        width_threshold_px: np.ndarray,
+        directional_px: np.ndarray | None = None,
+        directional_threshold_px: np.ndarray | None = None,
+        wobble_px: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """Whether each measurement meets every spec of the task (batched: widths (n,),
+        directional (n, 4), wobble (n, 2)); NaN anywhere, a failed measure, is not within.
+        The measures the task does not take are not looked at."""
+        width = np.asarray(width_px, dtype=np.float64)
+        with np.errstate(invalid="ignore"):
+            within = np.isfinite(width) & (width <= width_threshold_px)
+            if self.directional:
+                limit = np.asarray(directional_threshold_px, dtype=np.float64)[..., None]
+                within &= np.all(np.asarray(directional_px) <= limit, axis=-1)
+            if self.wobble:
+                shift = np.hypot(*np.moveaxis(np.asarray(wobble_px, dtype=np.float64), -1, 0))
+                within &= shift <= self.wobble_spec_px
+        return within
 
     def check_apparatus(self, knobs: Mapping[str, tuple[float, float]]) -> None:
         """Refuse an apparatus that lacks one of the task's knobs."""
@@ -103,6 +185,31 @@ class Task:
 
 TASKS: dict[str, Task] = {
     "focus": Task(name="focus", knobs=("defocus",)),
+    # Stigmators only, focus aligned: the mean width shows how far off, the directional
+    # widths (of a slightly defocused probe) which way.
+    "stigmation": Task(
+        name="stigmation",
+        knobs=("stigmator_x", "stigmator_y"),
+        measures=("width", "directional"),
+        episode_steps=12,
+    ),
+    # The aperture only: each step is an image and a wobble pair (three acquisitions), so a
+    # step may cross the whole interval: one wobble says where the centre is.
+    "aperture": Task(
+        name="aperture",
+        knobs=("aperture_x", "aperture_y"),
+        measures=("width", "wobble"),
+        max_step_fraction=1.0,
+        episode_steps=8,
+    ),
+    # The whole column, in the order an operator works: aperture, focus, stigmators.
+    "column": Task(
+        name="column",
+        knobs=("aperture_x", "aperture_y", "defocus", "stigmator_x", "stigmator_y"),
+        measures=("width", "directional", "wobble"),
+        max_step_fraction=0.5,
+        episode_steps=20,
+    ),
 }
 
 

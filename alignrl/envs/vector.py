@@ -58,7 +58,7 @@ class VectorAlignmentEnv:
         self.num_envs = self.episodes.n
         self.set_complexity(complexity)
         self.single_observation_space, self.single_action_space = aligner_spaces(
-            self.episodes.k, history
+            self.episodes.k, history, self.episodes.n_extra
         )
         self._generators: list[np.random.Generator] = []
         self._returns = np.zeros(self.num_envs)

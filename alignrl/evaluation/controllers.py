@@ -1,10 +1,18 @@
 """What an alignment controller is, and the acquisition counter every session runs it through.
 
-A controller aligns one knob of an apparatus by itself: it writes settings, acquires images
-(`measure`, edge width in px, smaller is sharper) and stops by its own rule, leaving the knob
-where it believes the focus is. Classical autofocus (alignrl.evaluation.baselines) and,
-later, trained policies are controllers. `CountingApparatus` counts their acquisitions,
-records the trajectory, and stops them with `BudgetExhausted` when the budget is spent.
+A controller aligns an apparatus by itself: it writes settings, acquires images (`measure`,
+edge width in px, smaller is sharper; on the multi-knob tasks also directional widths and
+wobbles, alignrl/apparatus/measures.py) and stops by its own rule, leaving the knobs where it
+believes the column is aligned. Two kinds:
+
+* `Controller`: aligns one knob (`align(apparatus, knob, budget)`), the classical autofocus
+  routines. A session hands it the knob of a one-knob task.
+* `TaskController`: aligns a whole task (`align_task(apparatus, task, budget)`), any number of
+  knobs: the stigmator, aperture and column baselines, and trained policies
+  (`PolicyController`), whose observations depend on the task's measures.
+
+`CountingApparatus` counts their acquisitions (every image: a wobble is two), records the
+trajectory, and stops them with `BudgetExhausted` when the budget is spent.
 
 A measurement that fails (no edges far out of focus, a driver fault) still costs an
 acquisition; controllers read it as an infinitely blurred image (`measure_width`).
@@ -15,7 +23,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
+from typing import Literal, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -28,9 +36,12 @@ __all__ = [
     "Controller",
     "CountingApparatus",
     "PolicyController",
+    "TaskController",
+    "check_controller",
     "clip_to_knob",
     "measure_width",
     "probe",
+    "run_controller",
 ]
 
 
@@ -57,20 +68,74 @@ class Controller(Protocol):
         ...
 
 
+@runtime_checkable
+class TaskController(Protocol):
+    """Aligns every knob of a task, stopping by its own rule."""
+
+    name: str
+
+    def check_task(self, task: Task) -> None:
+        """ValueError where this controller cannot align `task` (called before a session
+        starts, so that a mismatch is refused before any alignment)."""
+        ...
+
+    def align_task(self, apparatus: Apparatus, task: Task, budget: int) -> None:
+        """Move the task's knobs to where the controller believes the column is aligned.
+
+        Work only through the apparatus (write, measure, and the measures of
+        alignrl.apparatus.measures), stay inside the knobs' intervals, and acquire at most
+        `budget` images. Knobs outside the task may be touched the way an operator would
+        (refocusing while stigmating); the session verifies wherever they are left.
+        """
+        ...
+
+
+def check_controller(controller: Controller | TaskController, task: Task) -> None:
+    """Refuse a controller that cannot align `task`: a one-knob controller on a task of
+    several knobs, or what a task controller's own `check_task` refuses."""
+    if isinstance(controller, TaskController):
+        controller.check_task(task)
+    elif len(task.knobs) != 1:
+        raise ValueError(
+            f"controller {controller.name!r} aligns one knob; task {task.name!r} has "
+            f"{len(task.knobs)} ({', '.join(task.knobs)})"
+        )
+
+
+def run_controller(
+    controller: Controller | TaskController, apparatus: Apparatus, task: Task, budget: int
+) -> None:
+    """Let `controller` align `task` on `apparatus` (checked by `check_controller`)."""
+    if isinstance(controller, TaskController):
+        controller.align_task(apparatus, task, budget)
+    else:
+        controller.align(apparatus, task.knobs[0], budget)
+
+
 @dataclass(frozen=True)
 class Acquisition:
-    """One image a controller acquired: the knob settings and its edge width (None: failed)."""
+    """One image a controller acquired: the knob settings and its edge width (None: failed,
+    or a wobble frame, whose width a native wobble does not report)."""
 
     settings: Mapping[str, float]
     width_px: float | None
+    kind: Literal["image", "wobble"] = "image"
 
 
 class CountingApparatus:
     """An Apparatus that passes everything through, counting and recording acquisitions.
 
-    The `budget`-th acquisition is the last one allowed: the next `measure` raises
-    `BudgetExhausted` without acquiring. Failed measurements count and are re-raised.
+    The `budget`-th acquisition is the last one allowed: a measurement that would need more
+    raises `BudgetExhausted` without acquiring. Failed measurements count and are re-raised.
+
+    Where the wrapped apparatus measures directional widths or wobbles natively
+    (`measure_directional()`, `measure_wobble(amplitude_v)`), so does the counter, counting
+    one and two acquisitions. Where it does not, neither does the counter: the functions of
+    alignrl.apparatus.measures then fall back to `measure` and `image` through it, and every
+    frame is counted there. (Always offering them would hide that fallback.)
     """
+
+    NATIVE_MEASURES = ("measure_directional", "measure_wobble")
 
     def __init__(self, apparatus: Apparatus, budget: int) -> None:
         if budget < 1:
@@ -96,10 +161,17 @@ class CountingApparatus:
     def write(self, values: Mapping[str, float]) -> None:
         self.inner.write(values)
 
+    def _spend(self, images: int) -> dict[str, float]:
+        """Check that `images` more acquisitions fit the budget; the settings they see."""
+        if self.acquisitions + images > self.budget:
+            spent = "all" if self.acquisitions >= self.budget else f"{self.acquisitions} of"
+            raise BudgetExhausted(
+                f"{spent} {self.budget} acquisitions of the budget are spent; {images} more needed"
+            )
+        return dict(self.inner.read())
+
     def measure(self) -> float:
-        if self.acquisitions >= self.budget:
-            raise BudgetExhausted(f"all {self.budget} acquisitions of the budget are spent")
-        settings = dict(self.inner.read())
+        settings = self._spend(1)
         try:
             width = float(self.inner.measure())
         except ApparatusError:
@@ -110,6 +182,34 @@ class CountingApparatus:
 
     def image(self) -> np.ndarray | None:
         return self.inner.image()
+
+    def __getattr__(self, name: str) -> Callable[..., object]:
+        # Only reached for attributes the class lacks: the native measures, offered exactly
+        # where the wrapped apparatus has them.
+        if name in CountingApparatus.NATIVE_MEASURES and "inner" in self.__dict__:
+            if callable(getattr(self.inner, name, None)):
+                return getattr(self, f"_counted_{name}")
+        raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+
+    def _counted_measure_directional(self) -> tuple[float, np.ndarray]:
+        """One acquisition: (mean edge width px, the four directional widths px)."""
+        settings = self._spend(1)
+        try:
+            width, widths = self.inner.measure_directional()  # type: ignore[attr-defined]
+        except ApparatusError:
+            self.trajectory.append(Acquisition(settings, None))
+            raise
+        self.trajectory.append(Acquisition(settings, float(width)))
+        return float(width), np.asarray(widths, dtype=np.float64)
+
+    def _counted_measure_wobble(self, amplitude_v: float) -> np.ndarray:
+        """Two acquisitions, counted also when the pair does not correlate: the shift px."""
+        settings = self._spend(2)
+        wobble = self.inner.measure_wobble  # type: ignore[attr-defined]
+        try:
+            return np.asarray(wobble(amplitude_v), dtype=np.float64)
+        finally:
+            self.trajectory += [Acquisition(settings, None, "wobble")] * 2
 
 
 # --- helpers shared by controllers --------------------------------------------------------
@@ -162,18 +262,29 @@ def approach_from_below(apparatus: Apparatus, knob: str, target: float, margin_v
 @dataclass
 class PolicyController:
     """A trained aligner as a controller: it sees the history the environments give it and
-    acts until it stops or reaches its task's step limit (alignrl/envs/core.py)."""
+    acts until it stops or reaches its task's step limit (alignrl/envs/core.py).
+
+    The episode engine is built from the policy's own task, not the session's: the policy's
+    observations (which measures, how many extra features) are what it was trained on. The
+    session's task must have the same knobs; it judges the result with its own measures.
+    """
 
     name: str
     act: Callable[[np.ndarray], np.ndarray]  # history (H, F) -> action (k + 1,)
     task: Task
     history: int
 
-    def align(self, apparatus: Apparatus, knob: str, budget: int) -> None:
+    def check_task(self, task: Task) -> None:
+        if task.knobs != self.task.knobs:
+            raise ValueError(
+                f"policy {self.name!r} aligns {', '.join(self.task.knobs)} (task "
+                f"{self.task.name!r}); task {task.name!r} has {', '.join(task.knobs)}"
+            )
+
+    def align_task(self, apparatus: Apparatus, task: Task, budget: int) -> None:
         from alignrl.envs.core import AlignmentEpisodes
 
-        if self.task.knobs != (knob,):
-            raise ValueError(f"policy {self.name!r} aligns {self.task.knobs}, not {knob!r}")
+        self.check_task(task)
         episodes = AlignmentEpisodes([apparatus], self.task, self.history)
         slot = np.array([0])
         episodes.adopt(slot)

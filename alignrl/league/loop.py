@@ -93,9 +93,10 @@ def member_spec(member: MemberConfig, team: str, config: LeagueConfig) -> Member
     """Shapes per team: an aligner reads the history; a misaligner reads one row
     [1, aligned settings (k), complexity] (the leading 1 marks the row valid for the
     sequence encoders) and answers with a start in the window per knob."""
-    knobs = len(config.resolved_task().knobs)
+    task = config.resolved_task()
+    knobs = len(task.knobs)
     if team == "aligner":
-        observation_space, action_space = aligner_spaces(knobs, config.history)
+        observation_space, action_space = aligner_spaces(knobs, config.history, task.extra_features)
         shape, actions = observation_space.shape, action_space.shape[0]
     else:
         shape, actions = (1, knobs + 2), knobs
