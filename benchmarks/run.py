@@ -25,6 +25,7 @@ import alignrl
 from alignrl.apparatus import NoEdgesError, ScenarioSimulator, edge_width, make_apparatus
 from alignrl.apparatus.quality import TEN_NINETY_PER_SIGMA
 from alignrl.apparatus.recorder import sweep_many, sweep_plan
+from alignrl.envs.task import get_task
 from alignrl.envs.vector import VectorAlignmentEnv, make_apparatus_copies
 from benchmarks.baselines import bench_baselines
 
@@ -104,6 +105,31 @@ def bench_vector_env(num_envs: int, steps: int) -> Figure:
         ">= 50 k env steps/s on one core",
         "episodes end and reset inside the loop, as in training",
     )
+
+
+def bench_task_envs(num_envs: int, steps: int) -> list[Figure]:
+    """Env steps per second of each task on the analytic synthetic column (the pre-training
+    simulator of the multi-knob tasks), random actions that never stop early."""
+    figures = []
+    for task in ("focus", "stigmation", "aperture", "column"):
+        units = make_apparatus_copies("synthetic", {"analytic": True}, num_envs)
+        env = VectorAlignmentEnv(units, get_task(task))
+        env.reset(seed=0)
+        actions = np.random.default_rng(0).uniform(-1.0, 1.0, (steps, num_envs, env.episodes.k + 1))
+        actions[..., -1] = -1.0
+        start = time.perf_counter()
+        for action in actions:
+            env.step(action)
+        seconds = time.perf_counter() - start
+        figures.append(
+            Figure(
+                f"VectorAlignmentEnv, {num_envs} x analytic `synthetic`, task `{task}`",
+                f"{steps * num_envs / seconds / 1e3:.1f} k env steps/s",
+                ">= 0.2 k env steps/s (SAC trains at ~0.05-0.1 k env steps/s)",
+                f"{env.episodes.task.acquisitions_per_step} acquisition(s) per step",
+            )
+        )
+    return figures
 
 
 def bench_record(scenarios: int, workers: int) -> Figure:
@@ -203,6 +229,7 @@ def main(argv: list[str] | None = None) -> int:
     figures = [bench_render(repeats), *bench_edge_width(repeats // 2)]
     figures.append(bench_query(1 if args.quick else 2))
     figures.append(bench_vector_env(64, 300 if args.quick else 3000))
+    figures += bench_task_envs(8, 100 if args.quick else 1000)
     figures.append(bench_record(4 if args.quick else 20, 1))
     figures.append(bench_record(4 if args.quick else 20, 2))
 

@@ -95,12 +95,15 @@ class EmptyInterval(ParabolicLens):
 
 
 class FiveKnobColumn:
-    """A noiseless five-knob column without images (native directional and wobble measures),
-    so that the multi-knob tasks' numbers are exact.
+    """A cheap, noise-free five-knob column without images, with native directional and
+    wobble measures (the synthetic SEM's physics in closed form), so that the multi-knob
+    tasks' numbers are exact.
 
-    Probe sigma^2 along the axes of the astigmatism residual r (V, stigmators at
-    `stig_v_per_pct` V per percent): s0^2 + (gain (dV -/+ |r|/2))^2 + (blur |d|)^2, with d
-    the aperture residual (um); the wobble shift is shift_gain x 2 amplitude x d.
+    Probe sigma^2 along the axes of the astigmatism residual r (V; stigmators at
+    `stigmator_v_per_pct` V per percent): s0^2 + (gain (dV -/+ |r|/2))^2 + (blur |d|)^2, with
+    d the aperture residual (um). A wobble of amplitude A shifts the image by
+    shift_gain 2 A R(rotation_deg) d: image and aperture axes may be rotated against each
+    other, as on a real column. `images` counts every acquisition.
     """
 
     knobs: Mapping[str, tuple[float, float]] = {
@@ -110,23 +113,14 @@ class FiveKnobColumn:
         "aperture_x": (-50.0, 50.0),
         "aperture_y": (-50.0, 50.0),
     }
+    gain, stigmator_v_per_pct, blur, shift_gain, sigma0 = 0.2, 0.2, 0.05, 0.02, 1.0
 
-    def __init__(
-        self,
-        gain: float = 0.2,
-        stig_v_per_pct: float = 0.2,
-        blur: float = 0.05,
-        shift_gain: float = 0.02,
-        sigma0: float = 1.0,
-    ) -> None:
-        self.gain, self.stig, self.blur, self.shift_gain, self.sigma0 = (
-            gain,
-            stig_v_per_pct,
-            blur,
-            shift_gain,
-            sigma0,
+    def __init__(self, rotation_deg: float = 0.0) -> None:
+        angle = math.radians(rotation_deg)
+        self.rotation = np.array(
+            [[math.cos(angle), -math.sin(angle)], [math.sin(angle), math.cos(angle)]]
         )
-        self.acquisitions = 0
+        self.images = 0
         self.reset(0)
 
     def reset(self, seed: int | None = None) -> None:
@@ -138,13 +132,9 @@ class FiveKnobColumn:
             "aperture_x": float(rng.uniform(-30, 30)),
             "aperture_y": float(rng.uniform(-30, 30)),
         }
-        self.setting = {
-            "defocus": 50.0,
-            "stigmator_x": 0.0,
-            "stigmator_y": 0.0,
-            "aperture_x": 0.0,
-            "aperture_y": 0.0,
-        }
+        # As the synthetic SEM: the defocus at its nominal value, the rest misaligned.
+        self.setting = {"defocus": 50.0, "stigmator_x": 0.0, "stigmator_y": 0.0}
+        self.setting |= {"aperture_x": 0.0, "aperture_y": 0.0}
 
     def read(self) -> dict[str, float]:
         return dict(self.setting)
@@ -153,39 +143,33 @@ class FiveKnobColumn:
         check_write(self.knobs, values)
         self.setting.update({name: float(value) for name, value in values.items()})
 
-    def _residuals(self) -> tuple[float, np.ndarray, np.ndarray]:
-        s, b = self.setting, self.best
-        focus = s["defocus"] - b["defocus"]
-        stig = self.stig * np.array(
-            [s["stigmator_x"] - b["stigmator_x"], s["stigmator_y"] - b["stigmator_y"]]
-        )
-        aperture = np.array([s["aperture_x"] - b["aperture_x"], s["aperture_y"] - b["aperture_y"]])
-        return focus, stig, aperture
-
-    def _covariance(self, focus: float) -> np.ndarray:
-        _, stig, aperture = self._residuals()
-        half = 0.5 * float(np.hypot(*stig))
-        base = self.sigma0**2 + (self.blur * float(np.hypot(*aperture))) ** 2
-        su2 = base + (self.gain * (focus - half)) ** 2
-        sv2 = base + (self.gain * (focus + half)) ** 2
-        axis = 0.5 * math.atan2(stig[1], stig[0])
-        rotation = np.array([[math.cos(axis), -math.sin(axis)], [math.sin(axis), math.cos(axis)]])
-        return rotation @ np.diag([su2, sv2]) @ rotation.T
+    def residual(self, group: str) -> np.ndarray:
+        return np.array([self.setting[f"{group}_{a}"] - self.best[f"{group}_{a}"] for a in "xy"])
 
     def measure_directional(self) -> tuple[float, np.ndarray]:
-        self.acquisitions += 1
-        cov = self._covariance(self._residuals()[0])
+        self.images += 1
+        focus = self.setting["defocus"] - self.best["defocus"]
+        stig = self.stigmator_v_per_pct * self.residual("stigmator")
+        half = 0.5 * float(np.hypot(*stig))
+        base = self.sigma0**2 + (self.blur * float(np.hypot(*self.residual("aperture")))) ** 2
+        axis = 0.5 * math.atan2(stig[1], stig[0])
+        turn = np.array([[math.cos(axis), -math.sin(axis)], [math.sin(axis), math.cos(axis)]])
+        variances = [
+            base + (self.gain * (focus - half)) ** 2,
+            base + (self.gain * (focus + half)) ** 2,
+        ]
+        covariance = turn @ np.diag(variances) @ turn.T
         angles = np.radians([0.0, 45.0, 90.0, 135.0])
         normals = np.stack([np.cos(angles), np.sin(angles)], axis=1)
-        widths = TEN_NINETY * np.sqrt(np.einsum("bi,ij,bj->b", normals, cov, normals))
+        widths = TEN_NINETY * np.sqrt(np.einsum("bi,ij,bj->b", normals, covariance, normals))
         return float(widths.mean()), widths
 
     def measure(self) -> float:
         return self.measure_directional()[0]
 
     def measure_wobble(self, amplitude_v: float) -> np.ndarray:
-        self.acquisitions += 2
-        return self.shift_gain * 2.0 * amplitude_v * self._residuals()[2]
+        self.images += 2
+        return self.shift_gain * 2.0 * amplitude_v * self.rotation @ self.residual("aperture")
 
     def image(self) -> np.ndarray | None:
         return None

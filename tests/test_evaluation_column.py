@@ -7,15 +7,14 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
 import pytest
-from fake_drivers import ParabolicLens
+from fake_drivers import FiveKnobColumn, ParabolicLens
 
-from alignrl.apparatus import Apparatus, check_write, make_apparatus
+from alignrl.apparatus import Apparatus, make_apparatus
 from alignrl.apparatus.measures import measure_directional, measure_wobble
 from alignrl.apparatus.recorder import scenario_seed
 from alignrl.cli import main
@@ -46,99 +45,21 @@ NEW_TASKS = (STIGMATION, APERTURE, COLUMN)
 COLUMN_SPEC = "test_evaluation_column:Column"
 
 
-class Column:
-    """A cheap, noise-free five-knob column without images, with native directional and
-    wobble measures (the synthetic SEM's physics in closed form).
-
-    Probe sigma^2 along the axes of the astigmatism residual r (V; stigmators at 0.2 V per
-    percent): s0^2 + (gain (dV -/+ |r|/2))^2 + (blur |d|)^2, with d the aperture residual
-    (um). A wobble of amplitude A shifts the image by shift_gain 2 A R(rotation) d: image and
-    aperture axes are rotated against each other, as on a real column.
-    """
-
-    knobs: Mapping[str, tuple[float, float]] = {
-        "defocus": (0.0, 100.0),
-        "stigmator_x": (-100.0, 100.0),
-        "stigmator_y": (-100.0, 100.0),
-        "aperture_x": (-50.0, 50.0),
-        "aperture_y": (-50.0, 50.0),
-    }
-    gain, stigmator_v_per_pct, blur, shift_gain, sigma0 = 0.2, 0.2, 0.05, 0.02, 1.0
+class Column(FiveKnobColumn):
+    """The five-knob fake column with its image axes 30 degrees from the aperture's."""
 
     def __init__(self, rotation_deg: float = 30.0) -> None:
-        angle = math.radians(rotation_deg)
-        self.rotation = np.array(
-            [[math.cos(angle), -math.sin(angle)], [math.sin(angle), math.cos(angle)]]
-        )
-        self.images = 0  # every acquisition, counted or not
-        self.reset(0)
-
-    def reset(self, seed: int | None = None) -> None:
-        rng = np.random.default_rng(seed)
-        self.best = {
-            "defocus": float(rng.uniform(30, 70)),
-            "stigmator_x": float(rng.uniform(-50, 50)),
-            "stigmator_y": float(rng.uniform(-50, 50)),
-            "aperture_x": float(rng.uniform(-30, 30)),
-            "aperture_y": float(rng.uniform(-30, 30)),
-        }
-        # As the synthetic SEM: the defocus at its nominal value, the rest misaligned.
-        self.setting = {"defocus": 50.0, "stigmator_x": 0.0, "stigmator_y": 0.0}
-        self.setting |= {"aperture_x": 0.0, "aperture_y": 0.0}
-
-    def read(self) -> dict[str, float]:
-        return dict(self.setting)
-
-    def write(self, values: Mapping[str, float]) -> None:
-        check_write(self.knobs, values)
-        self.setting.update({name: float(value) for name, value in values.items()})
-
-    def residual(self, group: str) -> np.ndarray:
-        return np.array([self.setting[f"{group}_{a}"] - self.best[f"{group}_{a}"] for a in "xy"])
-
-    def measure_directional(self) -> tuple[float, np.ndarray]:
-        self.images += 1
-        focus = self.setting["defocus"] - self.best["defocus"]
-        stig = self.stigmator_v_per_pct * self.residual("stigmator")
-        half = 0.5 * float(np.hypot(*stig))
-        base = self.sigma0**2 + (self.blur * float(np.hypot(*self.residual("aperture")))) ** 2
-        axis = 0.5 * math.atan2(stig[1], stig[0])
-        turn = np.array([[math.cos(axis), -math.sin(axis)], [math.sin(axis), math.cos(axis)]])
-        variances = [
-            base + (self.gain * (focus - half)) ** 2,
-            base + (self.gain * (focus + half)) ** 2,
-        ]
-        covariance = turn @ np.diag(variances) @ turn.T
-        angles = np.radians([0.0, 45.0, 90.0, 135.0])
-        normals = np.stack([np.cos(angles), np.sin(angles)], axis=1)
-        widths = TEN_NINETY * np.sqrt(np.einsum("bi,ij,bj->b", normals, covariance, normals))
-        return float(widths.mean()), widths
-
-    def measure(self) -> float:
-        return self.measure_directional()[0]
-
-    def measure_wobble(self, amplitude_v: float) -> np.ndarray:
-        self.images += 2
-        return self.shift_gain * 2.0 * amplitude_v * self.rotation @ self.residual("aperture")
-
-    def image(self) -> None:
-        return None
-
-    def optimum(self) -> dict[str, float]:
-        return dict(self.best)
-
-    def best_quality(self) -> float:
-        return TEN_NINETY * self.sigma0
+        super().__init__(rotation_deg)
 
 
-class ImagedAperture(Column):
+class ImagedAperture(FiveKnobColumn):
     """A column without a native wobble: it gives images (a texture shifted by the aperture
     residual, px per um), so measures.measure_wobble acquires the two frames itself."""
 
     measure_wobble = None  # type: ignore[assignment]
 
     def __init__(self) -> None:
-        super().__init__(rotation_deg=0.0)
+        super().__init__()
         self.texture = np.random.default_rng(7).random((64, 64))
 
     def measure(self) -> float:

@@ -562,10 +562,10 @@ def test_a_dry_run_makes_no_wobble_and_a_limit_leaves_no_room() -> None:
     from alignrl.apparatus import MeasurementError
 
     shield, _, column = _column_shield(dry_run=True)
-    before = column.acquisitions
+    before = column.images
     with pytest.raises(MeasurementError, match="dry run"):
         shield.measure_wobble(5.0)
-    assert column.acquisitions == before
+    assert column.images == before
     shield, _, _ = _column_shield(site={"defocus": [50.0, 60.0]})
     with pytest.raises(MeasurementError, match="sits on a limit"):
         shield.measure_wobble(5.0)
