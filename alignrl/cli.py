@@ -706,19 +706,29 @@ def cmd_align(args: argparse.Namespace) -> int:
     )
     from alignrl.deploy.policy import load_deployable
     from alignrl.deploy.shield import MemoryAudit, resolve_limits
+    from alignrl.envs.task import get_task
 
     apparatus_args = _json_object(args.apparatus_args, "--apparatus-args")
     site_limits = _json_object(args.limits, "--limits")
     max_step = _json_object(args.max_step, "--max-step")
     with operator_signals():
         try:
-            try:
-                policy = load_deployable(args.policy)
-            except ImportError as error:  # an ONNX policy without onnxruntime
-                raise CommandError(f"cannot run policy {args.policy}: {error}") from None
-            if args.task is not None and args.task != policy.task.name:
+            policies = []
+            for source in args.policy:
+                try:
+                    policies.append(load_deployable(source))
+                except ImportError as error:  # an ONNX policy without onnxruntime
+                    raise CommandError(f"cannot run policy {source}: {error}") from None
+            judged = get_task(args.task) if args.task is not None else None
+            if len(policies) > 1 and judged is None:
                 raise CommandError(
-                    f"policy {policy.name!r} aligns task {policy.task.name!r}, not {args.task!r}"
+                    "several --policy run in sequence and need --task, the task the column "
+                    "is judged on (e.g. --task column)"
+                )
+            if len(policies) == 1 and judged is not None and judged.name != policies[0].task.name:
+                raise CommandError(
+                    f"policy {policies[0].name!r} aligns task {policies[0].task.name!r}, "
+                    f"not {args.task!r}"
                 )
             try:
                 apparatus = make_apparatus(args.apparatus, apparatus_args, seed=args.seed)
@@ -732,10 +742,11 @@ def cmd_align(args: argparse.Namespace) -> int:
         audit = JsonLinesAudit(args.log) if args.log else MemoryAudit()
         try:
             result = align(
-                policy,
+                policies,
                 apparatus,
                 limits,
                 audit,
+                task=judged,
                 apparatus_spec=args.apparatus,
                 spec_px=args.spec_px,
                 dry_run=args.dry_run,
@@ -1017,13 +1028,18 @@ def build_parser() -> argparse.ArgumentParser:
     align.add_argument(
         "--policy",
         required=True,
+        action="append",
         help="a run directory (training or league), a checkpoint .pt, an exported policy "
-        "directory, or champion:NAME",
+        "directory, or champion:NAME; give it several times (with --task) to run task "
+        "champions in that order, e.g. aperture, focus, stigmation for --task column",
     )
     align.add_argument("--apparatus", required=True, help="apparatus spec, e.g. synthetic")
     align.add_argument("--apparatus-args", default="{}", help="JSON keyword arguments")
     align.add_argument(
-        "--task", default=None, help="the task the policy must align (default: its own)"
+        "--task",
+        default=None,
+        help="the task the alignment is judged on (default: the policy's own; required with "
+        "several --policy)",
     )
     align.add_argument(
         "--spec-px",

@@ -15,6 +15,7 @@ import alignrl.deploy.policy as policy_module
 from alignrl.agents.agent import Agent, MemberSpec
 from alignrl.apparatus import ApparatusError
 from alignrl.cli import main
+from alignrl.deploy.align import align
 from alignrl.deploy.policy import DeployablePolicy, PolicySpecError, load_deployable
 from alignrl.envs.alignment import aligner_spaces
 
@@ -184,7 +185,8 @@ def test_exit_4_when_the_driver_fails(capsys: pytest.CaptureFixture[str], script
         (["--spec-px", "-1"], "--spec-px must be a positive"),
         (["--timeout", "0"], "--timeout must be positive"),
         (["--max-acquisitions", "0"], "--max-acquisitions must be at least 1"),
-        (["--task", "astigmatism"], "aligns task 'focus', not 'astigmatism'"),
+        (["--task", "astigmatism"], "unknown task 'astigmatism'"),
+        (["--task", "stigmation"], "aligns task 'focus', not 'stigmation'"),
         (["--limits", '{"defocus": [60, 70]}'], "starts outside the limits"),
     ],
 )
@@ -388,3 +390,76 @@ def test_the_log_file_is_strict_json_even_for_a_nan_action(tmp_path: Path) -> No
     lines = [json.loads(line, parse_constant=refuse) for line in path.read_text().splitlines()]
     action = next(line for line in lines if line["event"] == "action")
     assert action["action"] == ["nan", -1.0] and action["decision"] == "refused"
+
+
+# --- a column aligned by a sequence of task champions --------------------------------------
+
+
+def _oracle(column: Any, task_name: str) -> DeployablePolicy:
+    """A policy for `task_name` that steps its knobs towards the column's secret optimum."""
+    from alignrl.envs.task import get_task
+
+    task = get_task(task_name)
+    steps = np.array(task.step_sizes(column.knobs))
+
+    def act(history: np.ndarray) -> np.ndarray:
+        error = np.array([column.best[k] - column.setting[k] for k in task.knobs])
+        if np.all(np.abs(error) < 1e-6):
+            return np.append(np.zeros(len(task.knobs)), 1.0)
+        return np.append(np.clip(error / steps, -1, 1), -1.0)
+
+    return DeployablePolicy(f"oracle-{task_name}", act, task, 4, "test")
+
+
+def _misaligned_column() -> Any:
+    from fake_drivers import FiveKnobColumn
+
+    column = FiveKnobColumn()
+    column.reset(4)
+    return column
+
+
+def test_a_sequence_of_task_champions_aligns_the_column_through_the_shield() -> None:
+    from alignrl.deploy.shield import MemoryAudit, resolve_limits
+    from alignrl.envs.task import get_task
+
+    column = _misaligned_column()
+    audit = MemoryAudit()
+    sequence = [_oracle(column, name) for name in ("aperture", "focus", "stigmation")]
+    result = align(sequence, column, resolve_limits(column.knobs), audit, task=get_task("column"))
+    assert result.outcome == "aligned", result.reason
+    assert result.policy == "oracle-aperture -> oracle-focus -> oracle-stigmation"
+    assert result.final_wobble_px is not None and len(result.final_directional_px) == 4
+    stages = [entry["task"] for entry in audit.entries if entry["event"] == "stage"]
+    assert stages == ["aperture", "focus", "stigmation"]
+    # Every image counted: the aperture stage measures with a wobble (3 per measurement).
+    counted = [e for e in audit.entries if e["event"] == "measure" and e["purpose"] != "final"]
+    wobbles = sum("shift_px" in entry for entry in counted)
+    assert wobbles >= 2  # the aperture stage's first measurement and one after its move
+    assert result.acquisitions == (len(counted) - wobbles) + 2 * wobbles
+
+
+def test_a_sequence_that_skips_the_stigmators_is_not_aligned() -> None:
+    from alignrl.deploy.shield import MemoryAudit, resolve_limits
+    from alignrl.envs.task import get_task
+
+    column = _misaligned_column()
+    sequence = [_oracle(column, name) for name in ("aperture", "focus")]
+    result = align(
+        sequence, column, resolve_limits(column.knobs), MemoryAudit(), task=get_task("column")
+    )
+    assert result.outcome == "not-aligned"
+    assert "final edge width" in result.reason and ">" in result.reason
+
+
+def test_a_sequence_needs_a_task_that_covers_its_policies() -> None:
+    from alignrl.deploy.shield import MemoryAudit, resolve_limits
+    from alignrl.envs.task import get_task
+
+    column = _misaligned_column()
+    limits = resolve_limits(column.knobs)
+    sequence = [_oracle(column, "aperture"), _oracle(column, "focus")]
+    with pytest.raises(ValueError, match="needs the task it is judged on"):
+        align(sequence, column, limits, MemoryAudit())
+    with pytest.raises(ValueError, match="which task 'stigmation' does not align"):
+        align(sequence, column, limits, MemoryAudit(), task=get_task("stigmation"))

@@ -402,3 +402,13 @@ def test_analytic_mode_agrees_with_the_image_path(
     assert figures["width_within_5pct"] > within_share
     assert abs(figures["dir_median_rel"]) < 0.05 and figures["dir_median_abs_rel"] < 0.1
     assert figures["wobble_median_error_px"] < 0.25
+
+
+def test_a_nominal_reset_leaves_the_stigmators_and_aperture_at_zero() -> None:
+    aligned = make_apparatus("synthetic", {"analytic": True}, seed=5)
+    nominal = make_apparatus("synthetic", {"analytic": True, "reset_state": "nominal"}, seed=5)
+    assert nominal.optimum() == aligned.optimum()  # the same column, not yet corrected
+    assert {k: v for k, v in nominal.read().items() if k != "defocus"} == dict.fromkeys(
+        ("stigmator_x", "stigmator_y", "aperture_x", "aperture_y"), 0.0
+    )
+    assert aligned.read()["stigmator_x"] == aligned.optimum()["stigmator_x"] != 0.0

@@ -50,7 +50,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 import numpy as np
 import yaml
@@ -304,6 +304,11 @@ class SEMConfig(BaseModel):
     acquisition_failure_rate: float = Field(
         0.0, ge=0.0, le=1.0, description="probability that an acquisition fails (driver fault)"
     )
+    reset_state: Literal["aligned", "nominal"] = Field(
+        "aligned",
+        description="where a reset leaves the stigmators and the aperture: at their optimum "
+        "(aligned), or at 0 (nominal: an uncorrected column, as alignrl align meets one)",
+    )
     analytic_calibration: AnalyticModel = Field(
         default_factory=AnalyticModel,
         description="analytic mode's calibration against the image path (readings without images)",
@@ -442,8 +447,9 @@ class SyntheticSEM:
         """New scenario: a new specimen area, optimum, astigmatism and aperture offset.
 
         The defocus goes to its nominal value, the stigmators and the aperture to their
-        optimum. The draws of the focus-only column come first from the scenario's generator,
-        in their old order; the aperture's distance from the axis, drawn since the aperture
+        optimum (`reset_state` "nominal": to 0, an uncorrected column). The draws of the
+        focus-only column come first from the scenario's generator, in their old order; the
+        aperture's distance from the axis, drawn since the aperture
         became a knob, comes from a generator of its own, so the rest is unchanged.
         """
         if seed is None:
@@ -473,8 +479,9 @@ class SyntheticSEM:
         low, high = self.knobs["defocus"]
         self._defocus_v = float(np.clip(cfg.optimum_v, low, high))
         self._direction = 0.0  # sign of the last voltage change, for hysteresis
-        self._stigmator_pct = self._stigmator_optimum_pct.copy()
-        self._aperture_um = self._aperture_offset_um.copy()
+        aligned = cfg.reset_state == "aligned"
+        self._stigmator_pct = self._stigmator_optimum_pct.copy() if aligned else np.zeros(2)
+        self._aperture_um = self._aperture_offset_um.copy() if aligned else np.zeros(2)
         self._last_image = None
 
     def read(self) -> dict[str, float]:

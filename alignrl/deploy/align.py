@@ -27,7 +27,7 @@ import os
 import signal
 import threading
 import time
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -200,11 +200,11 @@ class AlignResult:
 
 
 def _spec_threshold(
-    policy: DeployablePolicy, apparatus: Apparatus, spec_px: float | None, shield: Any
+    task: Task, apparatus: Apparatus, spec_px: float | None, shield: Any
 ) -> float | None:
     """--spec-px, else the task's absolute spec, else its relative rule with the apparatus's
     best_quality() (simulated apparatus); None where none of them is possible."""
-    rule = policy.task.success
+    rule = task.success
     if spec_px is not None:
         return float(spec_px)
     if rule.absolute_px is not None:
@@ -259,11 +259,12 @@ def _run_policy(
 
 
 def align(
-    policy: DeployablePolicy,
+    policy: DeployablePolicy | Sequence[DeployablePolicy],
     apparatus: Apparatus,
     limits: Mapping[str, KnobLimits],
     audit: AuditSink,
     *,
+    task: Task | None = None,
     apparatus_spec: str = "apparatus",
     spec_px: float | None = None,
     dry_run: bool = False,
@@ -275,21 +276,46 @@ def align(
 ) -> AlignResult:
     """Align `apparatus` once with `policy` through the shield (see the module docstring).
 
-    `limits` come from `resolve_limits`. `max_acquisitions` defaults to the task's
-    episode_steps + 1 (everything the policy may ask for); `clock` (monotonic seconds) is the
-    watchdog's and the log's. A policy or task that does not fit the apparatus raises
-    ValueError before anything is written; the driver's failures and the operator's Ctrl-C
-    end in a result, never in an exception.
+    `policy` may be a sequence of policies, run one after the other through the same shield
+    (one watchdog, one audit log): a column aligned by task champions in an operator's order,
+    e.g. aperture, focus, stigmation. The result is judged on `task` (default: the one
+    policy's own task), whose knobs must include every policy's.
+
+    `limits` come from `resolve_limits`. `max_acquisitions` defaults to everything the
+    policies may ask for (each one's episode steps + 1 measurements); `clock` (monotonic
+    seconds) is the watchdog's and the log's. A policy or task that does not fit the
+    apparatus raises ValueError before anything is written; the driver's failures and the
+    operator's Ctrl-C end in a result, never in an exception.
     """
-    task = policy.task
+    policies = [policy] if isinstance(policy, DeployablePolicy) else list(policy)
+    if not policies:
+        raise ValueError("align needs at least one policy")
+    if task is None:
+        if len(policies) > 1:
+            raise ValueError("a sequence of policies needs the task it is judged on (--task)")
+        task = policies[0].task
+    for one in policies:
+        missing = [knob for knob in one.task.knobs if knob not in task.knobs]
+        if missing:
+            raise ValueError(
+                f"policy {one.name!r} moves {', '.join(missing)}, which task {task.name!r} "
+                f"does not align"
+            )
     if spec_px is not None and not (math.isfinite(spec_px) and spec_px > 0):
         raise ValueError(f"--spec-px must be a positive edge width in px, got {spec_px}")
     if max_acquisitions is None:
-        max_acquisitions = (task.episode_steps + 1) * task.acquisitions_per_step
+        max_acquisitions = sum(
+            (one.task.episode_steps + 1) * one.task.acquisitions_per_step for one in policies
+        )
     watchdog = Watchdog(timeout_s, max_acquisitions, clock or time.monotonic)
     shield = ShieldedApparatus(apparatus, limits, audit, watchdog, dry_run)
-    episodes = AlignmentEpisodes([shield], task, policy.history)  # checks the task's knobs
-    _check_policy_shape(policy, episodes)
+    task.check_apparatus(shield.knobs)
+    stages = []
+    for one in policies:
+        episodes = AlignmentEpisodes([shield], one.task, one.history)  # checks the knobs
+        _check_policy_shape(one, episodes)
+        stages.append((one, episodes))
+    names = " -> ".join(one.name for one in policies)
 
     def result(outcome: str, reason: str, **fields: Any) -> AlignResult:
         done = AlignResult(
@@ -306,7 +332,7 @@ def align(
             dry_run=dry_run,
             restored=shield.restored,
             log=log_path,
-            policy=policy.name,
+            policy=names,
             apparatus=apparatus_spec,
             final_directional_px=fields.get("final_directional_px"),
             final_wobble_px=fields.get("final_wobble_px"),
@@ -316,10 +342,11 @@ def align(
 
     shield.log(
         "start",
-        policy=policy.name,
-        policy_source=policy.source,
+        policy=names,
+        policy_source=[one.source for one in policies],
         task=task.name,
-        history=policy.history,
+        stages=[one.task.name for one in policies],
+        history=[one.history for one in policies],
         apparatus=apparatus_spec,
         knobs={name: list(interval) for name, interval in shield.knobs.items()},
         limits={name: knob.as_dict() for name, knob in limits.items()},
@@ -332,8 +359,19 @@ def align(
     threshold: float | None = None
     try:
         shield.begin()
-        threshold = _spec_threshold(policy, apparatus, spec_px, shield)
-        reason = _run_policy(policy, episodes, shield)
+        threshold = _spec_threshold(task, apparatus, spec_px, shield)
+        reasons = []
+        for one, episodes in stages:
+            if len(stages) > 1:
+                shield.log("stage", policy=one.name, task=one.task.name)
+            reasons.append(_run_policy(one, episodes, shield))
+        reason = (
+            "; ".join(reasons)
+            if len(stages) == 1
+            else "; ".join(
+                f"{one.task.name}: {why}" for (one, _), why in zip(stages, reasons, strict=True)
+            )
+        )
         with shield.final_measures():
             final_width, directional, shift = verify_task(shield, task)
     except StartOutsideLimits as error:
