@@ -103,6 +103,9 @@ def start_adaptation(config: ExperimentConfig, source: PolicySource, runs_root: 
         raise ValueError(f"{config.name}: not an adaptation config (no `adaptation:` section)")
     trainer = Trainer.create(config, runs_root)
     trainer.agent.load_state_dict(source.agent.state_dict(replay=False))
+    # The source's optimizer state carries its own step size; the run's config says which
+    # one adaptation uses (by default the source's, copied into the config).
+    trainer.agent.set_learning_rate(config.learner.learning_rate)
     # The zero-shot evaluation, at 0 env steps: on record in metrics/evaluations.csv, and the
     # source is best.pt until an adapted aligner does strictly better, so the best an
     # adaptation gives back is never worse than what it started from on that session.

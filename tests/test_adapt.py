@@ -247,3 +247,28 @@ def test_a_shielded_evaluation_session_is_the_same_session(
     assert [r.trajectory for r in plain.records] == [r.trajectory for r in shielded.records]
     records = (tmp_path / "a.jsonl").read_text().splitlines()
     assert any(json.loads(line).get("row") is not None for line in records)
+
+
+def test_an_adaptation_steps_at_its_own_learning_rate(small_source: Path, tmp_path: Path) -> None:
+    """The source's optimizer state carries the source's step size; the adaptation config's
+    learning rate (by default the source's) is the one its optimizers use."""
+    source = resolve_source(small_source)
+    config = adaptation_config(
+        source,
+        name="slower",
+        apparatus=LENS,
+        apparatus_args={},
+        steps=50,
+        eval_scenarios=4,
+        envs=4,
+        seed=1,
+        spec_px=SPEC_PX,
+    )
+    assert config.learner.learning_rate == source.agent.spec.hyperparameters["learning_rate"]
+    slower = config.model_copy(
+        update={"learner": config.learner.model_copy(update={"learning_rate": 1e-5})}
+    )
+    trainer = start_adaptation(slower, source, tmp_path)
+    learner = trainer.agent.learner
+    for optimizer in (learner.actor_optimizer, learner.critic_optimizer, learner.alpha_optimizer):
+        assert [group["lr"] for group in optimizer.param_groups] == [1e-5]
