@@ -335,6 +335,18 @@ def cmd_train(args: argparse.Namespace) -> int:
         config = load_experiment(args.config)
         if args.name:
             config = config.model_copy(update={"name": args.name})
+        if config.adaptation is not None:
+            # An adaptation written as a YAML (e.g. a copy of a run's config.yaml with other
+            # settings): it starts from its source, as `alignrl adapt` does, never from scratch.
+            from alignrl.adaptation import start_adaptation
+            from alignrl.deploy.export import ExportError, resolve_source
+
+            try:
+                source = resolve_source(config.adaptation.source)
+            except ExportError as error:
+                raise CommandError(f"{args.config}: adaptation.source: {error}") from None
+            trainer = start_adaptation(config, source, args.runs_dir)
+            return _train_to_the_end(trainer, args, "alignrl adapt --resume")
         trainer = Trainer.create(config, args.runs_dir)
     return _train_to_the_end(trainer, args, "alignrl train --resume")
 

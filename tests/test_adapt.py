@@ -272,3 +272,34 @@ def test_an_adaptation_steps_at_its_own_learning_rate(small_source: Path, tmp_pa
     learner = trainer.agent.learner
     for optimizer in (learner.actor_optimizer, learner.critic_optimizer, learner.alpha_optimizer):
         assert [group["lr"] for group in optimizer.param_groups] == [1e-5]
+
+
+def test_train_given_an_adaptation_config_starts_from_its_source(
+    small_source: Path, tmp_path: Path
+) -> None:
+    """A YAML with an `adaptation:` section (a run's config.yaml with other settings) run by
+    `alignrl train` adapts the source, with its zero-shot session at 0 steps, as `alignrl
+    adapt` does; it never trains an aligner from scratch."""
+    from alignrl.cli import main
+    from alignrl.config import dump_experiment
+
+    source = resolve_source(small_source)
+    config = adaptation_config(
+        source,
+        name="from-yaml",
+        apparatus=LENS,
+        apparatus_args={},
+        steps=40,
+        eval_scenarios=4,
+        envs=4,
+        seed=1,
+        spec_px=SPEC_PX,
+    )
+    path = tmp_path / "from-yaml.yaml"
+    path.write_text(dump_experiment(config))
+    assert main(["train", str(path), "--runs-dir", str(tmp_path / "runs"), "--quiet"]) == 0
+    with (tmp_path / "runs" / "from-yaml" / "metrics" / "evaluations.csv").open() as handle:
+        rows = list(csv.DictReader(handle))
+    assert rows[0]["env_steps"] == "0"  # the source, judged before any adaptation step
+    adapted = load_checkpoint(tmp_path / "runs" / "from-yaml" / "checkpoints" / "last.pt")
+    assert adapted["agent"]["steps_seen"] == source.agent.steps_seen + 40
