@@ -58,11 +58,11 @@ def small_source(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return _pretrained(tmp_path_factory.mktemp("pre"), 200, SMALL)
 
 
-def _adapt(source_dir: Path, root: Path, steps: int, **changes) -> Trainer:
-    source = resolve_source(source_dir)
-    config = adaptation_config(
+def _config(source, steps: int, name: str = "adapted", **changes):
+    """The adaptation config of these tests: the fake lens, 4 envs, an absolute spec."""
+    return adaptation_config(
         source,
-        name="adapted",
+        name=name,
         apparatus=LENS,
         apparatus_args=changes.pop("apparatus_args", {}),
         steps=steps,
@@ -72,7 +72,11 @@ def _adapt(source_dir: Path, root: Path, steps: int, **changes) -> Trainer:
         spec_px=SPEC_PX,
         **changes,
     )
-    return start_adaptation(config, source, root)
+
+
+def _adapt(source_dir: Path, root: Path, steps: int, **changes) -> Trainer:
+    source = resolve_source(source_dir)
+    return start_adaptation(_config(source, steps, **changes), source, root)
 
 
 def test_an_adaptation_starts_from_the_source_with_an_empty_replay(
@@ -253,17 +257,7 @@ def test_an_adaptation_steps_at_its_own_learning_rate(small_source: Path, tmp_pa
     """The source's optimizer state carries the source's step size; the adaptation config's
     learning rate (by default the source's) is the one its optimizers use."""
     source = resolve_source(small_source)
-    config = adaptation_config(
-        source,
-        name="slower",
-        apparatus=LENS,
-        apparatus_args={},
-        steps=50,
-        eval_scenarios=4,
-        envs=4,
-        seed=1,
-        spec_px=SPEC_PX,
-    )
+    config = _config(source, 50, name="slower")
     assert config.learner.learning_rate == source.agent.spec.hyperparameters["learning_rate"]
     slower = config.model_copy(
         update={"learner": config.learner.model_copy(update={"learning_rate": 1e-5})}
@@ -284,17 +278,7 @@ def test_train_given_an_adaptation_config_starts_from_its_source(
     from alignrl.config import dump_experiment
 
     source = resolve_source(small_source)
-    config = adaptation_config(
-        source,
-        name="from-yaml",
-        apparatus=LENS,
-        apparatus_args={},
-        steps=40,
-        eval_scenarios=4,
-        envs=4,
-        seed=1,
-        spec_px=SPEC_PX,
-    )
+    config = _config(source, 40, name="from-yaml")
     path = tmp_path / "from-yaml.yaml"
     path.write_text(dump_experiment(config))
     assert main(["train", str(path), "--runs-dir", str(tmp_path / "runs"), "--quiet"]) == 0
