@@ -114,6 +114,9 @@ class TaskOptions(_Strict):
     bonus_relative: float | None = Field(
         None, gt=1, description="bonus only within this x best width (the spec unchanged)"
     )
+    verify_final: bool | None = Field(
+        None, description="judge final reward and bonus on one more image (as evaluation does)"
+    )
     success_relative: float | None = Field(None, gt=1, description="threshold x best width")
     success_absolute_px: float | None = Field(None, gt=0, description="absolute spec, px")
     directional_relative: float | None = Field(

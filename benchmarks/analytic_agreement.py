@@ -106,13 +106,14 @@ def compare(config: SEMConfig, states: Sequence[State]) -> dict[str, np.ndarray]
     image-path width of each state on a later frame (new noise, same specimen and probe)."""
     modes = {"image": SyntheticSEM(config, seed=0), "analytic": SyntheticSEM(config, 0, True)}
     out: dict[str, list] = {f"{m}_{q}": [] for m in modes for q in ("width", "dir", "wobble")}
-    out.update(true_width=[], image_again_width=[])
+    out.update(true_width=[], expected_width=[], image_again_width=[])
     for state in states:
         for name, sem in modes.items():
             sem.reset(state.seed)
             sem.write(state.settings)
             if name == "image":
                 out["true_width"].append(sem.probe_width_px())
+                out["expected_width"].append(sem.expected_width_px())
             width, directional, wobble = _reading(sem)
             out[f"{name}_width"].append(width)
             out[f"{name}_dir"].append(directional)
@@ -141,6 +142,7 @@ def agreement(result: dict[str, np.ndarray]) -> dict[str, float]:
     relative = _relative(analytic, image)
     dir_rel = _relative(result["analytic_dir"].ravel(), result["image_dir"].ravel())
     repeat = _relative(result["image_again_width"], image)
+    expected = _relative(result["expected_width"], image)
     wobble_error = np.hypot(*(result["analytic_wobble"] - result["image_wobble"]).T)
     figures = {
         "states": float(image.size),
@@ -149,6 +151,11 @@ def agreement(result: dict[str, np.ndarray]) -> dict[str, float]:
         "width_median_rel": float(np.median(relative)),
         "width_median_abs_rel": float(np.median(np.abs(relative))),
         "width_within_5pct": float(np.mean(np.abs(relative) <= CRITERION_REL)),
+        # The model without its drawn scatter (the median reading it predicts) against the
+        # image: how well the analytic mode computes the value an image reads.
+        "expected_median_rel": float(np.median(expected)),
+        "expected_median_abs_rel": float(np.median(np.abs(expected))),
+        "expected_within_5pct": float(np.mean(np.abs(expected) <= CRITERION_REL)),
         "image_repeat_median_abs_rel": float(np.median(np.abs(repeat))),
         "image_repeat_within_5pct": float(np.mean(np.abs(repeat) <= CRITERION_REL)),
         "dir_median_rel": float(np.median(dir_rel)),

@@ -390,3 +390,73 @@ def test_the_misaligner_is_paid_for_what_the_aligner_does_not_recover() -> None:
         misaligner, aligner = _duel_totals(start, "oracle")
         assert misaligner == pytest.approx(0.0, abs=0.05)
         assert misaligner + aligner == pytest.approx(0.0, abs=1e-9)
+
+
+class _ScriptedLens:
+    """A lens whose readings are given in advance, one per acquisition, whatever the setting:
+    the noise of a real reading made to order."""
+
+    def __init__(self, readings: list[float]) -> None:
+        self.knobs = {"defocus": (0.0, 100.0)}
+        self.readings = list(readings)
+        self.voltage, self.measured = 50.0, 0
+
+    def reset(self, seed: int | None = None) -> None:
+        self.voltage = 50.0
+
+    def read(self) -> dict[str, float]:
+        return {"defocus": self.voltage}
+
+    def write(self, values) -> None:
+        self.voltage = float(values["defocus"])
+
+    def measure(self) -> float:
+        self.measured += 1
+        return self.readings.pop(0)
+
+    def image(self) -> None:
+        return None
+
+
+@pytest.mark.parametrize("verify", [False, True])
+def test_verify_final_judges_a_lucky_last_reading_on_one_more_image(verify: bool) -> None:
+    """The aligner stops on a lucky reading (2.5 px, within the 3 px spec); the column in
+    fact reads 4 px there. Without verify_final it is paid on the lucky reading, bonus
+    included; with it, on one more image at the same setting: no bonus, no success."""
+    task = Task(
+        name="verified",
+        knobs=("defocus",),
+        success_bonus=5.0,
+        verify_final=verify,
+        success=SuccessRule(absolute_px=3.0),
+    )
+    lens = _ScriptedLens([10.0, 2.5, 4.0])
+    env = AlignmentEnv(apparatus=lens, task=task, history=4)
+    env.reset(seed=0, options={"misalignment": [0.0]})
+    env.step(np.array([0.2, -1.0]))  # one image: the lucky 2.5 px
+    after_move = env.episodes.history[0].copy()
+    _, reward, terminated, _, info = env.step(np.array([0.0, 1.0]))  # stop
+    assert terminated
+    if verify:
+        assert reward == pytest.approx(10.0 - 4.0) and not info["success"]
+        assert info["acquisitions"] == 3 and lens.measured == 3
+        assert info["edge_width_px"] == 4.0
+    else:
+        assert reward == pytest.approx(10.0 - 2.5 + 5.0) and info["success"]
+        assert info["acquisitions"] == 2 and lens.measured == 2
+    # The verification is no step of the aligner's: its history is the same either way.
+    np.testing.assert_array_equal(env.episodes.history[0], after_move)
+
+
+def test_a_policy_trained_with_verify_final_acts_without_it() -> None:
+    """Evaluation sessions and `align` verify on their own: the policy's episode takes no
+    extra image there (its acquisitions are the policy's alone)."""
+    from alignrl.evaluation.controllers import PolicyController
+    from alignrl.evaluation.session import run_session
+
+    task = dataclasses.replace(LENS_TASK, verify_final=True)
+    assert task.for_acting().verify_final is False and LENS_TASK.for_acting() is LENS_TASK
+    stop_at_once = lambda _history: np.array([0.0, 1.0])  # noqa: E731
+    controller = PolicyController("stopper", stop_at_once, task, 4)
+    result = run_session(controller, make_apparatus(LENS), LENS_TASK, scenarios=3, spec_px=3.0)
+    assert [record.acquisitions for record in result.records] == [1, 1, 1]

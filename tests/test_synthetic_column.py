@@ -368,6 +368,23 @@ def test_analytic_mode_reads_the_probe_exactly_without_its_noise() -> None:
     assert bins[1] < edge_widths_px(covariance, np.radians([45.0]))[0]  # averaged over the bin
 
 
+def test_the_expected_width_is_the_median_analytic_reading() -> None:
+    """expected_width_px is the analytic reading without its scatter: the median reading over
+    scenarios (specimens) and fresh noise; it neither acquires nor moves anything."""
+    config = make_apparatus("synthetic-b").config
+    ratios = []
+    for seed in range(400):
+        sem = SyntheticSEM(config, seed=seed, analytic=True)
+        sem.write({"defocus": sem.optimum()["defocus"] + 6.0})
+        before = (sem.acquisitions, sem.read())
+        expected = sem.expected_width_px()
+        assert (sem.acquisitions, sem.read()) == before
+        assert expected != pytest.approx(sem.probe_width_px(), rel=1e-3)  # calibrated ratio
+        ratios.append(sem.measure() / expected)
+    assert np.median(ratios) == pytest.approx(1.0, abs=0.01)
+    assert 0.01 < np.std(np.log(ratios)) < 0.1  # the scatter is the reading's, not the mean's
+
+
 def test_analytic_mode_fails_like_the_image_path() -> None:
     far = column(seed=12, analytic=True, gain_px_per_v=3.0)
     far.write({"defocus": 0.0})  # a probe ~ 100 px wide
@@ -399,6 +416,7 @@ def test_analytic_mode_agrees_with_the_image_path(
     figures = agreement(compare(config, misaligned_states(config, 30, seed=1)))
     assert abs(figures["width_median_rel"]) < 0.05
     assert figures["width_median_abs_rel"] < typical_rel
+    assert figures["expected_median_abs_rel"] < 0.05  # the model's value, without its scatter
     assert figures["width_within_5pct"] > within_share
     assert abs(figures["dir_median_rel"]) < 0.05 and figures["dir_median_abs_rel"] < 0.1
     assert figures["wobble_median_error_px"] < 0.25

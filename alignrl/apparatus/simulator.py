@@ -7,11 +7,25 @@ focus curve near it. A voltage outside the span a scenario could measure raises
 `NoEdgesError`, exactly as the recorded instrument did.
 
 `query` answers many (scenario, voltage) pairs at once in numpy, for vectorized envs.
+
+Varied replay (`randomize`): each reset also draws how this column differs from the recorded
+one, so that pre-training meets many microscopes instead of one (domain randomization for the
+step to another instrument, seed section 6.3). With the recorded optimum o, a shift s, a
+steepness factor g and a width factor c, the replayed column reads at setting V
+
+    width(V) = c * recorded_width(o + g * (V - o - s))
+
+so its optimum sits at o + s (kept inside the interval), its focus curve is g times as steep
+and every edge width, the best one included, c times as wide. The span where edges are
+measurable shrinks or grows with 1 / g around the new optimum. Without `randomize` the
+recording is replayed as it is, bit for bit.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
@@ -22,6 +36,7 @@ from alignrl.apparatus.scenarios import ScenarioSet, read_scenarios
 
 __all__ = [
     "DEFAULT_SCENARIOS",
+    "Randomization",
     "ScenarioSimulator",
     "default_scenarios_path",
     "measure_batch",
@@ -30,6 +45,8 @@ __all__ = [
 
 DEFAULT_SCENARIOS = Path(__file__).resolve().parent.parent / "data" / "scenarios-synthetic.csv.gz"
 HELD_OUT_EVERY = 10  # split "test" holds out every 10th scenario; "train" keeps the rest
+RANDOMIZE_STREAM = 2  # second entropy word of the randomization generator (see reset)
+OPTIMUM_MARGIN = 0.05  # a shifted optimum stays this share of the interval inside it
 
 Split = Literal["all", "train", "test"]
 
@@ -42,6 +59,73 @@ def default_scenarios_path() -> Path:
             "`make scenarios`"
         )
     return DEFAULT_SCENARIOS
+
+
+@dataclass(frozen=True)
+class Randomization:
+    """How far a varied replay may differ from the recorded column (see the module doc).
+
+    shift_v: the optimum moves uniformly within +-shift_v volts (kept inside the interval).
+    gain: (low, high) of the steepness factor g, drawn log-uniformly.
+    width: (low, high) of the edge-width factor c, drawn log-uniformly.
+    """
+
+    shift_v: float = 0.0
+    gain: tuple[float, float] = (1.0, 1.0)
+    width: tuple[float, float] = (1.0, 1.0)
+
+    @classmethod
+    def parse(cls, value: object) -> Randomization | None:
+        """From the `randomize` argument: None, or a mapping with the fields above. Any
+        other key, a negative shift, a factor range that is not 0 < low <= high: ValueError
+        naming it."""
+        if value is None:
+            return None
+        if not isinstance(value, Mapping):
+            raise ValueError(
+                "randomize must be a mapping such as {shift_v: 20, gain: [0.8, 2], "
+                f"width: [0.9, 1.5]}}, got {value!r}"
+            )
+        unknown = sorted(set(value) - {"shift_v", "gain", "width"})
+        if unknown:
+            raise ValueError(
+                f"randomize: unknown key(s) {', '.join(map(repr, unknown))} "
+                "(it takes: shift_v, gain, width)"
+            )
+        shift = value.get("shift_v", 0.0)
+        if (
+            isinstance(shift, bool)
+            or not isinstance(shift, int | float)
+            or not (math.isfinite(shift) and shift >= 0)
+        ):
+            raise ValueError(f"randomize.shift_v must be a number of volts >= 0, got {shift!r}")
+        ranges = {}
+        for key in ("gain", "width"):
+            pair = value.get(key, (1.0, 1.0))
+            ok = (
+                isinstance(pair, list | tuple)
+                and len(pair) == 2
+                and all(
+                    isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
+                    for x in pair
+                )
+                and 0 < pair[0] <= pair[1]
+            )
+            if not ok:
+                raise ValueError(
+                    f"randomize.{key} must be [low, high] with 0 < low <= high, got {pair!r}"
+                )
+            ranges[key] = (float(pair[0]), float(pair[1]))
+        return cls(float(shift), ranges["gain"], ranges["width"])
+
+    def draw(self, rng: np.random.Generator) -> tuple[float, float, float]:
+        """(shift in V, steepness factor, width factor) for one scenario."""
+        shift = float(rng.uniform(-self.shift_v, self.shift_v)) if self.shift_v else 0.0
+        gain, width = (
+            float(np.exp(rng.uniform(np.log(low), np.log(high))))
+            for low, high in (self.gain, self.width)
+        )
+        return shift, gain, width
 
 
 def split_indices(n_scenarios: int, split: Split) -> np.ndarray:
@@ -99,6 +183,8 @@ class ScenarioSimulator:
     noise: relative std of the re-measurement noise (0.02 = 2 %); 0 replays exactly.
     split: "all", "train" (9 of 10 scenarios) or "test" (the held-out tenth).
     seed: seeds scenario choice and noise when `reset` is called without a seed.
+    randomize: None (replay the recording), or how far each scenario's column may differ
+        from it: {shift_v: V, gain: [low, high], width: [low, high]} (see `Randomization`).
     """
 
     def __init__(
@@ -108,7 +194,11 @@ class ScenarioSimulator:
         split: Split = "all",
         seed: int | None = None,
         scenarios: ScenarioSet | None = None,
+        randomize: Mapping[str, object] | None = None,
     ) -> None:
+        self.randomize = Randomization.parse(randomize)
+        # This scenario's variation: optimum shift (V), steepness and width factors.
+        self._shift, self._gain, self._scale = 0.0, 1.0, 1.0
         if isinstance(noise, bool) or not isinstance(noise, int | float):
             raise ValueError(f"noise must be a number (relative std, e.g. 0.02), got {noise!r}")
         if not 0.0 <= noise < 1.0:
@@ -173,6 +263,34 @@ class ScenarioSimulator:
         self.row = int(self.indices[self._rng.integers(self.indices.size)])
         low, high = self.knobs[self.knob]
         self._voltage = 0.5 * (low + high)
+        if self.randomize is not None:  # its own stream: the noise draws stay as they were
+            variation = np.random.default_rng([seed, RANDOMIZE_STREAM])
+            self._shift, self._gain, self._scale = self.randomize.draw(variation)
+
+    # --- the varied column (identity without `randomize`) --------------------------------
+
+    def _recorded_optimum(self) -> float:
+        return float(self.optima[self.row])
+
+    def _optimum(self) -> float:
+        """This scenario's optimum: the recorded one shifted, kept inside the interval."""
+        recorded = self._recorded_optimum()
+        if self.randomize is None:
+            return recorded
+        low, high = self.knobs[self.knob]
+        margin = OPTIMUM_MARGIN * (high - low)
+        return float(np.clip(recorded + self._shift, low + margin, high - margin))
+
+    def recorded_voltage(self, voltage: float | np.ndarray) -> float | np.ndarray:
+        """Where on the recorded curve a setting of this scenario's column reads."""
+        if self.randomize is None:
+            return voltage
+        recorded = self._recorded_optimum()
+        return recorded + self._gain * (voltage - self._optimum())
+
+    @property
+    def width_factor(self) -> float:
+        return self._scale
 
     def read(self) -> dict[str, float]:
         return {self.knob: self._voltage}
@@ -184,9 +302,19 @@ class ScenarioSimulator:
 
     def measure(self) -> float:
         self.acquisitions += 1
-        width = float(self.query(np.array([self.row]), np.array([self._voltage]))[0])
+        width = (
+            float(
+                self.query(np.array([self.row]), np.array([self.recorded_voltage(self._voltage)]))[
+                    0
+                ]
+            )
+            * self._scale
+        )
         if np.isnan(width):
-            first, last = self._first_v[self.row], self._last_v[self.row]
+            first, last = (
+                self._setting_of(self._first_v[self.row]),
+                self._setting_of(self._last_v[self.row]),
+            )
             raise NoEdgesError(
                 f"no edges: {self._voltage:g} V is outside the span [{first:g}, {last:g}] V "
                 f"where scenario {int(self.scenarios.scenario_ids[self.row])} was measurable"
@@ -199,11 +327,18 @@ class ScenarioSimulator:
         return None
 
     def optimum(self) -> dict[str, float]:
-        return {self.knob: float(self.optima[self.row])}
+        return {self.knob: self._optimum()}
 
     def best_quality(self) -> float:
-        """The recorded curve's edge width (px) at the optimum, without re-measurement noise."""
-        return float(self.query(np.array([self.row]), np.array([self.optima[self.row]]))[0])
+        """The curve's edge width (px) at the optimum, without re-measurement noise."""
+        recorded = self._recorded_optimum()
+        return float(self.query(np.array([self.row]), np.array([recorded]))[0]) * self._scale
+
+    def _setting_of(self, recorded_voltage: float) -> float:
+        """The setting of this scenario's column that reads `recorded_voltage`."""
+        if self.randomize is None:
+            return float(recorded_voltage)
+        return self._optimum() + (recorded_voltage - self._recorded_optimum()) / self._gain
 
     def reset_to(self, row: int, seed: int | None = None) -> None:
         """Start scenario `row` (a row index of the file), e.g. to walk a held-out split."""
@@ -225,7 +360,11 @@ def measure_batch(simulators: list[ScenarioSimulator], voltages: np.ndarray) -> 
     first = simulators[0]
     rows = np.array([simulator.row for simulator in simulators])
     volts = np.asarray(voltages, dtype=np.float64)
-    widths = first.query(rows, volts)
+    if any(simulator.randomize is not None for simulator in simulators):
+        recorded = np.array([s.recorded_voltage(v) for s, v in zip(simulators, volts, strict=True)])
+        widths = first.query(rows, recorded) * np.array([s.width_factor for s in simulators])
+    else:
+        widths = first.query(rows, volts)
     for position, simulator in enumerate(simulators):
         check_write(simulator.knobs, {simulator.knob: volts[position]})
         simulator._voltage = float(volts[position])

@@ -638,6 +638,15 @@ class SyntheticSEM:
         separated rims would give."""
         return mean_edge_width_px(self.probe_covariance_px2())
 
+    def expected_width_px(self) -> float:
+        """The analytic mode's edge-width reading of the present state without its scatter:
+        the power-mean width w_p times the calibrated median ratio of the image path at w_p.
+        What the analytic model predicts an image reads here (the median over specimens and
+        noise); it acquires nothing and draws nothing."""
+        model = self.config.analytic_calibration
+        effective_px = mean_edge_width_px(self.probe_covariance_px2(), model.orientation_power)
+        return float(effective_px * np.interp(effective_px, model.knots_px, model.reading_ratio))
+
     def image_shift_px(self) -> np.ndarray:
         """(dx, dy) px by which the image content moves: k_ap dV d, the tilt of the beam
         through an off-axis aperture times the focus error."""

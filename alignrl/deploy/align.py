@@ -312,7 +312,8 @@ def align(
     task.check_apparatus(shield.knobs)
     stages = []
     for one in policies:
-        episodes = AlignmentEpisodes([shield], one.task, one.history)  # checks the knobs
+        # Checks the knobs; align verifies on its own (final_measures), not the episode.
+        episodes = AlignmentEpisodes([shield], one.task.for_acting(), one.history)
         _check_policy_shape(one, episodes)
         stages.append((one, episodes))
     names = " -> ".join(one.name for one in policies)

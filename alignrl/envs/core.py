@@ -9,7 +9,9 @@ An episode (seed section 4.3):
    maximum step) and a stop component (stop when > 0). A change that would leave the
    interval is clipped at the bound and penalised. Each non-stop step acquires one image.
    The episode ends on stop or after `episode_steps` steps; the final reward
-   scale x (edge width before - edge width after) is paid then.
+   scale x (edge width before - edge width after) is paid then. With the task's
+   `verify_final`, "after" is one more image acquired at the final setting (as an
+   evaluation's verification), not the last reading the aligner stopped at.
 
 Observations are histories of H steps, oldest first, zero-padded at the front; each row is
 FEATURES: [valid, knob settings (k, in [-1, 1]), log(width / ref), measured, last action
@@ -163,23 +165,16 @@ class AlignmentEpisodes:
         for index, seed in zip(indices, seeds, strict=True):
             self.apparatus[index].reset(seed)
             align_others(self.apparatus[index], self.task.knobs)
-        if self._batched:
-            rows = np.array([self.apparatus[i].row for i in indices])  # type: ignore[attr-defined]
-            simulator = self.apparatus[indices[0]]
-            optima = simulator.optima[rows]  # type: ignore[attr-defined]
-            self.aligned[indices, 0] = optima
-            best = simulator.query(rows, optima)  # type: ignore[attr-defined]
-        else:
-            best = np.full(len(indices), np.nan)
-            for position, index in enumerate(indices):
-                unit = self.apparatus[index]
-                optimum = getattr(unit, "optimum", None)
-                # A real column has no secret: its setting as found counts as aligned.
-                reference = optimum() if callable(optimum) else unit.read()
-                self.aligned[index] = [reference[k] for k in self.task.knobs]
-                best_quality = getattr(unit, "best_quality", None)
-                if callable(best_quality):
-                    best[position] = float(best_quality())
+        best = np.full(len(indices), np.nan)
+        for position, index in enumerate(indices):
+            unit = self.apparatus[index]
+            optimum = getattr(unit, "optimum", None)
+            # A real column has no secret: its setting as found counts as aligned.
+            reference = optimum() if callable(optimum) else unit.read()
+            self.aligned[index] = [reference[k] for k in self.task.knobs]
+            best_quality = getattr(unit, "best_quality", None)
+            if callable(best_quality):
+                best[position] = float(best_quality())
         rule = self.task.success
         self.best_width[indices] = best
         self.threshold[indices] = [
@@ -286,6 +281,11 @@ class AlignmentEpisodes:
                 self.info[index].out_of_bounds += int(hit_bound[position])
         done = stop | (self.steps[indices] >= task.episode_steps)
         finished = indices[done]
+        if task.verify_final and finished.size:
+            # One more image where the aligner left the column: the verification an
+            # evaluation takes. Rewards and success are judged on it, not on the reading the
+            # aligner chose to stop at; the history is over, so it records no row.
+            self._measure(finished)
         reward[done] += rewards.final_reward(
             self.cost_before[finished], self.cost[finished], task.final_reward_scale
         )
@@ -324,11 +324,8 @@ class AlignmentEpisodes:
         return self._within(np.arange(self.n), self.threshold)
 
     def secrets(self) -> np.ndarray:
-        """`secret` of every slot, (N, k); one array lookup for batched simulators."""
-        if self._batched:
-            rows = np.array([unit.row for unit in self.apparatus])  # type: ignore[attr-defined]
-            optima = self.apparatus[0].optima[rows][:, None]  # type: ignore[attr-defined]
-            return ((optima - self.setting) / self.span).astype(np.float32)
+        """`secret` of every slot, (N, k): each apparatus's own optimum (a varied replay
+        moves it off the recorded one)."""
         return np.stack([self.secret(index) for index in range(self.n)])
 
     def success(self, index: int) -> bool:

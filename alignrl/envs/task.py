@@ -18,6 +18,7 @@ directional width within `directional_relative` x the best width, the wobble shi
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -77,6 +78,10 @@ class Task:
     # Pay the bonus only within this x the best width (tighter than the spec: a margin against
     # measurement noise); None: wherever the spec is met. Success itself keeps the spec.
     bonus_relative: float | None = None
+    # Judge the final reward and the bonus on one more image at the final setting (as an
+    # evaluation session's verification does), not on the reading the aligner stopped at: a
+    # lucky noisy reading then earns nothing. Costs one acquisition per episode.
+    verify_final: bool = False
     quality_ref_px: float = 2.5  # quality observations are log(width / this)
     no_edges_px: float = 25.0  # a frame without edges counts as this wide in rewards
     measures: tuple[str, ...] = ("width",)  # what each step measures (see the module doc)
@@ -117,6 +122,11 @@ class Task:
                 raise ValueError(f"task {self.name!r}: {name} must be positive")
         if self.wobble_weight < 0:
             raise ValueError(f"task {self.name!r}: wobble_weight is a magnitude (>= 0)")
+
+    def for_acting(self) -> Task:
+        """The task as an evaluation session or `align` runs a policy on it: without the
+        training verification image (`verify_final`), since they verify themselves."""
+        return dataclasses.replace(self, verify_final=False) if self.verify_final else self
 
     @property
     def directional(self) -> bool:

@@ -285,7 +285,7 @@ class PolicyController:
         from alignrl.envs.core import AlignmentEpisodes
 
         self.check_task(task)
-        episodes = AlignmentEpisodes([apparatus], self.task, self.history)
+        episodes = AlignmentEpisodes([apparatus], self.task.for_acting(), self.history)
         slot = np.array([0])
         episodes.adopt(slot)
         while episodes.active[0]:
