@@ -460,3 +460,26 @@ def test_a_policy_trained_with_verify_final_acts_without_it() -> None:
     controller = PolicyController("stopper", stop_at_once, task, 4)
     result = run_session(controller, make_apparatus(LENS), LENS_TASK, scenarios=3, spec_px=3.0)
     assert [record.acquisitions for record in result.records] == [1, 1, 1]
+
+
+@pytest.mark.parametrize(("last", "bonus"), [(2.95, 0.0), (2.8, 5.0)])
+def test_on_a_column_without_a_known_best_the_bonus_margin_keeps_its_ratio_to_the_spec(
+    last: float, bonus: float
+) -> None:
+    """A real column cannot tell its best width: with an absolute spec of 3 px, a bonus margin
+    of 1.10 (against the rule's 1.15) pays the bonus within 3 x 1.10 / 1.15 = 2.87 px only;
+    success is still the spec."""
+    task = Task(
+        name="real",
+        knobs=("defocus",),
+        success_bonus=5.0,
+        bonus_relative=1.10,
+        success=SuccessRule(absolute_px=3.0),
+    )
+    env = AlignmentEnv(apparatus=_ScriptedLens([10.0, last]), task=task, history=4)
+    env.reset(seed=0, options={"misalignment": [0.0]})
+    assert env.episodes.bonus_threshold[0] == pytest.approx(3.0 * 1.10 / 1.15)
+    env.step(np.array([0.2, -1.0]))
+    _, reward, terminated, _, info = env.step(np.array([0.0, 1.0]))
+    assert terminated and info["success"]
+    assert reward == pytest.approx(10.0 - last + bonus)

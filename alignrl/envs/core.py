@@ -185,11 +185,15 @@ class AlignmentEpisodes:
             for limit, value in zip(self.threshold[indices], best, strict=True)
         ]
         tighter = self.task.bonus_relative
-        self.bonus_threshold[indices] = (
-            self.threshold[indices]
-            if tighter is None
-            else np.fmin(self.threshold[indices], tighter * np.asarray(best))  # unknown best: spec
-        )
+        if tighter is None:
+            self.bonus_threshold[indices] = self.threshold[indices]
+        else:
+            # Where the best width is unknown (a real column, an absolute spec), the margin
+            # keeps its ratio to the spec: 1.10 / 1.15 of it for the focus task's defaults.
+            margin = self.threshold[indices] * min(1.0, tighter / rule.relative)
+            self.bonus_threshold[indices] = np.where(
+                np.isfinite(best), np.fmin(self.threshold[indices], tighter * best), margin
+            )
         self.history[indices] = 0.0
         self.steps[indices] = 0
         self.acquisitions[indices] = 0

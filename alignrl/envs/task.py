@@ -76,7 +76,9 @@ class Task:
     acquisition_cost: float = 0.0  # reward -cost per acquisition (the seed: none)
     success_bonus: float = 0.0  # optional shaping, off by default: + this when the spec is met
     # Pay the bonus only within this x the best width (tighter than the spec: a margin against
-    # measurement noise); None: wherever the spec is met. Success itself keeps the spec.
+    # measurement noise); None: wherever the spec is met. Success itself keeps the spec. Where
+    # the best width is unknown (an absolute spec on a real column) the margin keeps its ratio
+    # to the spec: bonus_relative / success.relative x the spec.
     bonus_relative: float | None = None
     # Judge the final reward and the bonus on one more image at the final setting (as an
     # evaluation session's verification does), not on the reading the aligner stopped at: a
