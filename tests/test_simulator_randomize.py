@@ -59,7 +59,7 @@ def test_the_varied_curve_is_the_recorded_one_shifted_stretched_and_scaled(
         sim.reset(seed)
         recorded = float(sim.optima[sim.row])
         optimum = sim.optimum()[KNOB]
-        shift, gain, scale = optimum - recorded, sim._gain, sim.width_factor
+        shift, gain, scale = optimum - recorded, sim.steepness, sim.width_factor
         shifts.append(shift)
         gains.append(gain)
         scales.append(scale)
@@ -87,13 +87,13 @@ def test_variation_is_reproducible_by_seed(focus_rows: Path) -> None:
         first.reset(seed)
         second.reset(seed)
         assert first.optimum() == second.optimum()
-        assert (first._gain, first.width_factor) == (second._gain, second.width_factor)
+        assert (first.steepness, first.width_factor) == (second.steepness, second.width_factor)
         first.write({KNOB: 44.0})
         second.write({KNOB: 44.0})
         assert first.measure() == second.measure()
     first.reset(1)
     second.reset(2)
-    assert first.optimum() != second.optimum() or first._gain != second._gain
+    assert first.optimum() != second.optimum() or first.steepness != second.steepness
 
 
 def test_a_steeper_column_loses_its_edges_closer_to_focus(tmp_path: Path) -> None:

@@ -289,7 +289,13 @@ class ScenarioSimulator:
         return recorded + self._gain * (voltage - self._optimum())
 
     @property
+    def steepness(self) -> float:
+        """This scenario's steepness factor g (1 without `randomize`)."""
+        return self._gain
+
+    @property
     def width_factor(self) -> float:
+        """This scenario's edge-width factor c (1 without `randomize`)."""
         return self._scale
 
     def read(self) -> dict[str, float]:
@@ -302,14 +308,8 @@ class ScenarioSimulator:
 
     def measure(self) -> float:
         self.acquisitions += 1
-        width = (
-            float(
-                self.query(np.array([self.row]), np.array([self.recorded_voltage(self._voltage)]))[
-                    0
-                ]
-            )
-            * self._scale
-        )
+        reading = self.recorded_voltage(self._voltage)
+        width = float(self.query(np.array([self.row]), np.array([reading]))[0]) * self._scale
         if np.isnan(width):
             first, last = (
                 self._setting_of(self._first_v[self.row]),
