@@ -18,11 +18,14 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from alignrl.apparatus.base import Apparatus
 from alignrl.config import AdaptationConfig, ExperimentConfig, LearnerConfig, parse_experiment
 from alignrl.deploy.export import PolicySource
 
 __all__ = [
+    "HindsightSecrets",
     "adaptation_config",
     "start_adaptation",
     "training_shield",
@@ -47,12 +50,15 @@ def adaptation_config(
     spec_px: float | None = None,
     complexity: float = 1.0,
     updates_per_step: float | None = None,
+    critic_warmup_steps: int = 0,
+    hindsight_secrets: bool = True,
 ) -> ExperimentConfig:
     """The run config of an adaptation: the source's learner, task and history (from
     `alignrl.deploy.export.resolve_source`, which `export` and `align` use too) on
     `apparatus`. `spec_px`: an absolute success spec (edge width, px) for an apparatus that
     cannot tell its best edge width, as a real column cannot. `updates_per_step` (SAC): more
-    gradient updates per acquisition than in pre-training."""
+    gradient updates per acquisition than in pre-training. `critic_warmup_steps`: the first
+    env steps in which only the critics learn. `hindsight_secrets`: see HindsightSecrets."""
     spec = source.agent.spec
     learner = LearnerConfig(algorithm=spec.algorithm, **spec.hyperparameters)  # type: ignore[arg-type]
     if updates_per_step is not None:  # images are dear on an instrument, updates are cheap
@@ -88,6 +94,8 @@ def adaptation_config(
             "source_steps": source.agent.steps_seen,
             "limits": limits or {},
             "max_step": max_step or {},
+            "critic_warmup_steps": critic_warmup_steps,
+            "hindsight_secrets": hindsight_secrets,
         },
     }
     return parse_experiment(data, "adaptation")
@@ -132,3 +140,74 @@ def training_shield(config: AdaptationConfig, audit_path: Path) -> Callable[[App
         return TrainingShield(apparatus, limits, audit, unit=str(count))  # type: ignore[return-value]
 
     return wrap
+
+
+Transition = tuple[np.ndarray, ...]  # what Agent.observe takes, secrets included
+
+
+class HindsightSecrets:
+    """The critics' secret on an apparatus that cannot tell its optimum (a real column).
+
+    Pre-trained critics read the secret (optimum - setting, as a fraction of the interval);
+    a column cannot tell them, and zeros in its place tell them "at the optimum" at every
+    step, which misleads the policy they train. Here each episode's transitions on such a
+    slot are held until the episode ends; then the setting of its sharpest reading (the
+    lowest edge width, the verification image included) stands in for the optimum, and the
+    transitions are stored with the secrets it gives. An aligned episode ends within spec of
+    the optimum, so the stand-in is off by less than the spec's width of the focus curve.
+
+    Slots whose apparatus tells its optimum (`blind` false) are not held: their secrets are
+    the true ones. Transitions of an episode still in flight when a run is killed are lost
+    with it, as the episode itself is.
+    """
+
+    def __init__(self, blind: np.ndarray) -> None:
+        self.blind = np.asarray(blind, bool)
+        n = len(self.blind)
+        self._positions: list[list[np.ndarray]] = [[] for _ in range(n)]
+        self._widths: list[list[float]] = [[] for _ in range(n)]
+        self._held: list[list[tuple[np.ndarray, ...]]] = [[] for _ in range(n)]
+
+    def start(self, infos: dict[str, Any]) -> None:
+        """The first reading of every blind slot's episode (the infos of `reset`)."""
+        for slot in np.flatnonzero(self.blind):
+            self._begin(slot, infos["position"][slot], infos["edge_width_px"][slot])
+
+    def step(
+        self,
+        observation: np.ndarray,
+        action: np.ndarray,
+        reward: np.ndarray,
+        next_observation: np.ndarray,
+        done: np.ndarray,
+        infos: dict[str, Any],
+    ) -> list[Transition]:
+        """Hold this step of every blind slot; returns the transitions of the episodes that
+        ended, one batch per episode, with their hindsight secrets. `next_observation` of a
+        finished slot is its episode's last history (not the next episode's first)."""
+        finished = []
+        for slot in np.flatnonzero(self.blind):
+            self._held[slot].append(
+                (observation[slot], action[slot], reward[slot], next_observation[slot], done[slot])
+            )
+            self._positions[slot].append(np.asarray(infos["position"][slot], np.float32))
+            self._widths[slot].append(float(infos["edge_width_px"][slot]))
+            if done[slot]:
+                finished.append(self._release(slot))
+                self._begin(slot, infos["start_position"][slot], infos["start_edge_width_px"][slot])
+        return finished
+
+    def _begin(self, slot: int, position: np.ndarray, width: float) -> None:
+        self._positions[slot] = [np.asarray(position, np.float32)]
+        self._widths[slot] = [float(width)]
+        self._held[slot] = []
+
+    def _release(self, slot: int) -> Transition:
+        positions = np.stack(self._positions[slot])  # (steps + 1, k)
+        widths = np.array(self._widths[slot])
+        best = positions[np.nanargmin(widths)] if np.isfinite(widths).any() else positions[-1]
+        secrets = (best - positions).astype(np.float32)
+        observation, action, reward, next_observation, done = (
+            np.stack(column) for column in zip(*self._held[slot], strict=True)
+        )
+        return (observation, secrets[:-1], action, reward, next_observation, secrets[1:], done)

@@ -437,6 +437,8 @@ def cmd_adapt(args: argparse.Namespace) -> int:
         max_step=_json_object(args.max_step, "--max-step"),
         spec_px=args.spec_px,
         updates_per_step=args.updates_per_step,
+        critic_warmup_steps=args.critic_warmup,
+        hindsight_secrets=args.hindsight_secrets,
     )
     trainer = start_adaptation(config, source, args.runs_dir)
     return _train_to_the_end(trainer, args, "alignrl adapt --resume")
@@ -999,6 +1001,20 @@ def build_parser() -> argparse.ArgumentParser:
         "--updates-per-step",
         type=float,
         help="(SAC) gradient updates per acquisition (default: the source's)",
+    )
+    adapt.add_argument(
+        "--critic-warmup",
+        type=int,
+        default=0,
+        metavar="STEPS",
+        help="env steps in which only the critics learn (the policy acts as the source did)",
+    )
+    adapt.add_argument(
+        "--no-hindsight-secrets",
+        dest="hindsight_secrets",
+        action="store_false",
+        help="on an apparatus that cannot tell its optimum, give the critics zeros for the "
+        "secret instead of the episode's sharpest setting seen in hindsight",
     )
     adapt.add_argument("--resume", metavar="RUN", help="continue an adaptation run")
     adapt.add_argument("--quiet", action="store_true", help="no progress bar")

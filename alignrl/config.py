@@ -236,6 +236,23 @@ class AdaptationConfig(_Strict):
     max_step: dict[str, float] = Field(
         default_factory=dict, description="largest change per write per knob, instrument units"
     )
+    hindsight_secrets: bool = Field(
+        True,
+        description=(
+            "on an apparatus that cannot tell its optimum (a real column), give the critics "
+            "the secret in hindsight: each episode's sharpest reading stands in for the "
+            "optimum (SAC); false: the critics see zeros there"
+        ),
+    )
+    critic_warmup_steps: int = Field(
+        0,
+        ge=0,
+        description=(
+            "env steps at the start in which only the critics learn and the policy acts as "
+            "the source did: on an apparatus that cannot tell the critics its secret "
+            "(a real column) they first learn to judge from the history alone"
+        ),
+    )
 
 
 class ExperimentConfig(RunConfig):

@@ -122,6 +122,7 @@ class Trainer:
                 f"{self.env.single_observation_space.shape}, the aligner expects "
                 f"{self.agent.spec.observation_shape}"
             )
+        self.hindsight = self._hindsight_secrets()
         self.env_steps = self.episodes = 0
         self.best_successes = -1
         self.starts = 0  # how many times this run was started (resumes change env seeds)
@@ -250,6 +251,38 @@ class Trainer:
             )
         return result
 
+    def _hindsight_secrets(self):
+        """HindsightSecrets where an adaptation's SAC critics read a secret that some of its
+        apparatus cannot tell; None otherwise (every transition is stored as it comes)."""
+        from alignrl.adaptation import HindsightSecrets
+
+        adaptation, learner = self.config.adaptation, self.config.learner
+        blind = ~self.env.episodes.secrets_known()
+        wanted = adaptation is not None and adaptation.hindsight_secrets
+        if wanted and learner.algorithm == "sac" and learner.secret_critics and blind.any():
+            return HindsightSecrets(blind)
+        return None
+
+    def _observe(self, observation, secret, action, reward, final, infos, done) -> None:
+        """Store the step's transitions: at once, or (blind slots under hindsight secrets)
+        when their episodes end."""
+        if self.hindsight is None:
+            self.agent.observe(observation, secret, action, reward, final, infos["secret"], done)
+            return
+        seen = ~self.hindsight.blind
+        if seen.any():
+            self.agent.observe(
+                observation[seen], secret[seen], action[seen], reward[seen], final[seen],
+                infos["secret"][seen], done[seen],
+            )  # fmt: skip
+        for transitions in self.hindsight.step(observation, action, reward, final, done, infos):
+            self.agent.observe(*transitions)
+
+    def _policy_learns(self) -> bool:
+        """False during an adaptation's critic warm-up (its first critic_warmup_steps)."""
+        adaptation = self.config.adaptation
+        return adaptation is None or self.env_steps > adaptation.critic_warmup_steps
+
     def run(self, progress: bool = True, log: Callable[[str], None] | None = None) -> SessionResult:
         """Train to the budget; `log` receives a line per evaluation and per checkpoint."""
         from tqdm import tqdm
@@ -258,6 +291,8 @@ class Trainer:
         self.starts += 1
         observation, infos = self.env.reset(seed=cfg.seed * 1000 + self.starts)
         secret = infos["secret"]
+        if self.hindsight is not None:
+            self.hindsight.start(infos)
         returns = np.zeros(self.env.num_envs)
         update_rows: list[dict[str, Any]] = []
         bar = tqdm(
@@ -280,7 +315,7 @@ class Trainer:
                 infos.get("final_observation", next_observation),
                 next_observation,
             )
-            self.agent.observe(observation, secret, action, reward, final, infos["secret"], done)
+            self._observe(observation, secret, action, reward, final, infos, done)
             returns += reward
             episode_rows = []
             for index in np.flatnonzero(done):
@@ -304,13 +339,16 @@ class Trainer:
             observation, secret = next_observation, infos["secret"]
             self.env_steps += self.env.num_envs
             bar.update(self.env.num_envs)
-            for metrics in self.agent.learn(self.rng):
-                # SAC logs every UPDATE_LOG_EVERY-th gradient step; PPO each rollout's update.
-                if self.agent.spec.algorithm == "ppo" or self.agent.updates % UPDATE_LOG_EVERY == 0:
+            learned = self.agent.learn(self.rng, train_policy=self._policy_learns())
+            first = self.agent.updates - len(learned) + 1  # the update number of learned[0]
+            for number, metrics in enumerate(learned, start=first):
+                # SAC logs every UPDATE_LOG_EVERY-th gradient step (counted from the start of
+                # the learner, an adaptation's source included); PPO each rollout's update.
+                if self.agent.spec.algorithm == "ppo" or number % UPDATE_LOG_EVERY == 0:
                     update_rows.append(
                         {
                             "env_steps": self.env_steps,
-                            "updates": self.agent.updates,
+                            "updates": number,
                             **{k: round(v, 6) for k, v in metrics.items()},
                         }
                     )

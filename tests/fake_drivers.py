@@ -77,6 +77,12 @@ class ParabolicLens:
         return {"defocus": self.optimum_v}
 
 
+class BlindLens(ParabolicLens):
+    """The same lens, but it cannot tell its optimum, as a real column cannot."""
+
+    optimum = None  # type: ignore[assignment]
+
+
 class NotAnApparatus:
     """Has knobs but cannot measure: must be refused by make_apparatus."""
 

@@ -7,6 +7,7 @@ simulated, knows its optimum (the critics' secret passes the shield).
 
 from __future__ import annotations
 
+import copy
 import csv
 import json
 from pathlib import Path
@@ -16,7 +17,7 @@ import pytest
 import torch
 import yaml
 
-from alignrl.adaptation import adaptation_config, start_adaptation
+from alignrl.adaptation import HindsightSecrets, adaptation_config, start_adaptation
 from alignrl.agents.agent import Agent
 from alignrl.apparatus import make_apparatus
 from alignrl.checkpoints import load_checkpoint
@@ -25,6 +26,7 @@ from alignrl.config import TaskOptions, parse_experiment
 from alignrl.deploy.export import resolve_source
 from alignrl.deploy.shield import TrainingShield
 from alignrl.envs import AlignmentEnv
+from alignrl.envs.core import feature_layout
 from alignrl.envs.task import get_task
 from alignrl.training import Trainer
 
@@ -63,7 +65,7 @@ def _config(source, steps: int, name: str = "adapted", **changes):
     return adaptation_config(
         source,
         name=name,
-        apparatus=LENS,
+        apparatus=changes.pop("apparatus", LENS),
         apparatus_args=changes.pop("apparatus_args", {}),
         steps=steps,
         eval_scenarios=4,
@@ -112,6 +114,102 @@ def test_an_adaptation_starts_from_the_source_with_an_empty_replay(
     assert trainer.best_successes == max(int(row["successes"]) for row in rows)
     best = load_checkpoint(tmp_path / "adapted" / "checkpoints" / "best.pt")
     assert best["evaluation"]["successes"] == trainer.best_successes >= int(rows[0]["successes"])
+
+
+def test_during_the_critic_warm_up_only_the_critics_learn(
+    small_source: Path, tmp_path: Path
+) -> None:
+    source = resolve_source(small_source)
+    trainer = _adapt(small_source, tmp_path, 120, critic_warmup_steps=120)
+    histories = np.random.default_rng(0).uniform(-1, 1, (16, 8, 7)).astype(np.float32)
+    critic_before = copy.deepcopy(trainer.agent.learner.q1.state_dict())
+    trainer.run(progress=False)
+    assert trainer.agent.updates > 0
+    np.testing.assert_array_equal(trainer.agent.act(histories), source.agent.act(histories))
+    after = trainer.agent.learner.q1.state_dict()
+    assert any(not torch.equal(critic_before[k], v) for k, v in after.items())
+    # Past the warm-up the policy learns too; the setting is on record and survives a resume.
+    config = yaml.safe_load((tmp_path / "adapted" / "config.yaml").read_text())
+    assert config["adaptation"]["critic_warmup_steps"] == 120
+    config["budget"]["env_steps"] = 200
+    (tmp_path / "adapted" / "config.yaml").write_text(yaml.safe_dump(config))
+    resumed = Trainer.resume(tmp_path / "adapted")
+    resumed.run(progress=False)
+    assert not np.array_equal(resumed.agent.act(histories), source.agent.act(histories))
+    # The learner's losses are on record every 50th update, counted on from the source's.
+    with (tmp_path / "adapted" / "metrics" / "updates.csv").open() as handle:
+        numbers = [int(row["updates"]) for row in csv.DictReader(handle)]
+    start = source.agent.updates
+    assert numbers == list(range((start // 50 + 1) * 50, resumed.agent.updates + 1, 50))
+
+
+def test_hindsight_secrets_stand_the_sharpest_reading_in_for_the_optimum() -> None:
+    hindsight = HindsightSecrets(np.array([True, False, True]))
+    position = lambda *values: np.array(values, float)[:, None]  # noqa: E731 (3 slots, 1 knob)
+    hindsight.start({"position": position(0.1, 0.5, 0.9), "edge_width_px": [9.0, 1.0, 8.0]})
+    observations = [np.full((3, 2, 2), float(t)) for t in range(4)]
+    steps = [  # (positions after the step, widths read there, done)
+        (position(0.4, 0.5, 0.7), [4.0, 1.0, 5.0], [False, False, False]),
+        (position(0.6, 0.5, 0.6), [3.0, 1.0, 6.0], [False, False, True]),
+        (position(0.5, 0.5, 0.2), [np.nan, 1.0, 7.0], [True, False, False]),
+    ]
+    released = []
+    for t, (positions, widths, done) in enumerate(steps):
+        infos = {
+            "position": positions,
+            "edge_width_px": np.array(widths),
+            "start_position": position(0.0, 0.0, 0.3),  # the next episodes' first readings
+            "start_edge_width_px": np.array([2.0, 2.0, 9.0]),
+        }
+        actions, rewards = np.full((3, 2), float(t)), np.full(3, float(t))
+        released += hindsight.step(
+            observations[t], actions, rewards, observations[t + 1], np.array(done), infos
+        )
+    assert len(released) == 2  # slot 2 after two steps, then slot 0 after three; not slot 1
+    observation, secret, action, reward, next_observation, next_secret, done = released[0]
+    # Slot 2 visited 0.9 (8 px), 0.7 (5 px), 0.6 (6 px): the sharpest is 0.7.
+    np.testing.assert_allclose(secret[:, 0], [0.7 - 0.9, 0.0], atol=1e-6)
+    np.testing.assert_allclose(next_secret[:, 0], [0.0, 0.7 - 0.6], atol=1e-6)
+    np.testing.assert_array_equal(action[:, 0], [0.0, 1.0])
+    np.testing.assert_array_equal(done, [False, True])
+    np.testing.assert_array_equal(reward, [0.0, 1.0])
+    np.testing.assert_array_equal(observation[:, 0, 0], [0.0, 1.0])
+    np.testing.assert_array_equal(next_observation[:, 0, 0], [1.0, 2.0])
+    # Slot 0: 0.1 (9 px), 0.4 (4), 0.6 (3), 0.5 (a failed reading): the sharpest is 0.6.
+    secret, next_secret = released[1][1][:, 0], released[1][5][:, 0]
+    np.testing.assert_allclose(secret, [0.5, 0.2, 0.0], atol=1e-6)
+    np.testing.assert_allclose(next_secret, [0.2, 0.0, 0.1], atol=1e-6)
+
+
+@pytest.mark.parametrize("hindsight", [True, False])
+def test_on_a_column_without_a_secret_the_critics_learn_from_hindsight(
+    small_source: Path, tmp_path: Path, hindsight: bool
+) -> None:
+    source = resolve_source(small_source)
+    config = _config(source, 160, apparatus="fake_drivers:BlindLens", hindsight_secrets=hindsight)
+    trainer = start_adaptation(config, source, tmp_path)
+    trainer.run(progress=False)
+    replay = trainer.agent.replay
+    size = replay.size
+    secret, next_secret = replay.secret[:size], replay.next_secret[:size]
+    if not hindsight:
+        assert size == trainer.env_steps and not secret.any() and not next_secret.any()
+        return
+    done = replay.done[:size]
+    assert 0 < size < trainer.env_steps  # the episodes in flight are held back
+    assert done[-1] == 1.0  # whole episodes only
+    knobs = feature_layout(1)["knobs"]
+    position = (replay.observation[:size, -1, knobs][:, 0] + 1.0) / 2.0
+    next_position = (replay.next_observation[:size, -1, knobs][:, 0] + 1.0) / 2.0
+    stand_in = position + secret[:, 0]
+    ends = np.flatnonzero(done) + 1
+    for start, end in zip(np.r_[0, ends[:-1]], ends, strict=True):
+        # Every step of an episode points at one and the same stand-in optimum ...
+        np.testing.assert_allclose(stand_in[start:end], stand_in[start], atol=1e-5)
+        np.testing.assert_allclose(
+            next_position[start:end] + next_secret[start:end, 0], stand_in[start], atol=1e-5
+        )
+    assert np.abs(secret).max() > 0.05  # ... and it is not the optimum everywhere
 
 
 def test_every_call_of_an_adaptation_passes_the_shield_and_is_on_record(

@@ -107,6 +107,16 @@ def test_an_update_moves_the_policy_within_the_clip_and_reports_its_metrics() ->
     assert all(changed)
 
 
+def test_a_critic_warm_up_update_moves_the_value_network_only() -> None:
+    ppo = learner()
+    policy = copy.deepcopy(ppo.policy.state_dict())
+    value = copy.deepcopy(ppo.value.state_dict())
+    ppo.update(random_rollout(), np.random.default_rng(0), train_policy=False)
+    for key, tensor in ppo.policy.state_dict().items():
+        assert torch.equal(policy[key], tensor), key
+    assert any(not torch.equal(value[k], v) for k, v in ppo.value.state_dict().items())
+
+
 def test_save_load_gives_identical_actions_and_identical_next_update() -> None:
     ppo = learner(seed=1)
     ppo.update(random_rollout(seed=1), np.random.default_rng(1))

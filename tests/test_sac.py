@@ -65,6 +65,24 @@ def test_an_update_changes_every_network_and_reports_the_seed_losses() -> None:
         assert changed, name
 
 
+def test_a_critic_warm_up_update_leaves_the_policy_and_alpha_as_they_were() -> None:
+    learner = agent()
+    before = copy.deepcopy(learner.state_dict())
+    for seed in range(3):
+        learner.update(random_batch(seed=seed), train_policy=False)
+    after = learner.state_dict()
+    for key in before["actor"]:
+        assert torch.equal(before["actor"][key], after["actor"][key]), key
+    assert torch.equal(before["log_alpha"], after["log_alpha"])
+    for name in ("q1", "q2", "v", "v_target"):
+        assert any(not torch.equal(before[name][k], after[name][k]) for k in before[name]), name
+    learner.update(random_batch(seed=9))  # and the next full update moves the policy again
+    assert any(
+        not torch.equal(before["actor"][k], learner.state_dict()["actor"][k])
+        for k in before["actor"]
+    )
+
+
 def test_each_network_learns_from_its_own_loss_alone() -> None:
     """update() takes one backward pass of all losses together: the gradients must be those
     of the seed's separate passes (critics: their regression losses; policy: the policy loss

@@ -263,10 +263,14 @@ class Agent:
         self.steps_seen += len(reward)
 
     def learn(
-        self, rng: np.random.Generator, new_steps: int | None = None
+        self,
+        rng: np.random.Generator,
+        new_steps: int | None = None,
+        train_policy: bool = True,
     ) -> list[dict[str, float]]:
         """The updates due after the last `observe`: SAC runs updates_per_step per new
-        transition once past learning_starts; PPO updates when its rollout is full."""
+        transition once past learning_starts; PPO updates when its rollout is full.
+        `train_policy=False`: the critics learn, the policy stays as it is."""
         rows = []
         if isinstance(self.learner, SAC):
             schedule = self.spec.schedule()
@@ -275,21 +279,24 @@ class Agent:
                 return rows
             self._update_debt += (new_steps or self.envs) * schedule["updates_per_step"]
             while self._update_debt >= 1.0:
-                rows.append(self.update(self.replay.sample(batch, rng)))
+                rows.append(self.update(self.replay.sample(batch, rng), train_policy=train_policy))
                 self._update_debt -= 1.0
         elif self.rollout.full:
-            rows.append(self.learner.update(self.rollout.rollout(), rng, self.id))
+            rows.append(self.learner.update(self.rollout.rollout(), rng, self.id, train_policy))
             self.rollout.clear()
         return rows
 
-    def update(self, batch: Any, rng: np.random.Generator | None = None) -> dict[str, float]:
+    def update(
+        self, batch: Any, rng: np.random.Generator | None = None, train_policy: bool = True
+    ) -> dict[str, float]:
         """One learner step: a SAC gradient step on a replay Batch, or PPO's epochs on a
         Rollout. A non-finite loss raises NonFiniteError naming this member."""
         if isinstance(self.learner, SAC):
             if not isinstance(batch, Batch):
                 raise TypeError(f"member {self.id}: SAC updates on a replay Batch")
-            return self.learner.update(batch, self.id)
-        return self.learner.update(batch, rng or np.random.default_rng(self.updates), self.id)
+            return self.learner.update(batch, self.id, train_policy)
+        rng = rng or np.random.default_rng(self.updates)
+        return self.learner.update(batch, rng, self.id, train_policy)
 
     def set_learning_rate(self, learning_rate: float) -> None:
         """Every optimizer of the learner steps at `learning_rate` from now on (PBT)."""

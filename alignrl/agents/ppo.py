@@ -270,23 +270,30 @@ class PPO:
         return [secret] if self.config.secret_critics else []
 
     def update(
-        self, rollout: Rollout, rng: np.random.Generator, member: str = "ppo"
+        self,
+        rollout: Rollout,
+        rng: np.random.Generator,
+        member: str = "ppo",
+        train_policy: bool = True,
     ) -> dict[str, float]:
-        """Epochs of clipped-surrogate minibatch steps on one rollout; returns their means."""
+        """Epochs of clipped-surrogate minibatch steps on one rollout; returns their means.
+        `train_policy=False` steps the value network only (a critic warm-up)."""
         snapshot = (
             copy.deepcopy(self.policy.state_dict()),
             copy.deepcopy(self.value.state_dict()),
             copy.deepcopy(self.optimizer.state_dict()),
         )
         try:
-            return self._update(rollout, rng, member)
+            return self._update(rollout, rng, member, train_policy)
         except NonFiniteError:
             self.policy.load_state_dict(snapshot[0])
             self.value.load_state_dict(snapshot[1])
             self.optimizer.load_state_dict(snapshot[2])
             raise
 
-    def _update(self, rollout: Rollout, rng: np.random.Generator, member: str) -> dict[str, float]:
+    def _update(
+        self, rollout: Rollout, rng: np.random.Generator, member: str, train_policy: bool
+    ) -> dict[str, float]:
         cfg = self.config
         observation = self._tensor(rollout.observation)  # (M, H, F)
         secret = self._tensor(rollout.secret)  # (M, k)
@@ -342,7 +349,9 @@ class PPO:
                 self._check_finite(
                     member, {"policy": policy_loss, "value": value_loss, "entropy": entropy}
                 )
-                loss = policy_loss + cfg.value_coef * value_loss - cfg.entropy_coef * entropy
+                loss = cfg.value_coef * value_loss
+                if train_policy:  # otherwise the policy gets no gradient: Adam leaves it be
+                    loss = loss + policy_loss - cfg.entropy_coef * entropy
                 self.optimizer.zero_grad(set_to_none=True)
                 loss.backward()
                 norm = nn.utils.clip_grad_norm_(parameters, cfg.max_grad_norm)

@@ -216,8 +216,12 @@ class SAC:
     def _critic_inputs(self, secret: Tensor) -> list[Tensor]:
         return [secret] if self.config.secret_critics else []
 
-    def update(self, batch: Batch, member: str = "sac") -> dict[str, float]:
-        """One gradient step of every network; returns the losses of seed figs. 6.1.2-6.1.7."""
+    def update(
+        self, batch: Batch, member: str = "sac", train_policy: bool = True
+    ) -> dict[str, float]:
+        """One gradient step of every network; returns the losses of seed figs. 6.1.2-6.1.7.
+        `train_policy=False` steps the critics only: the policy and alpha stay as they are
+        (a critic warm-up, e.g. on an instrument that cannot tell the critics its secret)."""
         cfg = self.config
         tensor = lambda array: torch.as_tensor(array, dtype=torch.float32, device=self.device)  # noqa: E731
         observation, secret = tensor(batch.observation), tensor(batch.secret)
@@ -278,8 +282,9 @@ class SAC:
             if cfg.max_grad_norm / (norm_value + 1e-6) < 1.0:
                 nn.utils.clip_grads_with_norm_(parameters, cfg.max_grad_norm, norm)
         self.critic_optimizer.step()
-        self.actor_optimizer.step()
-        self.alpha_optimizer.step()
+        if train_policy:
+            self.actor_optimizer.step()
+            self.alpha_optimizer.step()
         with torch.no_grad():
             torch._foreach_lerp_(self._v_target_parameters, self._v_parameters, cfg.tau)
         self.updates += 1

@@ -332,6 +332,15 @@ class AlignmentEpisodes:
         moves it off the recorded one)."""
         return np.stack([self.secret(index) for index in range(self.n)])
 
+    def secrets_known(self) -> np.ndarray:
+        """(N,) bool: whether each slot's apparatus can tell its optimum, so that `secret` is
+        the true one (a real column cannot: its secret is zeros)."""
+        return np.array([callable(getattr(unit, "optimum", None)) for unit in self.apparatus])
+
+    def positions(self) -> np.ndarray:
+        """(N, k): each knob's setting as a fraction of its interval (0 low, 1 high)."""
+        return (self.setting - self.low) / self.span
+
     def success(self, index: int) -> bool:
         return bool(self.successes()[index])
 

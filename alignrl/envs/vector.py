@@ -9,9 +9,11 @@ replay one recording are answered in one batched numpy query per step.
 Finished episodes reset at once ("same-step" autoreset): the returned observation of such a
 slot is the first of its next episode, and `infos["final_observation"]` (and
 `final_secret`) hold the last one, with `infos["_final"]` marking the slots that finished.
-`acquisitions`, `edge_width_px`, `threshold_px` and `success` describe the step just taken,
-so for a finished slot they are its episode's final figures; `secret` always goes with the
-returned observation.
+`acquisitions`, `edge_width_px`, `position`, `threshold_px` and `success` describe the step
+just taken, so for a finished slot they are its episode's final figures (`position`: each
+knob's setting as a fraction of its interval); `start_position` and `start_edge_width_px`
+describe the first reading of the episodes that started in their place. `secret` always goes
+with the returned observation.
 """
 
 from __future__ import annotations
@@ -108,6 +110,8 @@ class VectorAlignmentEnv:
             self._start(np.flatnonzero(done))
             # The secret that goes with the returned observations: new episodes' where reset.
             infos["secret"] = self.episodes.secrets()
+            infos["start_position"] = self.episodes.positions()
+            infos["start_edge_width_px"] = self.episodes.width.copy()
         truncated = np.zeros(self.num_envs, bool)
         return self.episodes.history.copy(), reward, done, truncated, infos
 
@@ -117,6 +121,7 @@ class VectorAlignmentEnv:
             "secret": episodes.secrets(),
             "acquisitions": episodes.acquisitions.copy(),
             "edge_width_px": episodes.width.copy(),
+            "position": episodes.positions(),
             "threshold_px": episodes.threshold.copy(),
             "success": episodes.successes() & done,
         }
