@@ -54,6 +54,11 @@ DETECTION_SIGMAS_PX = (1.5, 3.0, 6.0)
 PROFILE_STEP_PX = 0.5  # sampling pitch along the edge normal
 MAX_HALF_WINDOW_PX = 40.0  # widest profile half-length: edges up to sigma ~ 9 px measured exactly
 MIN_EDGE_POINTS = 8  # an edge shorter than this is too noisy to measure
+# Trusted edge points below which a reading is checked at the next coarser scale: in a blurred
+# frame the finest scale can trust one short spurious edge (a 4 px reading of a frame whose
+# edges are 8 px wide, ~2 % of frames 10-15 V out of focus on synthetic-b), where a coarser
+# scale finds the real edges. The scale with the most trusted points gives the reading.
+THIN_SUPPORT_POINTS = 200
 MAX_EDGE_POINTS = 1000  # edge points sampled per image; more only costs time
 # ... and for directional widths, whose four bins share them, twice as many: a bin's scatter
 # drops by ~1.4 at a cost that only frames with over 1000 edge pixels notice.
@@ -596,12 +601,15 @@ def measure_edges(image: np.ndarray) -> EdgeMeasurement:
     """Detect the edges of a grey image and measure their 10-90 % widths in pixels.
 
     Detection starts at a fine smoothing scale and moves to coarser ones only where the fine
-    scale finds no edge it can trust: wide, faint edges stand out of the noise only after
-    more smoothing. Widths are always measured on the raw image.
+    scale finds no edge it can trust, or trusts fewer than THIN_SUPPORT_POINTS edge points:
+    wide, faint edges stand out of the noise only after more smoothing. Of the scales tried,
+    the one whose trusted edges have the most points gives the reading. Widths are always
+    measured on the raw image.
     """
     gray = _as_gray(image, "edge_width")
     noise_std = estimate_noise_std(gray)
     reason = ""
+    best: EdgeMeasurement | None = None
     for index, detection_sigma in enumerate(DETECTION_SIGMAS_PX):
         found = _find_edges(gray, noise_std, detection_sigma)
         if isinstance(found, str):
@@ -612,14 +620,19 @@ def measure_edges(image: np.ndarray) -> EdgeMeasurement:
         if isinstance(edges, str):
             reason = edges
             continue
-        return EdgeMeasurement(
-            width_px=float(np.average(edges.widths, weights=edges.counts)),
-            edge_widths_px=edges.widths,
-            edge_points=edges.counts,
-            noise_std=noise_std,
-            detection_sigma_px=detection_sigma,
-        )
-    raise NoEdgesError(f"no edges: {reason}")
+        if best is None or edges.counts.sum() > best.edge_points.sum():
+            best = EdgeMeasurement(
+                width_px=float(np.average(edges.widths, weights=edges.counts)),
+                edge_widths_px=edges.widths,
+                edge_points=edges.counts,
+                noise_std=noise_std,
+                detection_sigma_px=detection_sigma,
+            )
+        if best.edge_points.sum() >= THIN_SUPPORT_POINTS:
+            break
+    if best is None:
+        raise NoEdgesError(f"no edges: {reason}")
+    return best
 
 
 def edge_width(image: np.ndarray) -> float:
@@ -699,13 +712,15 @@ def directional_widths(image: np.ndarray) -> DirectionalWidths:
     bin), each segment measured like an edge on up to DIRECTIONAL_MAX_EDGE_POINTS points of
     the image, and a bin's width is the point-weighted mean of its segments, referred to the
     bin centre. A bin left empty at the finest detection scale is filled at a coarser one
-    where possible, as `edge_width` does for the whole image. NoEdgesError where the image,
+    where possible, as `edge_width` does for the whole image (whose reading, on thin support,
+    may come from a coarser scale, exactly as `edge_width` chooses). NoEdgesError where the image,
     or one of the bins, has nothing to measure.
     """
     gray = _as_gray(image, "directional_widths")
     noise_std = estimate_noise_std(gray)
     bins = len(ORIENTATION_BINS_DEG)
     overall: float | None = None
+    overall_support = 0  # trusted edge points behind `overall`
     width_sum, points_sum = np.zeros(bins), np.zeros(bins)  # width x points, points
     cos2_sum, sin2_sum = np.zeros(bins), np.zeros(bins)
     reason = ""
@@ -721,8 +736,9 @@ def directional_widths(image: np.ndarray) -> DirectionalWidths:
         if isinstance(edges, str):
             reason = edges
             continue
-        if overall is None:
+        if overall is None or edges.counts.sum() > overall_support:  # as edge_width reads
             overall = float(np.average(edges.widths, weights=edges.counts))
+            overall_support = int(edges.counts.sum())
         # Four bins share the edges: give them more points than the edges were measured on.
         rest = np.setdiff1d(np.arange(found.ys.size), measured, assume_unique=True)
         more = rest[_spread(rest.size, DIRECTIONAL_MAX_EDGE_POINTS - measured.size)]
@@ -740,7 +756,7 @@ def directional_widths(image: np.ndarray) -> DirectionalWidths:
             (sin2_sum, segments.sin2),
         ):
             total += np.bincount(segments.bins[fresh], weights=values[fresh], minlength=bins)
-        if np.all(points_sum > 0):
+        if np.all(points_sum > 0) and overall_support >= THIN_SUPPORT_POINTS:
             break
     if overall is None:
         raise NoEdgesError(f"no edges: {reason}")
