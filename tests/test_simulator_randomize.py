@@ -163,3 +163,25 @@ def test_the_critics_secret_points_at_the_varied_optimum(focus_rows: Path) -> No
         expected = (sim.optimum()[KNOB] - sim.read()[KNOB]) / 100.0
         assert secrets[index, 0] == pytest.approx(expected, abs=1e-6)
         assert sim.optimum()[KNOB] != float(sim.optima[sim.row])  # really moved
+
+
+def test_replays_of_one_recording_give_the_same_secrets_in_one_batch(focus_rows: Path) -> None:
+    first = ScenarioSimulator(focus_rows, randomize=WIDE)
+    sims = [first] + [
+        ScenarioSimulator(scenarios=first.scenarios, randomize=WIDE) for _ in range(3)
+    ]
+    episodes = AlignmentEpisodes(sims, get_task("focus"), history=4)
+    assert episodes._batched  # one numpy query for all four: the path under test
+    episodes.begin(np.arange(4), [21, 22, 23, 24])
+    episodes.misalign(np.arange(4), np.array([[-0.8], [-0.1], [0.3], [0.9]]))
+    episodes.step(np.arange(4), np.array([[0.4, -1.0], [-0.2, -1.0], [0.1, -1.0], [-0.6, -1.0]]))
+    one_by_one = np.stack([episodes.secret(index) for index in range(4)])
+    np.testing.assert_array_equal(episodes.secrets(), one_by_one)
+    for index, sim in enumerate(sims):
+        expected = (sim.optimum()[KNOB] - sim.read()[KNOB]) / 100.0
+        assert one_by_one[index, 0] == pytest.approx(expected, abs=1e-6)
+    # An evaluation session adopts the column as it is: the secret still points at the optimum.
+    episodes.adopt(np.arange(4))
+    np.testing.assert_array_equal(
+        episodes.secrets(), np.stack([episodes.secret(index) for index in range(4)])
+    )

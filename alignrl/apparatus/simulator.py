@@ -229,6 +229,8 @@ class ScenarioSimulator:
         self._width = data.voltages.shape[1]
         self._flat = (data.voltages - self._origin + rows[:, None] * self._stride).ravel()
         self._seeds = np.random.SeedSequence(seed)
+        # Each row's recorded width at its recorded optimum, asked once per episode start.
+        self._best_widths = self.query(rows, self.optima)
         self.acquisitions = 0
         self.reset(seed)
 
@@ -331,8 +333,7 @@ class ScenarioSimulator:
 
     def best_quality(self) -> float:
         """The curve's edge width (px) at the optimum, without re-measurement noise."""
-        recorded = self._recorded_optimum()
-        return float(self.query(np.array([self.row]), np.array([recorded]))[0]) * self._scale
+        return float(self._best_widths[self.row]) * self._scale
 
     def _setting_of(self, recorded_voltage: float) -> float:
         """The setting of this scenario's column that reads `recorded_voltage`."""

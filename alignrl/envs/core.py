@@ -134,6 +134,7 @@ class AlignmentEpisodes:
         self.history = np.zeros((self.n, history, self.n_features), np.float32)
         self.setting = np.zeros((self.n, self.k))  # knob values the env wrote, units
         self.aligned = np.zeros((self.n, self.k))
+        self._optima = np.full((self.n, self.k), np.nan)  # replayed recordings' (fixed) optima
         self.width_before = np.full(self.n, np.nan)
         self.width = np.full(self.n, np.nan)
         self.directional = np.full((self.n, 4 * task.directional), np.nan)  # px per bin
@@ -172,6 +173,7 @@ class AlignmentEpisodes:
             # A real column has no secret: its setting as found counts as aligned.
             reference = optimum() if callable(optimum) else unit.read()
             self.aligned[index] = [reference[k] for k in self.task.knobs]
+            self._optima[index] = self.aligned[index] if callable(optimum) else np.nan
             best_quality = getattr(unit, "best_quality", None)
             if callable(best_quality):
                 best[position] = float(best_quality())
@@ -207,9 +209,14 @@ class AlignmentEpisodes:
         The first image is acquired here; success thresholds are left to the caller."""
         indices = np.asarray(indices, dtype=np.int64)
         for index in indices:
-            settings = self.apparatus[index].read()
+            unit = self.apparatus[index]
+            settings = unit.read()
             self.setting[index] = [settings[k] for k in self.task.knobs]
             self.aligned[index] = self.setting[index]
+            optimum = getattr(unit, "optimum", None)
+            self._optima[index] = (
+                [optimum()[k] for k in self.task.knobs] if callable(optimum) else np.nan
+            )
             self.info[index] = EpisodeInfo()
         self.threshold[indices] = np.nan
         self.directional_threshold[indices] = np.nan
@@ -329,7 +336,10 @@ class AlignmentEpisodes:
 
     def secrets(self) -> np.ndarray:
         """`secret` of every slot, (N, k): each apparatus's own optimum (a varied replay
-        moves it off the recorded one)."""
+        moves it off the recorded one). Replayed recordings keep their optimum through an
+        episode: theirs is read once, at its start."""
+        if self._batched:
+            return ((self._optima - self.setting) / self.span).astype(np.float32)
         return np.stack([self.secret(index) for index in range(self.n)])
 
     def secrets_known(self) -> np.ndarray:
