@@ -24,7 +24,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -40,6 +40,9 @@ from alignrl.envs.task import Task
 from alignrl.evaluation.controllers import PolicyController
 from alignrl.evaluation.session import SessionResult, run_session
 from alignrl.metrics import EPISODE_COLUMNS, EVALUATION_COLUMNS, CsvLog
+
+if TYPE_CHECKING:
+    from alignrl.adaptation import HindsightSecrets
 
 __all__ = ["Trainer", "evaluate_policy", "load_policy", "member_spec"]
 
@@ -251,7 +254,7 @@ class Trainer:
             )
         return result
 
-    def _hindsight_secrets(self):
+    def _hindsight_secrets(self) -> HindsightSecrets | None:
         """HindsightSecrets where an adaptation's SAC critics read a secret that some of its
         apparatus cannot tell; None otherwise (every transition is stored as it comes)."""
         from alignrl.adaptation import HindsightSecrets
