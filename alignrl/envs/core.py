@@ -42,7 +42,7 @@ from alignrl.apparatus.simulator import ScenarioSimulator, measure_batch
 from alignrl.envs import rewards
 from alignrl.envs.task import Task
 
-__all__ = ["AlignmentEpisodes", "EpisodeInfo", "align_others", "feature_layout"]
+__all__ = ["AlignmentEpisodes", "EpisodeInfo", "align_others", "feature_layout", "known_optimum"]
 
 QUALITY_LOG_RANGE = (-2.0, 4.0)  # log(width / ref) is clipped here: 0.35x to 55x the reference
 
@@ -72,6 +72,15 @@ def observation_bounds(n_knobs: int, extras: int = 0) -> tuple[np.ndarray, np.nd
         low[layout[name]] = 0.0
     low[layout["quality"]], high[layout["quality"]] = QUALITY_LOG_RANGE
     return low, high
+
+
+def known_optimum(unit: Apparatus, knobs: Sequence[str]) -> np.ndarray | None:
+    """The optimum of `knobs` where `unit` can tell it (a simulator); None for a real column."""
+    optimum = getattr(unit, "optimum", None)
+    if not callable(optimum):
+        return None
+    best = optimum()
+    return np.array([best[k] for k in knobs], float)
 
 
 def align_others(unit: Apparatus, knobs: Sequence[str]) -> None:
@@ -169,11 +178,12 @@ class AlignmentEpisodes:
         best = np.full(len(indices), np.nan)
         for position, index in enumerate(indices):
             unit = self.apparatus[index]
-            optimum = getattr(unit, "optimum", None)
-            # A real column has no secret: its setting as found counts as aligned.
-            reference = optimum() if callable(optimum) else unit.read()
-            self.aligned[index] = [reference[k] for k in self.task.knobs]
-            self._optima[index] = self.aligned[index] if callable(optimum) else np.nan
+            optimum = known_optimum(unit, self.task.knobs)
+            self._optima[index] = np.nan if optimum is None else optimum
+            if optimum is None:  # a real column has no secret: its setting as found counts
+                found = unit.read()
+                optimum = np.array([found[k] for k in self.task.knobs], float)
+            self.aligned[index] = optimum
             best_quality = getattr(unit, "best_quality", None)
             if callable(best_quality):
                 best[position] = float(best_quality())
@@ -213,10 +223,8 @@ class AlignmentEpisodes:
             settings = unit.read()
             self.setting[index] = [settings[k] for k in self.task.knobs]
             self.aligned[index] = self.setting[index]
-            optimum = getattr(unit, "optimum", None)
-            self._optima[index] = (
-                [optimum()[k] for k in self.task.knobs] if callable(optimum) else np.nan
-            )
+            optimum = known_optimum(unit, self.task.knobs)
+            self._optima[index] = np.nan if optimum is None else optimum
             self.info[index] = EpisodeInfo()
         self.threshold[indices] = np.nan
         self.directional_threshold[indices] = np.nan
@@ -356,12 +364,9 @@ class AlignmentEpisodes:
 
     def secret(self, index: int) -> np.ndarray:
         """(optimum - setting) / interval width per knob: for critics, never for policies."""
-        unit = self.apparatus[index]
-        optimum = getattr(unit, "optimum", None)
-        if not callable(optimum):
+        target = known_optimum(self.apparatus[index], self.task.knobs)
+        if target is None:
             return np.zeros(self.k, np.float32)
-        best = optimum()
-        target = np.array([best[k] for k in self.task.knobs])
         return ((target - self.setting[index]) / self.span[index]).astype(np.float32)
 
     def observation(self, index: int) -> np.ndarray:
