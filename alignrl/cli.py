@@ -311,6 +311,17 @@ def _run_evaluations(
     return results, time.perf_counter() - started
 
 
+def _check_trained_source(spec: str) -> None:
+    """Refuse a --policy that names nothing evaluate can load."""
+    from alignrl.evaluation.baselines import CLASSICAL
+
+    if not (spec.startswith("champion:") or Path(spec).exists()):
+        raise CommandError(
+            f"unknown policy {spec!r}: give a run directory, a checkpoint file, an "
+            f"exported policy directory, champion:NAME, or one of {', '.join(sorted(CLASSICAL))}"
+        )
+
+
 def _trained_controller(spec: str):
     """A trained aligner as a session controller: whatever `align` runs (a run directory, a
     checkpoint, an exported policy, champion:NAME), resolved the same way."""
@@ -447,6 +458,7 @@ def cmd_adapt(args: argparse.Namespace) -> int:
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from alignrl.envs.task import get_task
     from alignrl.evaluation.baselines import CLASSICAL
+    from alignrl.evaluation.controllers import SequenceController
     from alignrl.evaluation.report import (
         plot_trajectories,
         session_notes,
@@ -454,19 +466,34 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         summary_table,
     )
 
-    if args.policy in CLASSICAL:
-        controller = CLASSICAL[args.policy]()
+    policy = args.policy[0]
+    if len(args.policy) > 1:
+        # Stage aligners run in sequence (a column: its aperture stage, then its focus and
+        # stigmators), judged together on --task.
+        classical = [name for name in args.policy if name in CLASSICAL]
+        if classical:
+            raise CommandError(
+                f"{', '.join(classical)}: a classical controller aligns a whole task; only "
+                "trained aligners run in sequence (several --policy)"
+            )
+        if args.task is None:
+            raise CommandError(
+                "several --policy run in sequence and need --task, the task the column is "
+                "judged on (e.g. --task column)"
+            )
+        for name in args.policy:
+            _check_trained_source(name)
+        controller = SequenceController(tuple(_trained_controller(p) for p in args.policy))
+        task = get_task(args.task)
+    elif policy in CLASSICAL:
+        controller = CLASSICAL[policy]()
         task = get_task(args.task or "focus")
-    elif args.policy.startswith("champion:") or Path(args.policy).exists():
-        controller = _trained_controller(args.policy)
+    else:
+        _check_trained_source(policy)
+        controller = _trained_controller(policy)
         # Unless one is named, the built-in task of the aligner's (judged by its rule, as a
         # focus aligner always was, whatever options it trained with).
         task = get_task(args.task or controller.task.name)
-    else:
-        raise CommandError(
-            f"unknown policy {args.policy!r}: give a run directory, a checkpoint file, an "
-            f"exported policy directory, champion:NAME, or one of {', '.join(sorted(CLASSICAL))}"
-        )
     try:
         (result,), _ = _run_evaluations(args, [controller], task)
     except KeyboardInterrupt:
@@ -927,10 +954,13 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument(
         "--policy",
         required=True,
+        action="append",
         help="a run directory (training: its best checkpoint; league: its champion), a "
         "checkpoint file, an exported policy directory, champion:NAME, or a classical "
         "controller: golden-section, hyperbola, hill-climb (focus), stigmator-search "
-        "(stigmation), wobble-center (aperture), column-sequence (column)",
+        "(stigmation), wobble-center (aperture), column-sequence (column); give trained "
+        "aligners several times (with --task) to run them in that order, e.g. the column's "
+        "stages: column-aperture, then column-focus-stigmation, with --task column",
     )
     _add_session_options(evaluate)
     evaluate.add_argument("--plot", help="write the trajectories to this PNG")

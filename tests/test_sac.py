@@ -216,6 +216,12 @@ def test_sac_runs_on_cuda_where_available() -> None:
     assert next(learner.actor.parameters()).is_cuda
     action = learner.act(random_batch().observation, deterministic=True)
     assert action.shape == (16, 2) and np.all(np.abs(action) <= 1)
+    # A critic warm-up update (an adaptation's first steps) leaves the policy as it was.
+    policy = copy.deepcopy(learner.actor.state_dict())
+    critic = copy.deepcopy(learner.q1.state_dict())
+    learner.update(random_batch(), train_policy=False)
+    assert all(torch.equal(policy[k], v) for k, v in learner.actor.state_dict().items())
+    assert not all(torch.equal(critic[k], v) for k, v in learner.q1.state_dict().items())
 
 
 def test_a_shared_critic_encoder_is_one_module_trained_by_all_critics(tmp_path: Path) -> None:

@@ -435,16 +435,18 @@ def _judge(
     shift: np.ndarray | None,
     apparatus: Apparatus,
 ) -> list[tuple[bool, str]]:
-    """Each measure of the task against its spec: (met, in words). A measure the task takes
-    that failed is not met."""
-    verdicts = [
-        (
-            width <= threshold,
-            f"final edge width {width:.3g} px "
-            f"{'<=' if width <= threshold else '>'} spec {threshold:.3g} px",
+    """Each measure the task judges against its spec: (met, in words). A judged measure that
+    failed is not met."""
+    verdicts = []
+    if task.judges("width"):
+        verdicts.append(
+            (
+                width <= threshold,
+                f"final edge width {width:.3g} px "
+                f"{'<=' if width <= threshold else '>'} spec {threshold:.3g} px",
+            )
         )
-    ]
-    if task.directional:
+    if task.judges("directional"):
         best = getattr(apparatus, "best_quality", None)
         limit = task.directional_threshold_px(threshold, float(best()) if callable(best) else None)
         if directional is None:
@@ -458,7 +460,7 @@ def _judge(
                     f"{'<=' if widest <= limit else '>'} spec {limit:.3g} px",
                 )
             )
-    if task.wobble:
+    if task.judges("wobble"):
         if shift is None:
             verdicts.append((False, "the wobble could not be measured"))
         else:

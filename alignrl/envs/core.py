@@ -31,7 +31,7 @@ unmeasured, its width counts as the task's `no_edges_px`, and the episode goes o
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -83,19 +83,42 @@ def known_optimum(unit: Apparatus, knobs: Sequence[str]) -> np.ndarray | None:
     return np.array([best[k] for k in knobs], float)
 
 
-def align_others(unit: Apparatus, knobs: Sequence[str]) -> None:
+CONTEXT_STREAM = 2  # second entropy word of the generator of a task's context offsets
+
+
+def align_others(
+    unit: Apparatus,
+    knobs: Sequence[str],
+    context: Mapping[str, float] | None = None,
+    seed: int | None = None,
+) -> None:
     """Set the knobs of `unit` outside `knobs` (a task's) to their optimum, where the
     apparatus knows it: a stigmation episode starts in focus. Nothing is written where the
-    knobs are there already, or where the apparatus has no secret (a real column)."""
+    knobs are there already, or where the apparatus has no secret (a real column).
+
+    `context` (Task.context) misaligns some of them instead: each named knob goes anywhere
+    within that offset of its optimum (uniformly, inside its interval), drawn from a
+    generator of (`seed`, CONTEXT_STREAM), so that a scenario seed fixes it; knobs the
+    apparatus lacks are passed over."""
     optimum = getattr(unit, "optimum", None)
     if not callable(optimum) or set(unit.knobs) <= set(knobs):
         return
     current = unit.read()
-    others = {
+    targets = {
         knob: float(value)
         for knob, value in optimum().items()
-        if knob in unit.knobs and knob not in knobs and value != current[knob]
+        if knob in unit.knobs and knob not in knobs
     }
+    if context:
+        rng = np.random.default_rng(None if seed is None else [seed, CONTEXT_STREAM])
+        for knob in unit.knobs:  # the apparatus's order: the same draws every time
+            if knob in targets and knob in context:
+                low, high = unit.knobs[knob]
+                centre, offset = targets[knob], float(context[knob])
+                targets[knob] = float(
+                    rng.uniform(max(low, centre - offset), min(high, centre + offset))
+                )
+    others = {knob: value for knob, value in targets.items() if value != current[knob]}
     if others:
         unit.write(others)
 
@@ -135,6 +158,8 @@ class AlignmentEpisodes:
         intervals = np.array([[a.knobs[k] for k in task.knobs] for a in self.apparatus], float)
         self.low, self.high = intervals[..., 0], intervals[..., 1]  # (N, k)
         self.span = self.high - self.low
+        # Per knob, the farthest a start may be from the optimum (Task.start_reach; inf: any).
+        self.start_reach = np.array([task.start_reach.get(k, np.inf) for k in task.knobs])
         self.max_step = np.array([task.step_sizes(a.knobs) for a in self.apparatus])  # (N, k)
         # Scenario simulators sharing one recording answer a whole batch in one numpy query.
         self._batched = all(isinstance(a, ScenarioSimulator) for a in self.apparatus) and (
@@ -174,7 +199,7 @@ class AlignmentEpisodes:
         indices = np.asarray(indices, dtype=np.int64)
         for index, seed in zip(indices, seeds, strict=True):
             self.apparatus[index].reset(seed)
-            align_others(self.apparatus[index], self.task.knobs)
+            align_others(self.apparatus[index], self.task.knobs, self.task.context, seed)
         best = np.full(len(indices), np.nan)
         for position, index in enumerate(indices):
             unit = self.apparatus[index]
@@ -248,7 +273,7 @@ class AlignmentEpisodes:
         """Place the knobs within the complexity window and acquire the first images."""
         indices = np.asarray(indices, dtype=np.int64)
         actions = np.clip(np.asarray(actions, float).reshape(len(indices), self.k), -1.0, 1.0)
-        reach = self.complexity * self.span[indices]
+        reach = np.minimum(self.complexity * self.span[indices], self.start_reach)
         window_low = np.maximum(self.low[indices], self.aligned[indices] - reach)
         window_high = np.minimum(self.high[indices], self.aligned[indices] + reach)
         start = window_low + 0.5 * (actions + 1.0) * (window_high - window_low)

@@ -92,6 +92,20 @@ class Task:
     wobble_spec_px: float = 0.5  # success: wobble shift magnitude at most this, px
     wobble_weight: float = 1.0  # the task's cost counts this many px of width per px of shift
     wobble_ref_px: float = 12.0  # wobble observations are tanh(shift / this)
+    # The knobs outside the task that an episode starts misaligned: knob -> the largest offset
+    # from its optimum (its units), drawn uniformly and kept within its interval. A stage of a
+    # column alignment meets the column as the stages before it leave it (the aperture is
+    # centred with the stigmators anywhere); empty: every other knob at its optimum.
+    context: Mapping[str, float] = field(default_factory=dict)
+    # How far from its optimum each named knob of the task starts at most (its units), where
+    # the stage before leaves it near (the focus after the first column stage): caps the
+    # misalignment window (complexity x interval) in training and the uniform start of an
+    # evaluation session. Knobs not named start anywhere.
+    start_reach: Mapping[str, float] = field(default_factory=dict)
+    # The measures success is judged on; None: every measure the task takes. A stage that
+    # cannot reach the width spec alone (the aperture with the stigmators anywhere) is judged
+    # on what it does fix (the wobble), and the width is left to the stage after it.
+    judged: tuple[str, ...] | None = None
 
     def __post_init__(self) -> None:
         if not self.knobs:
@@ -124,6 +138,32 @@ class Task:
                 raise ValueError(f"task {self.name!r}: {name} must be positive")
         if self.wobble_weight < 0:
             raise ValueError(f"task {self.name!r}: wobble_weight is a magnitude (>= 0)")
+        for knob, offset in self.context.items():
+            if knob in self.knobs:
+                raise ValueError(
+                    f"task {self.name!r}: context names {knob!r}, a knob the task moves itself"
+                )
+            if not (math.isfinite(offset) and offset > 0):
+                raise ValueError(
+                    f"task {self.name!r}: context offset of {knob!r} must be positive, got "
+                    f"{offset}"
+                )
+        for knob, reach in self.start_reach.items():
+            if knob not in self.knobs:
+                raise ValueError(
+                    f"task {self.name!r}: start_reach names {knob!r}, not a task knob"
+                )
+            if not (math.isfinite(reach) and reach > 0):
+                raise ValueError(
+                    f"task {self.name!r}: start_reach of {knob!r} must be positive, got {reach}"
+                )
+        if self.judged is not None:
+            strange = [name for name in self.judged if name not in self.measures]
+            if not self.judged or strange or len(set(self.judged)) != len(self.judged):
+                raise ValueError(
+                    f"task {self.name!r}: judged must name measures the task takes "
+                    f"({', '.join(self.measures)}), each once; got {list(self.judged)}"
+                )
 
     def for_acting(self) -> Task:
         """The task as an evaluation session or `align` runs a policy on it: without the
@@ -137,6 +177,24 @@ class Task:
     @property
     def wobble(self) -> bool:
         return "wobble" in self.measures
+
+    def start_intervals(
+        self, knobs: Mapping[str, tuple[float, float]], optimum: Mapping[str, float] | None
+    ) -> list[tuple[float, float]]:
+        """Where each task knob may start: its interval, narrowed to `start_reach` around the
+        optimum where the apparatus knows it."""
+        intervals = []
+        for knob in self.knobs:
+            low, high = knobs[knob]
+            if optimum is not None and knob in self.start_reach:
+                reach = self.start_reach[knob]
+                low, high = max(low, optimum[knob] - reach), min(high, optimum[knob] + reach)
+            intervals.append((float(low), float(high)))
+        return intervals
+
+    def judges(self, measure: str) -> bool:
+        """Whether success needs `measure` within its spec."""
+        return measure in (self.measures if self.judged is None else self.judged)
 
     @property
     def extra_features(self) -> int:
@@ -163,16 +221,18 @@ class Task:
         directional_threshold_px: np.ndarray | None = None,
         wobble_px: np.ndarray | None = None,
     ) -> np.ndarray:
-        """Whether each measurement meets every spec of the task (batched: widths (n,),
-        directional (n, 4), wobble (n, 2)); NaN anywhere, a failed measure, is not within.
-        The measures the task does not take are not looked at."""
+        """Whether each measurement meets every judged spec of the task (batched: widths
+        (n,), directional (n, 4), wobble (n, 2)); NaN anywhere, a failed measure, is not
+        within. The measures the task does not take or judge are not looked at."""
         width = np.asarray(width_px, dtype=np.float64)
         with np.errstate(invalid="ignore"):
-            within = np.isfinite(width) & (width <= width_threshold_px)
-            if self.directional:
+            within = np.ones(width.shape, bool)
+            if self.judges("width"):
+                within &= np.isfinite(width) & (width <= width_threshold_px)
+            if self.judges("directional"):
                 limit = np.asarray(directional_threshold_px, dtype=np.float64)[..., None]
                 within &= np.all(np.asarray(directional_px) <= limit, axis=-1)
-            if self.wobble:
+            if self.judges("wobble"):
                 shift = np.hypot(*np.moveaxis(np.asarray(wobble_px, dtype=np.float64), -1, 0))
                 within &= shift <= self.wobble_spec_px
         return within
@@ -221,6 +281,35 @@ TASKS: dict[str, Task] = {
         measures=("width", "directional", "wobble"),
         max_step_fraction=0.5,
         episode_steps=20,
+    ),
+    # The column in two stages, each meeting the column as it is at that point (`context`):
+    # 1. the aperture, with the stigmators anywhere in their interval, and the focus, since a
+    #    wobble is only as precise as its frames are sharp (its scatter grows with the probe,
+    #    docs/physics.md; aperture first with the defocus anywhere missed a quarter of the
+    #    columns, all far out of focus). Judged on the wobble alone: the stigmators, and with
+    #    them the width, are the next stage's.
+    "column-focus-aperture": Task(
+        name="column-focus-aperture",
+        knobs=("defocus", "aperture_x", "aperture_y"),
+        measures=("width", "wobble"),
+        max_step={"defocus": 25.0},
+        max_step_fraction=1.0,
+        episode_steps=10,
+        context={"stigmator_x": 200.0, "stigmator_y": 200.0},
+        judged=("wobble",),
+    ),
+    # 2. the focus and the stigmators together, refocusing while stigmating as an operator
+    #    does, with the aperture as stage 1 leaves it (within 2.5 um of the axis: a wobble
+    #    shift within its 0.5 px spec is 2.7 um on `synthetic`), and the focus near (within
+    #    10 V: astigmatism flattens the focus curve of stage 1 over +/- half its line-focus
+    #    separation, up to 6 V on `synthetic`).
+    "column-focus-stigmation": Task(
+        name="column-focus-stigmation",
+        knobs=("defocus", "stigmator_x", "stigmator_y"),
+        measures=("width", "directional"),
+        episode_steps=16,
+        context={"aperture_x": 2.5, "aperture_y": 2.5},
+        start_reach={"defocus": 10.0},
     ),
 }
 

@@ -36,6 +36,7 @@ __all__ = [
     "Controller",
     "CountingApparatus",
     "PolicyController",
+    "SequenceController",
     "TaskController",
     "check_controller",
     "clip_to_knob",
@@ -291,3 +292,40 @@ class PolicyController:
         while episodes.active[0]:
             action = np.asarray(self.act(episodes.observation(0)), dtype=np.float64)
             episodes.step(slot, action[None])
+
+
+@dataclass
+class SequenceController:
+    """Task controllers run one after the other, each on its own task, judged together on the
+    session's: a full column alignment as an operator does it (aperture, focus, stigmators,
+    focus again), by task champions. Each stage moves only its own task's knobs and starts
+    from the column as the stage before left it; all share the session's acquisition budget.
+    """
+
+    stages: tuple[PolicyController, ...]
+
+    def __post_init__(self) -> None:
+        if not self.stages:
+            raise ValueError("a sequence of aligners needs at least one stage")
+
+    @property
+    def name(self) -> str:
+        return " > ".join(stage.name for stage in self.stages)
+
+    def check_task(self, task: Task) -> None:
+        moved = {knob for stage in self.stages for knob in stage.task.knobs}
+        missing = [knob for knob in task.knobs if knob not in moved]
+        if missing:
+            raise ValueError(
+                f"no stage of {self.name!r} moves {', '.join(missing)} of task {task.name!r}"
+            )
+        foreign = sorted(moved.difference(task.knobs))
+        if foreign:
+            raise ValueError(
+                f"{self.name!r} moves {', '.join(foreign)}, outside task {task.name!r}"
+            )
+
+    def align_task(self, apparatus: Apparatus, task: Task, budget: int) -> None:
+        self.check_task(task)
+        for stage in self.stages:
+            stage.align_task(apparatus, stage.task, budget)

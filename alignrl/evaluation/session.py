@@ -402,11 +402,14 @@ def _run_scenario(
 ) -> ScenarioResult:
     """Scenario `index`: reset, knobs outside the task aligned, start, align, verify, judge."""
     reset_seed = reset_scenario(apparatus, seed, index)
-    align_others(apparatus, task.knobs)  # sessions start the way training episodes do
+    # Sessions start the way training episodes do (a stage's context drawn from the scenario).
+    align_others(apparatus, task.knobs, task.context, reset_seed)
     best_quality = _best_quality(apparatus)
     best_px = float(best_quality()) if best_quality is not None else None
     threshold = rule.threshold_px(best_px)  # an absolute spec ignores best_px
-    start = start_setting(seed, index, [apparatus.knobs[knob] for knob in task.knobs])
+    optimum = getattr(apparatus, "optimum", None)
+    known = optimum() if callable(optimum) and task.start_reach else None
+    start = start_setting(seed, index, task.start_intervals(apparatus.knobs, known))
     starts = dict(zip(task.knobs, start.tolist(), strict=True))
     apparatus.write(starts)
     counting = CountingApparatus(apparatus, budget)
@@ -417,7 +420,6 @@ def _run_scenario(
         exhausted = True  # the alignment ends where the knobs are
     settings = apparatus.read()
     final_settings = {knob: float(settings[knob]) for knob in task.knobs}
-    optimum = getattr(apparatus, "optimum", None)
     optima = (
         {knob: float(value) for knob, value in optimum().items() if knob in task.knobs}
         if callable(optimum)
