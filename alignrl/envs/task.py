@@ -145,14 +145,11 @@ class Task:
                 )
             if not (math.isfinite(offset) and offset > 0):
                 raise ValueError(
-                    f"task {self.name!r}: context offset of {knob!r} must be positive, got "
-                    f"{offset}"
+                    f"task {self.name!r}: context offset of {knob!r} must be positive, got {offset}"
                 )
         for knob, reach in self.start_reach.items():
             if knob not in self.knobs:
-                raise ValueError(
-                    f"task {self.name!r}: start_reach names {knob!r}, not a task knob"
-                )
+                raise ValueError(f"task {self.name!r}: start_reach names {knob!r}, not a task knob")
             if not (math.isfinite(reach) and reach > 0):
                 raise ValueError(
                     f"task {self.name!r}: start_reach of {knob!r} must be positive, got {reach}"
@@ -300,16 +297,16 @@ TASKS: dict[str, Task] = {
     ),
     # 2. the focus and the stigmators together, refocusing while stigmating as an operator
     #    does, with the aperture as stage 1 leaves it (within 2.5 um of the axis: a wobble
-    #    shift within its 0.5 px spec is 2.7 um on `synthetic`), and the focus near (within
-    #    10 V: astigmatism flattens the focus curve of stage 1 over +/- half its line-focus
-    #    separation, up to 6 V on `synthetic`).
+    #    shift within its 0.5 px spec is 2.7 um on `synthetic`), and the focus near: within
+    #    40 V (stage 1 is judged on its wobble and focuses on the way; run twice it left the
+    #    defocus within 12 V of focus for 90 % of 200 columns, 36 V at worst).
     "column-focus-stigmation": Task(
         name="column-focus-stigmation",
         knobs=("defocus", "stigmator_x", "stigmator_y"),
         measures=("width", "directional"),
         episode_steps=16,
         context={"aperture_x": 2.5, "aperture_y": 2.5},
-        start_reach={"defocus": 10.0},
+        start_reach={"defocus": 40.0},
     ),
 }
 
