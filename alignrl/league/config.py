@@ -43,11 +43,18 @@ class MemberConfig(_Strict):
     learner: LearnerConfig = Field(
         default_factory=LearnerConfig, description="same keys as a training experiment's learner"
     )
+    init_from: str | None = Field(
+        None,
+        description="(aligners) start from a trained aligner: a training run, a league run "
+        "(its champion) or a member .pt file, relative to the working directory",
+    )
 
     @model_validator(mode="after")
     def _id_is_a_name(self) -> MemberConfig:
         if not self.id.replace("-", "").replace("_", "").replace(".", "").isalnum():
             raise ValueError(f"member id {self.id!r}: use letters, digits, '-', '_' and '.'")
+        if self.init_from is not None and not self.init_from.strip():
+            raise ValueError(f"member {self.id!r}: init_from is empty")
         return self
 
 
@@ -61,6 +68,13 @@ class Roster(_Strict):
         doubles = sorted({i for i in ids if ids.count(i) > 1})
         if doubles:
             raise ValueError(f"member ids must be unique; repeated: {', '.join(doubles)}")
+        if self.team != "aligner":
+            warm = [member.id for member in self.members if member.init_from is not None]
+            if warm:
+                raise ValueError(
+                    f"init_from starts aligners from trained ones; misaligners "
+                    f"{', '.join(warm)} start fresh (remove it)"
+                )
         return self
 
 

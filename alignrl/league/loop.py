@@ -51,7 +51,7 @@ from alignrl.checkpoints import (
     load_checkpoint,
     save_checkpoint,
 )
-from alignrl.config import ConfigError, dump_experiment
+from alignrl.config import ConfigError, LearnerConfig, dump_experiment
 from alignrl.envs import Curriculum, make_apparatus_copies
 from alignrl.envs.alignment import aligner_spaces
 from alignrl.envs.core import AlignmentEpisodes
@@ -109,6 +109,69 @@ def member_spec(member: MemberConfig, team: str, config: LeagueConfig) -> Member
         secret_dim=knobs,
         hyperparameters=member.learner.hyperparameters(),
     )
+
+
+# Learner settings that shape a member's networks: a warm-started aligner keeps its source's.
+NETWORK_KEYS = ("algorithm", "encoder", "encoder_kwargs", "hidden", "secret_critics",
+                "shared_critic_encoder")  # fmt: skip
+
+
+def warm_starts(config: LeagueConfig, aligners: Roster) -> tuple[Roster, dict[str, Agent]]:
+    """The aligner roster with each `init_from` member's learner resolved, and the trained
+    aligners those members start from. A warm-started member takes its source's learner
+    settings; the roster's own `learner:` keys override the rest (a lower learning_rate for
+    fine-tuning, say), and a key that shapes the networks must agree with the source's. Every
+    check is made here, before the run directory is written."""
+    from alignrl.deploy.export import ExportError, resolve_source
+
+    task = config.resolved_task()
+    members, sources = [], {}
+    for member in aligners.members:
+        if member.init_from is None:
+            members.append(member)
+            continue
+        where = f"aligner {member.id!r}: init_from {member.init_from}"
+        try:
+            source = resolve_source(member.init_from)
+        except (ExportError, CheckpointError, OSError, ValueError) as error:
+            raise ConfigError(f"{where}: {error}") from None
+        if tuple(source.task.knobs) != tuple(task.knobs):
+            raise ConfigError(
+                f"{where}: trained on task {source.task.name!r} (knobs "
+                f"{', '.join(source.task.knobs)}), but this league plays {task.name!r} (knobs "
+                f"{', '.join(task.knobs)})"
+            )
+        spec = source.agent.spec
+        inherited = LearnerConfig(algorithm=spec.algorithm, **spec.hyperparameters)
+        given = sorted(member.learner.model_fields_set)
+        clash = [
+            key
+            for key in NETWORK_KEYS
+            if key in given and getattr(member.learner, key) != getattr(inherited, key)
+        ]
+        if clash:
+            theirs = ", ".join(f"{key}={getattr(inherited, key)!r}" for key in clash)
+            raise ConfigError(
+                f"{where}: its networks were built with {theirs}; leave these out of the "
+                f"member's learner: block or give the same values"
+            )
+        learner = inherited.model_copy(update={key: getattr(member.learner, key) for key in given})
+        resolved = MemberConfig(id=member.id, learner=learner, init_from=member.init_from)
+        wanted = member_spec(resolved, "aligner", config)
+        if (wanted.observation_shape, wanted.action_dim, wanted.secret_dim) != (
+            spec.observation_shape,
+            spec.action_dim,
+            spec.secret_dim,
+        ):
+            raise ConfigError(
+                f"{where}: it reads {spec.observation_shape[0]} history rows of "
+                f"{spec.observation_shape[1]} features, this league's aligners "
+                f"{wanted.observation_shape[0]} of {wanted.observation_shape[1]} (history: "
+                f"{config.history})"
+            )
+        members.append(resolved)
+        sources[member.id] = source.agent
+    return aligners.model_copy(update={"members": members}), sources
 
 
 class Backend(Protocol):
@@ -358,6 +421,7 @@ class League:
                 f"{run_dir} already holds a run: continue it with `alignrl league resume "
                 f"{run_dir}` or choose another --name"
             )
+        aligners, sources = warm_starts(config, aligners)
         run_dir.mkdir(parents=True, exist_ok=True)
         for name, roster in (("aligners.yaml", aligners), ("misaligners.yaml", misaligners)):
             atomic_write_text(
@@ -365,7 +429,13 @@ class League:
             )
         atomic_write_text(run_dir / "config.yaml", dump_experiment(config))
         league = cls(config, aligners, misaligners, run_dir)
-        for member_id, agent in league.members.items():  # the untrained starting point
+        for member_id, source in sources.items():
+            # Weights, critics, optimizers, entropy coefficient and steps seen (its random
+            # warm-up is behind it); its replay stays behind: the league fills a new one.
+            agent = league.members[member_id]
+            agent.load_state_dict(source.state_dict(replay=False))
+            agent.set_learning_rate(float(agent.spec.hyperparameters["learning_rate"]))
+        for member_id, agent in league.members.items():  # the starting point
             agent.save(run_dir / "initial" / f"{member_id}.pt")
         return league
 
