@@ -11,6 +11,7 @@ import pytest
 import torch
 import yaml
 
+from alignrl.cli import main
 from alignrl.config import ConfigError
 from alignrl.league.config import load_league
 from alignrl.league.loop import League
@@ -125,6 +126,10 @@ def test_a_warm_started_league_plays_learns_and_resumes_without_its_source(
     resumed = League.resume(tmp_path / "runs" / "warm")
     assert resumed.iteration == league.iteration
     assert resumed.members["tuned"].updates == league.members["tuned"].updates
+    # The report says which aligner started from what.
+    assert main(["leaderboard", str(tmp_path / "runs" / "warm")]) == 0
+    report = (tmp_path / "runs" / "warm" / "report.md").read_text()
+    assert f"tuned from {copy}" in report and "fresh from" not in report
 
 
 @pytest.mark.parametrize(

@@ -15,7 +15,7 @@ from __future__ import annotations
 import html
 import json
 from collections.abc import Collection, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 from urllib.parse import quote
@@ -434,6 +434,7 @@ class LeagueRun:
     teams: dict[str, str]  # every member ever -> its team
     replaced: dict[str, int]  # replaced member -> the iteration it was replaced at
     checkpoint: Checkpoint | None  # None before the first checkpoint
+    warm_starts: dict[str, str] = field(default_factory=dict)  # aligner -> init_from
 
     def why_empty(self, relative: str) -> str:
         """Why the CSV at `relative` has no rows, for the reader."""
@@ -483,9 +484,12 @@ def read_league_run(run_dir: Path) -> LeagueRun:
     lineage = read_metrics_csv(
         metrics / "lineage.csv", LINEAGE_COLUMNS, text_columns=("member", "parent", "replaced")
     )
-    rosters = {
-        team: [member["id"] for member in _read_yaml(run_dir / f"{team}s.yaml")["members"]]
-        for team in TEAMS
+    roster_files = {team: _read_yaml(run_dir / f"{team}s.yaml")["members"] for team in TEAMS}
+    rosters = {team: [member["id"] for member in members] for team, members in roster_files.items()}
+    warm_starts = {
+        member["id"]: str(member["init_from"])
+        for member in roster_files["aligner"]
+        if member.get("init_from")
     }
     return LeagueRun(
         run_dir=run_dir,
@@ -506,6 +510,7 @@ def read_league_run(run_dir: Path) -> LeagueRun:
             for member, iteration in zip(lineage["replaced"], lineage["iteration"], strict=True)
         },
         checkpoint=_last_checkpoint(run_dir),
+        warm_starts=warm_starts,
     )
 
 
@@ -606,21 +611,23 @@ def _summary(run: LeagueRun) -> Facts:
             "; the leaderboard, ratings and payoff table are those of the last checkpoint, "
             f"at iteration {checkpoint.iteration}"
         )
-    return Facts(
-        [
-            ("Run directory", str(run.run_dir)),
-            ("Iterations", progress),
-            (
-                "Env steps",
-                f"{env_steps} image acquisitions in {int(iterations['matches'].sum())} matches",
-            ),
-            (
-                "Wall time",
-                f"{_duration(float(iterations['seconds'].sum()))} playing and learning "
-                "(the iterations' seconds; evaluations and checkpoints not included)",
-            ),
-        ]
-    )
+    facts = [
+        ("Run directory", str(run.run_dir)),
+        ("Iterations", progress),
+        (
+            "Env steps",
+            f"{env_steps} image acquisitions in {int(iterations['matches'].sum())} matches",
+        ),
+        (
+            "Wall time",
+            f"{_duration(float(iterations['seconds'].sum()))} playing and learning "
+            "(the iterations' seconds; evaluations and checkpoints not included)",
+        ),
+    ]
+    if run.warm_starts:
+        started = "; ".join(f"{member} from {source}" for member, source in run.warm_starts.items())
+        facts.append(("Warm starts", f"{started} (init_from: trained before the league)"))
+    return Facts(facts)
 
 
 def _leaderboard_table(rows: Sequence[Mapping[str, Any]]) -> Table:
