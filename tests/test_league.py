@@ -380,3 +380,66 @@ def test_backend_ray_without_ray_says_what_to_install_before_writing_anything(
     with pytest.raises(ConfigError, match=r"backend: ray needs .*pip install 'alignrl\[ray\]'"):
         League.create(config, aligners, misaligners, tmp_path / "runs")
     assert not (tmp_path / "runs").exists()
+
+
+def test_uniform_starts_cover_the_window_and_teach_only_the_aligner(tmp_path: Path) -> None:
+    league = tiny_league(tmp_path)
+    aligner = league.members["a-sac"]
+    starts: list[np.ndarray] = []
+    misalign = league.backend.episodes.misalign
+
+    def spy(slots: np.ndarray, actions: np.ndarray) -> None:
+        starts.append(np.array(actions))
+        misalign(slots, actions)
+
+    league.backend.episodes.misalign = spy
+    league.uniform_starts.rng = np.random.default_rng(0)
+    result = league.backend.play(
+        aligner, league.uniform_starts, 200, np.random.default_rng(1), {aligner.id}
+    )
+    drawn = np.concatenate(starts)
+    assert result.matches == 200 and drawn.shape == (200, 1)
+    # Uniform over the window: mean 0, variance 1/3, both ends reached.
+    assert abs(drawn.mean()) < 0.1 and abs(drawn.var() - 1 / 3) < 0.05
+    assert drawn.min() < -0.9 and drawn.max() > 0.9
+    assert aligner.steps_seen >= 200 and "uniform-starts" not in league.members
+
+
+def test_a_league_with_uniform_starts_rates_only_the_misaligners_matches(
+    tmp_path: Path,
+) -> None:
+    league = tiny_league(
+        tmp_path,
+        pbt={"enabled": False},
+        schedule={
+            "iterations": 6,
+            "matches": 8,
+            "snapshot_every": 100,
+            "evaluate_every": 100,
+            "eval_scenarios": 2,
+            "checkpoint_every": 3,
+            "uniform_starts": 0.5,
+        },
+    )
+    league.run(progress=False)
+    run = tmp_path / "runs" / "tiny"
+    rows = read_csv(run / "metrics" / "iterations.csv")
+    aligner_turns = sum(row["learner"].startswith("a-") for row in rows)
+    assert 0 < aligner_turns < len(rows)
+    # Every iteration played its 8 matches; the aligner's turns rated 4 of them.
+    assert all(int(row["matches"]) == 8 for row in rows)
+    played = sum(
+        league.payoff.matches(a, m)
+        for a in league.pool.candidates("aligner")
+        for m in league.pool.candidates("misaligner")
+    )
+    assert played == 8 * len(rows) - 4 * aligner_turns
+    assert "uniform-starts" not in {
+        p for t in ("aligner", "misaligner") for p in league.pool.candidates(t)
+    }
+    # The aligners' episode logs hold every match they learned from, rated or not (with no
+    # snapshots, an aligner is an active member and learns in every match it plays).
+    episodes = sum(
+        len(read_csv(path)) for path in (run / "metrics" / "members").glob("a-*/episodes.csv")
+    )
+    assert episodes == sum(int(row["matches"]) for row in rows) == 8 * len(rows)

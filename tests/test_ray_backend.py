@@ -92,6 +92,19 @@ def test_frozen_members_play_exactly_as_in_process(league: League) -> None:
         assert aligner.steps_seen == misaligner.steps_seen == 0  # frozen: nothing stored
 
 
+def test_uniform_starts_play_on_the_workers_from_each_matchs_seed(league: League) -> None:
+    aligner = league.members["a-sac"]
+    first, again = (
+        league.backend.play(
+            aligner, league.uniform_starts, 8, np.random.default_rng(7), set(), deterministic=True
+        )
+        for _ in range(2)
+    )
+    assert first.matches == 8 and _sorted_outcomes(first) == _sorted_outcomes(again)
+    assert aligner.steps_seen == 0  # frozen here: nothing stored
+    assert len({round(p, 6) for p in first.payoffs}) > 1  # the starts differ match to match
+
+
 def test_learning_members_learn_centrally_what_the_workers_played(league: League) -> None:
     """The driver learns from the workers' trajectories as if it had recorded the same
     shares itself: the learning members end exactly alike."""

@@ -87,6 +87,13 @@ class ScheduleConfig(_Strict):
     eval_scenarios: int = Field(100, ge=1, description="alignments per evaluation session")
     checkpoint_every: int = Field(10, ge=1, description="iterations between checkpoints")
     keep_best: int = Field(3, ge=1, description="best members kept per team")
+    uniform_starts: float = Field(
+        0.0,
+        ge=0,
+        lt=1,
+        description="share of a learning aligner's matches started uniformly, not by a "
+        "misaligner (unrated)",
+    )
 
 
 class MatchmakingConfig(_Strict):

@@ -60,6 +60,7 @@ from alignrl.league.matches import (
     AlignerSteps,
     Chooser,
     MatchResult,
+    UniformStarts,
     WorkerFailedError,
     play_round,
 )
@@ -337,6 +338,10 @@ class League:
         for team, roster in self.rosters.items():
             for member in roster.members:
                 self._add_member(Agent(member_spec(member, team, config), config.envs))
+        knobs = len(config.resolved_task().knobs)
+        self.uniform_starts = UniformStarts(
+            MemberSpec(UniformStarts.ID, "misaligner", "sac", (1, knobs + 2), knobs, knobs)
+        )
         cc = config.curriculum
         self.curriculum = (
             Curriculum(
@@ -534,25 +539,41 @@ class League:
             if self.curriculum:
                 self.backend.set_complexity(self.curriculum.record(success))
 
+        matches = self.config.schedule.matches
+        # On an aligner's turn a share of its matches start uniformly (unrated): the
+        # misaligners hunt its weaknesses, these keep the starts it is judged on in view.
+        uniform = 0
+        if pairing.learner == pairing.aligner:
+            uniform = min(round(matches * self.config.schedule.uniform_starts), matches - 1)
         result = self.backend.play(
-            aligner, misaligner, self.config.schedule.matches, self.rng, learning, on_episode
+            aligner, misaligner, matches - uniform, self.rng, learning, on_episode
         )
-        self.env_steps += sum(result.acquisitions)  # every image of every match
+        played = result
+        if uniform:
+            self.uniform_starts.rng = np.random.default_rng(int(self.rng.integers(2**62)))
+            extra = self.backend.play(
+                aligner, self.uniform_starts, uniform, self.rng, {pairing.aligner}, on_episode
+            )
+            played = result.joined(extra)
+            self._board().add_scalar("league/uniform_success_rate", extra.success_rate,
+                                     self.iteration + 1)  # fmt: skip
+        self.env_steps += sum(played.acquisitions)  # every image of every match
         self.iteration += 1
+        # Ratings, payoffs and the success rate logged: the rated matches, the misaligner's.
         self.ratings.update(pairing.aligner, pairing.misaligner, result.success_rate)
         self.payoff.add(pairing.aligner, pairing.misaligner, result.matches, sum(result.successes))
         self.ratings.record(self.iteration)
         self.payoff.record(self.iteration)
-        self._log_members(result, aligner, complexity)
+        self._log_members(played, aligner, complexity)
         row = {
             "iteration": self.iteration,
             "env_steps": self.env_steps,
             "aligner": pairing.aligner,
             "misaligner": pairing.misaligner,
             "learner": pairing.learner,
-            "matches": result.matches,
+            "matches": played.matches,
             "success_rate": round(result.success_rate, 4),
-            "mean_acquisitions": round(float(np.mean(result.acquisitions)), 3),
+            "mean_acquisitions": round(float(np.mean(played.acquisitions)), 3),
             "aligner_payoff": round(float(np.mean(result.payoffs)), 4),
             "aligner_rating": round(self.ratings.rating(pairing.aligner), 2),
             "misaligner_rating": round(self.ratings.rating(pairing.misaligner), 2),

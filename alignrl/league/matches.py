@@ -21,10 +21,11 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
-from alignrl.agents.agent import Agent
+from alignrl.agents.agent import Agent, MemberSpec
 from alignrl.envs.core import AlignmentEpisodes
 
 __all__ = [
@@ -34,6 +35,7 @@ __all__ = [
     "MatchResult",
     "MatchTrajectory",
     "Round",
+    "UniformStarts",
     "WorkerFailedError",
     "exploration_generator",
     "learn_from_matches",
@@ -46,6 +48,42 @@ __all__ = [
 # and, where the member is PPO and sampled them itself, their pre-squash sample (else None).
 Choice = tuple[np.ndarray, np.ndarray | None]
 Chooser = Callable[[np.ndarray, np.ndarray], Choice]
+
+
+UNIFORM_FORMAT = "alignrl-uniform-starts-1"
+
+
+class UniformStarts:
+    """A stand-in misaligner that starts each match uniformly over the complexity window,
+    as the held-out sessions do. It never learns and is never rated: the league plays it
+    against learning aligners for a share of their matches (`schedule.uniform_starts`) so
+    that, hunting their weaknesses with the real misaligners, they keep the coverage of the
+    starts they are judged on. Its randomness is `rng` in this process (set by the league
+    before each batch) and each match's own generator on a Ray worker."""
+
+    ID = "uniform-starts"
+
+    def __init__(self, spec: MemberSpec) -> None:
+        self.spec = spec
+        self.rng = np.random.default_rng(0)
+
+    @property
+    def id(self) -> str:
+        return self.spec.id
+
+    def act(self, inputs: np.ndarray, deterministic: bool = True) -> np.ndarray:
+        return self.rng.uniform(-1.0, 1.0, (len(inputs), self.spec.action_dim))
+
+    def explore(self, inputs: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        return rng.uniform(-1.0, 1.0, (len(inputs), self.spec.action_dim))
+
+    def explore_rows(
+        self, inputs: np.ndarray, generators: Sequence[np.random.Generator], warm_up: bool = True
+    ) -> tuple[np.ndarray, None]:
+        return np.stack([g.uniform(-1.0, 1.0, self.spec.action_dim) for g in generators]), None
+
+    def policy_state(self) -> dict[str, Any]:
+        return {"format": UNIFORM_FORMAT, "spec": self.spec.to_dict()}
 
 
 class WorkerFailedError(RuntimeError):
@@ -79,6 +117,16 @@ class MatchResult:
     @property
     def success_rate(self) -> float:
         return float(np.mean(self.successes)) if self.successes else 0.0
+
+    def joined(self, other: MatchResult) -> MatchResult:
+        """These matches, then `other`'s (a batch played in two parts)."""
+        both = MatchResult()
+        for name in ("successes", "acquisitions", "returns", "payoffs"):
+            setattr(both, name, getattr(self, name) + getattr(other, name))
+        both.updates = {m: list(rows) for m, rows in self.updates.items()}
+        for member, rows in other.updates.items():
+            both.updates.setdefault(member, []).extend(rows)
+        return both
 
 
 @dataclass

@@ -51,15 +51,17 @@ from ray.exceptions import (
     RayTaskError,
 )
 
-from alignrl.agents.agent import Agent
+from alignrl.agents.agent import Agent, MemberSpec
 from alignrl.envs import make_apparatus_copies
 from alignrl.envs.core import AlignmentEpisodes
 from alignrl.envs.task import Task
 from alignrl.league.config import LeagueConfig, RayWorkerConfig
 from alignrl.league.matches import (
+    UNIFORM_FORMAT,
     AlignerSteps,
     MatchResult,
     MatchTrajectory,
+    UniformStarts,
     WorkerFailedError,
     learn_from_matches,
     record_matches,
@@ -135,7 +137,9 @@ class MatchWorker:
             self.episodes, seeds, aligner, misaligner, learns, deterministic, self._count
         )
 
-    def _member(self, team: str, state: dict[str, Any]) -> Agent:
+    def _member(self, team: str, state: dict[str, Any]) -> Agent | UniformStarts:
+        if state.get("format") == UNIFORM_FORMAT:
+            return UniformStarts(MemberSpec.from_dict(state["spec"]))
         agent = self._members.get(team)
         if agent is None or agent.spec.to_dict() != state["spec"]:
             agent = self._members[team] = Agent.from_policy_state(state)
