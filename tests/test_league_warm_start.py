@@ -188,3 +188,41 @@ def test_misaligners_cannot_be_warm_started(tmp_path: Path, source: Path) -> Non
     (tmp_path / "misaligners.yaml").write_text(yaml.safe_dump(roster))
     with pytest.raises(ConfigError, match="misaligners m start fresh"):
         load_league(path)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_a_cpu_trained_aligner_warm_starts_a_league_on_cuda(tmp_path: Path, source: Path) -> None:
+    from alignrl.agents.agent import Agent
+
+    trained = Agent.load(source)
+    path = _warm_league(
+        tmp_path,
+        {"id": "tuned", "init_from": str(source)},
+        device="cuda",
+        pbt={"enabled": False},
+        schedule={
+            "iterations": 8,
+            "matches": 16,
+            "snapshot_every": 100,
+            "evaluate_every": 2,
+            "eval_scenarios": 4,
+            "checkpoint_every": 2,
+            "uniform_starts": 0.5,
+        },
+    )
+    config, aligners, misaligners = load_league(path)
+    league = League.create(config, aligners, misaligners, tmp_path / "runs")
+    tuned = league.members["tuned"]
+    assert all(p.device.type == "cuda" for p in tuned.learner.actor.parameters())
+    observations = (
+        np.random.default_rng(3)
+        .uniform(-1, 1, (16, *tuned.spec.observation_shape))
+        .astype(np.float32)
+    )
+    np.testing.assert_allclose(
+        _actions(tuned, observations), _actions(trained, observations), atol=1e-5
+    )
+    before = tuned.updates
+    league.run(progress=False)
+    assert tuned.updates > before
+    assert (tmp_path / "runs" / "warm" / "best" / "best.json").exists()

@@ -337,7 +337,8 @@ class League:
         )
         for team, roster in self.rosters.items():
             for member in roster.members:
-                self._add_member(Agent(member_spec(member, team, config), config.envs))
+                agent = Agent(member_spec(member, team, config), config.envs, config.device)
+                self._add_member(agent)
         knobs = len(config.resolved_task().knobs)
         self.uniform_starts = UniformStarts(
             MemberSpec(UniformStarts.ID, "misaligner", "sac", (1, knobs + 2), knobs, knobs)
