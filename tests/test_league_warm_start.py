@@ -226,3 +226,43 @@ def test_a_cpu_trained_aligner_warm_starts_a_league_on_cuda(tmp_path: Path, sour
     league.run(progress=False)
     assert tuned.updates > before
     assert (tmp_path / "runs" / "warm" / "best" / "best.json").exists()
+
+
+def test_init_replay_brings_the_sources_experience_along(tmp_path: Path, source: Path) -> None:
+    # A member file (its replay left out) cannot give one.
+    entry = {"id": "tuned", "init_from": str(source), "init_replay": True}
+    config, aligners, misaligners = load_league(_warm_league(tmp_path, entry, "empty"))
+    with pytest.raises(ConfigError, match="init_replay needs a SAC checkpoint"):
+        League.create(config, aligners, misaligners, tmp_path / "runs")
+    assert not (tmp_path / "runs").exists()
+    # A training run's checkpoints/last.pt holds it, and gives all of it.
+    from alignrl.config import parse_experiment
+    from alignrl.training import Trainer
+
+    settings = {
+        "name": "trained",
+        "envs": 2,
+        "learner": {**SMALL_SAC, "buffer_size": 2000},
+        "budget": {"env_steps": 80, "eval_every": 80, "eval_scenarios": 2, "checkpoint_every": 40},
+    }
+    trainer = Trainer.create(parse_experiment(settings), tmp_path / "trained-runs")
+    trainer.run(progress=False)
+    last = tmp_path / "trained-runs" / "trained" / "checkpoints" / "last.pt"
+    entry = {"id": "tuned", "init_from": str(last), "init_replay": True}
+    config, aligners, misaligners = load_league(_warm_league(tmp_path, entry, "kept"))
+    league = League.create(config, aligners, misaligners, tmp_path / "runs")
+    tuned, size = league.members["tuned"], trainer.agent.replay.size
+    assert size >= 80 and tuned.replay.size == size
+    np.testing.assert_array_equal(tuned.replay.action[:size], trainer.agent.replay.action[:size])
+    assert league.members["fresh"].replay.size == 0
+    # A smaller buffer than the source's cannot hold it.
+    entry = {**entry, "learner": {"buffer_size": 1000}}
+    config, aligners, misaligners = load_league(_warm_league(tmp_path, entry, "small"))
+    with pytest.raises(ConfigError, match="replay of capacity 2000"):
+        League.create(config, aligners, misaligners, tmp_path / "runs2")
+
+
+def test_init_replay_needs_init_from(tmp_path: Path) -> None:
+    entry = {"id": "tuned", "init_replay": True}
+    with pytest.raises(ConfigError, match="init_replay needs init_from"):
+        load_league(_warm_league(tmp_path, entry))

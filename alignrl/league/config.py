@@ -49,12 +49,20 @@ class MemberConfig(_Strict):
         "(its champion) or a member .pt file, relative to the working directory",
     )
 
+    init_replay: bool = Field(
+        False,
+        description="(with init_from, SAC) also take the source's replay: init_from must then "
+        "name a checkpoint that holds one (a training run's checkpoints/last.pt)",
+    )
+
     @model_validator(mode="after")
     def _id_is_a_name(self) -> MemberConfig:
         if not self.id.replace("-", "").replace("_", "").replace(".", "").isalnum():
             raise ValueError(f"member id {self.id!r}: use letters, digits, '-', '_' and '.'")
         if self.init_from is not None and not self.init_from.strip():
             raise ValueError(f"member {self.id!r}: init_from is empty")
+        if self.init_replay and self.init_from is None:
+            raise ValueError(f"member {self.id!r}: init_replay needs init_from")
         return self
 
 

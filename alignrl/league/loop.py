@@ -117,12 +117,15 @@ NETWORK_KEYS = ("algorithm", "encoder", "encoder_kwargs", "hidden", "secret_crit
                 "shared_critic_encoder")  # fmt: skip
 
 
-def warm_starts(config: LeagueConfig, aligners: Roster) -> tuple[Roster, dict[str, Agent]]:
+def warm_starts(
+    config: LeagueConfig, aligners: Roster
+) -> tuple[Roster, dict[str, tuple[Agent, bool]]]:
     """The aligner roster with each `init_from` member's learner resolved, and the trained
-    aligners those members start from. A warm-started member takes its source's learner
-    settings; the roster's own `learner:` keys override the rest (a lower learning_rate for
-    fine-tuning, say), and a key that shapes the networks must agree with the source's. Every
-    check is made here, before the run directory is written."""
+    aligners those members start from (with whether their replay comes along). A
+    warm-started member takes its source's learner settings; the roster's own `learner:`
+    keys override the rest (a lower learning_rate for fine-tuning, say), and a key that
+    shapes the networks must agree with the source's. Every check is made here, before the
+    run directory is written."""
     from alignrl.deploy.export import ExportError, resolve_source
 
     task = config.resolved_task()
@@ -157,7 +160,26 @@ def warm_starts(config: LeagueConfig, aligners: Roster) -> tuple[Roster, dict[st
                 f"member's learner: block or give the same values"
             )
         learner = inherited.model_copy(update={key: getattr(member.learner, key) for key in given})
-        resolved = MemberConfig(id=member.id, learner=learner, init_from=member.init_from)
+        if member.init_replay and (
+            spec.algorithm != "sac"
+            or getattr(source.agent, "replay", None) is None
+            or source.agent.replay.size == 0
+        ):
+            raise ConfigError(
+                f"{where}: init_replay needs a SAC checkpoint that holds its replay (a "
+                f"training run's checkpoints/last.pt); this one has none"
+            )
+        if member.init_replay and learner.buffer_size != inherited.buffer_size:
+            raise ConfigError(
+                f"{where}: init_replay keeps the source's replay of capacity "
+                f"{inherited.buffer_size}; leave buffer_size out or give the same"
+            )
+        resolved = MemberConfig(
+            id=member.id,
+            learner=learner,
+            init_from=member.init_from,
+            init_replay=member.init_replay,
+        )
         wanted = member_spec(resolved, "aligner", config)
         if (wanted.observation_shape, wanted.action_dim, wanted.secret_dim) != (
             spec.observation_shape,
@@ -171,7 +193,7 @@ def warm_starts(config: LeagueConfig, aligners: Roster) -> tuple[Roster, dict[st
                 f"{config.history})"
             )
         members.append(resolved)
-        sources[member.id] = source.agent
+        sources[member.id] = (source.agent, member.init_replay)
     return aligners.model_copy(update={"members": members}), sources
 
 
@@ -435,11 +457,12 @@ class League:
             )
         atomic_write_text(run_dir / "config.yaml", dump_experiment(config))
         league = cls(config, aligners, misaligners, run_dir)
-        for member_id, source in sources.items():
+        for member_id, (source, replay) in sources.items():
             # Weights, critics, optimizers, entropy coefficient and steps seen (its random
-            # warm-up is behind it); its replay stays behind: the league fills a new one.
+            # warm-up is behind it); its replay only with init_replay, else the league fills
+            # a new one.
             agent = league.members[member_id]
-            agent.load_state_dict(source.state_dict(replay=False))
+            agent.load_state_dict(source.state_dict(replay=replay))
             agent.set_learning_rate(float(agent.spec.hyperparameters["learning_rate"]))
         for member_id, agent in league.members.items():  # the starting point
             agent.save(run_dir / "initial" / f"{member_id}.pt")
