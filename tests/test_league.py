@@ -94,6 +94,19 @@ def read_csv(path: Path) -> list[dict[str, str]]:
         return list(csv.DictReader(handle))
 
 
+def quiet_schedule(**changes: object) -> dict:
+    """A short schedule without snapshots or evaluations to speak of; `changes` on top."""
+    return {
+        "iterations": 6,
+        "matches": 8,
+        "snapshot_every": 100,
+        "evaluate_every": 100,
+        "eval_scenarios": 2,
+        "checkpoint_every": 3,
+        **changes,
+    }
+
+
 def tiny_league(tmp_path: Path, **changes: object) -> League:
     config, aligners, misaligners = load_league(write_league(tmp_path, **changes))
     return League.create(config, aligners, misaligners, tmp_path / "runs")
@@ -156,14 +169,7 @@ def test_elo_bookkeeping_is_zero_sum_over_a_run(tmp_path: Path) -> None:
     league = tiny_league(
         tmp_path,
         pbt={"enabled": False},
-        schedule={
-            "iterations": 6,
-            "matches": 8,
-            "snapshot_every": 100,
-            "evaluate_every": 100,
-            "eval_scenarios": 2,
-            "checkpoint_every": 3,
-        },
+        schedule=quiet_schedule(),
     )
     league.run(progress=False)
     players = [p for team in ("aligner", "misaligner") for p in league.pool.candidates(team)]
@@ -411,15 +417,7 @@ def test_a_league_with_uniform_starts_rates_only_the_misaligners_matches(
     league = tiny_league(
         tmp_path,
         pbt={"enabled": False},
-        schedule={
-            "iterations": 6,
-            "matches": 8,
-            "snapshot_every": 100,
-            "evaluate_every": 100,
-            "eval_scenarios": 2,
-            "checkpoint_every": 3,
-            "uniform_starts": 0.5,
-        },
+        schedule=quiet_schedule(uniform_starts=0.5),
     )
     league.run(progress=False)
     run = tmp_path / "runs" / "tiny"

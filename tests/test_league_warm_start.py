@@ -15,7 +15,7 @@ from alignrl.cli import main
 from alignrl.config import ConfigError
 from alignrl.league.config import load_league
 from alignrl.league.loop import League
-from tests.test_league import SMALL_SAC, write_league
+from tests.test_league import SMALL_SAC, quiet_schedule, write_league
 
 
 def _source(tmp_path: Path) -> Path:
@@ -26,14 +26,7 @@ def _source(tmp_path: Path) -> Path:
             tmp_path / "source",
             name="source",
             pbt={"enabled": False},
-            schedule={
-                "iterations": 4,
-                "matches": 8,
-                "snapshot_every": 100,
-                "evaluate_every": 100,
-                "eval_scenarios": 2,
-                "checkpoint_every": 4,
-            },
+            schedule=quiet_schedule(iterations=4, checkpoint_every=4),
         )
     )
     league = League.create(config, aligners, misaligners, tmp_path / "source" / "runs")
@@ -200,15 +193,14 @@ def test_a_cpu_trained_aligner_warm_starts_a_league_on_cuda(tmp_path: Path, sour
         {"id": "tuned", "init_from": str(source)},
         device="cuda",
         pbt={"enabled": False},
-        schedule={
-            "iterations": 8,
-            "matches": 16,
-            "snapshot_every": 100,
-            "evaluate_every": 2,
-            "eval_scenarios": 4,
-            "checkpoint_every": 2,
-            "uniform_starts": 0.5,
-        },
+        schedule=quiet_schedule(
+            iterations=8,
+            matches=16,
+            evaluate_every=2,
+            eval_scenarios=4,
+            checkpoint_every=2,
+            uniform_starts=0.5,
+        ),
     )
     config, aligners, misaligners = load_league(path)
     league = League.create(config, aligners, misaligners, tmp_path / "runs")
