@@ -137,8 +137,10 @@ def test_kill_minus_nine_then_resume_loses_nothing(tmp_path: Path) -> None:
 
 
 def test_a_learner_lifts_its_success_rate_well_above_an_untrained_one(tmp_path: Path) -> None:
-    """A tiny focus problem (starts within 20 % of the interval around focus): a few
-    thousand env steps take SAC from chance to aligning most held-out scenarios."""
+    """A tiny focus problem (starts within 20 % of the interval around focus): 8000 env
+    steps take SAC from chance to aligning most held-out scenarios. (At 3000 steps it aligned
+    20+ of 40 on one CPU and 17 on another, whose float kernels differ: 29-34 of 40 at 8000
+    steps, seeds 3-5, on the slower of the two.)"""
     settings = {
         "name": "learns",
         "seed": 3,
@@ -151,7 +153,7 @@ def test_a_learner_lifts_its_success_rate_well_above_an_untrained_one(tmp_path: 
             "learning_starts": 300,
             "random_steps": 600,
         },
-        "budget": {"env_steps": 3000, "eval_every": 3000, "eval_scenarios": 40},
+        "budget": {"env_steps": 8000, "eval_every": 8000, "eval_scenarios": 40},
     }
     trainer = Trainer.create(parse_experiment(settings), tmp_path / "runs")
     evaluate = lambda: _near_focus_successes(trainer, 40)  # noqa: E731
