@@ -26,8 +26,15 @@ PASS = 18
 
 
 def test_the_champions_are_shipped() -> None:
-    # One per task alignrl ships a trained aligner for (docs/deploy.md, docs/benchmarks.md).
-    assert {path.name for path in CHAMPIONS} >= {"focus-v1", "stigmation-v1", "aperture-v1"}
+    # One per task alignrl ships a trained aligner for, and the column's two stages
+    # (docs/deploy.md, docs/benchmarks.md).
+    assert {path.name for path in CHAMPIONS} >= {
+        "focus-v1",
+        "stigmation-v1",
+        "aperture-v1",
+        "column-focus-aperture-v1",
+        "column-focus-stigmation-v1",
+    }
 
 
 @pytest.mark.parametrize("folder", CHAMPIONS, ids=lambda path: path.name)

@@ -25,7 +25,7 @@ to correlate.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 
 import cv2
 import numpy as np
@@ -602,13 +602,7 @@ def _without_outliers(segments: _Segments) -> _Segments:
         keep[members] = (ratio < SEGMENT_OUTLIER_RATIO) & (ratio > 1.0 / SEGMENT_OUTLIER_RATIO)
     if keep.all():
         return segments
-    return _Segments(
-        bins=segments.bins[keep],
-        widths=segments.widths[keep],
-        counts=segments.counts[keep],
-        cos2=segments.cos2[keep],
-        sin2=segments.sin2[keep],
-    )
+    return replace(segments, **{f.name: getattr(segments, f.name)[keep] for f in fields(segments)})
 
 
 def _orientations(
