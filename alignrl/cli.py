@@ -450,6 +450,7 @@ def cmd_adapt(args: argparse.Namespace) -> int:
         updates_per_step=args.updates_per_step,
         critic_warmup_steps=args.critic_warmup,
         hindsight_secrets=args.hindsight_secrets,
+        hindsight_optimum=args.hindsight_optimum,
     )
     trainer = start_adaptation(config, source, args.runs_dir)
     return _train_to_the_end(trainer, args, "alignrl adapt --resume")
@@ -1044,7 +1045,14 @@ def build_parser() -> argparse.ArgumentParser:
         dest="hindsight_secrets",
         action="store_false",
         help="on an apparatus that cannot tell its optimum, give the critics zeros for the "
-        "secret instead of the episode's sharpest setting seen in hindsight",
+        "secret instead of the episode's optimum found in hindsight",
+    )
+    adapt.add_argument(
+        "--hindsight-optimum",
+        choices=("posterior", "sharpest"),
+        default="posterior",
+        help="what stands in for an episode's optimum in hindsight: a draw from its posterior "
+        "on the column's pooled focus curve (default), or the setting of its sharpest reading",
     )
     adapt.add_argument("--resume", metavar="RUN", help="continue an adaptation run")
     adapt.add_argument("--quiet", action="store_true", help="no progress bar")

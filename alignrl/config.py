@@ -240,8 +240,16 @@ class AdaptationConfig(_Strict):
         True,
         description=(
             "on an apparatus that cannot tell its optimum (a real column), give the critics "
-            "the secret in hindsight: each episode's sharpest reading stands in for the "
-            "optimum (SAC); false: the critics see zeros there"
+            "the secret in hindsight, found from each episode's readings (SAC); false: the "
+            "critics see zeros there"
+        ),
+    )
+    hindsight_optimum: Literal["posterior", "sharpest"] = Field(
+        "posterior",
+        description=(
+            "what stands in for an episode's optimum in hindsight: a draw from its posterior "
+            "given its readings and the column's focus curve pooled over earlier episodes "
+            "(one knob; else sharpest), or the setting of its sharpest reading"
         ),
     )
     critic_warmup_steps: int = Field(

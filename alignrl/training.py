@@ -263,7 +263,7 @@ class Trainer:
         blind = ~self.env.episodes.secrets_known()
         wanted = adaptation is not None and adaptation.hindsight_secrets
         if wanted and learner.algorithm == "sac" and learner.secret_critics and blind.any():
-            return HindsightSecrets(blind)
+            return HindsightSecrets(blind, adaptation.hindsight_optimum, seed=self.config.seed)
         return None
 
     def _observe(self, observation, secret, action, reward, final, infos, done) -> None:
