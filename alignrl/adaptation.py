@@ -165,7 +165,8 @@ class FocusPosterior:
     these odds", where the sharpest reading alone would tell it "at the optimum".
 
     Far from focus the image path compresses the reading (a blurred edge reads narrower than
-    the probe), so readings beyond `FAR` x c count with `FAR_LOOSENESS` x the noise.
+    the probe), so readings beyond `FAR` x c count with `FAR_LOOSENESS` x the noise. The pool
+    lives in memory: a resumed run pools afresh from the episodes after the resume.
     """
 
     POOL = 256
