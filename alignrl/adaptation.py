@@ -22,7 +22,14 @@ from typing import Any
 import numpy as np
 
 from alignrl.apparatus.base import Apparatus
-from alignrl.config import AdaptationConfig, ExperimentConfig, LearnerConfig, parse_experiment
+from alignrl.config import (
+    HINDSIGHT_OPTIMA,
+    AdaptationConfig,
+    ExperimentConfig,
+    HindsightOptimum,
+    LearnerConfig,
+    parse_experiment,
+)
 from alignrl.deploy.export import PolicySource
 
 __all__ = [
@@ -54,7 +61,7 @@ def adaptation_config(
     updates_per_step: float | None = None,
     critic_warmup_steps: int = 0,
     hindsight_secrets: bool = True,
-    hindsight_optimum: str = "posterior",
+    hindsight_optimum: HindsightOptimum = "posterior",
 ) -> ExperimentConfig:
     """The run config of an adaptation: the source's learner, task and history (from
     `alignrl.deploy.export.resolve_source`, which `export` and `align` use too) on
@@ -148,7 +155,6 @@ def training_shield(config: AdaptationConfig, audit_path: Path) -> Callable[[App
 
 
 Transition = tuple[np.ndarray, ...]  # what Agent.observe takes, secrets included
-HINDSIGHT_OPTIMA = ("posterior", "sharpest")
 
 
 class FocusPosterior:
@@ -258,7 +264,9 @@ class HindsightSecrets:
     with it, as the episode itself is.
     """
 
-    def __init__(self, blind: np.ndarray, optimum: str = "posterior", seed: int = 0) -> None:
+    def __init__(
+        self, blind: np.ndarray, optimum: HindsightOptimum = "posterior", seed: int = 0
+    ) -> None:
         if optimum not in HINDSIGHT_OPTIMA:
             raise ValueError(f"hindsight optimum: one of {HINDSIGHT_OPTIMA}, got {optimum!r}")
         self.blind = np.asarray(blind, bool)

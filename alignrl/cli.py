@@ -914,6 +914,8 @@ def _add_session_options(parser: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from alignrl.config import HINDSIGHT_OPTIMA
+
     parser = argparse.ArgumentParser(
         prog="alignrl",
         description="Train and run reinforcement-learning agents that align electron microscopes.",
@@ -1049,7 +1051,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     adapt.add_argument(
         "--hindsight-optimum",
-        choices=("posterior", "sharpest"),
+        choices=HINDSIGHT_OPTIMA,
         default="posterior",
         help="what stands in for an episode's optimum in hindsight: a draw from its posterior "
         "on the column's pooled focus curve (default), or the setting of its sharpest reading",

@@ -8,7 +8,7 @@ code derives new values into new objects, never edits a loaded config.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Literal, TypeVar
+from typing import Any, Literal, TypeVar, get_args
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
@@ -223,6 +223,11 @@ class RunConfig(_Strict):
         return self
 
 
+# What stands in for an episode's optimum in hindsight (alignrl.adaptation.HindsightSecrets).
+HindsightOptimum = Literal["posterior", "sharpest"]
+HINDSIGHT_OPTIMA: tuple[str, ...] = get_args(HindsightOptimum)
+
+
 class AdaptationConfig(_Strict):
     """Where an adaptation run (`alignrl adapt`) came from, and the safety shield every one of
     its writes passes on the new apparatus (alignrl/deploy/shield.py)."""
@@ -244,7 +249,7 @@ class AdaptationConfig(_Strict):
             "critics see zeros there"
         ),
     )
-    hindsight_optimum: Literal["posterior", "sharpest"] = Field(
+    hindsight_optimum: HindsightOptimum = Field(
         "posterior",
         description=(
             "what stands in for an episode's optimum in hindsight: a draw from its posterior "

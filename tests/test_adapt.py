@@ -19,7 +19,8 @@ import yaml
 
 from alignrl.adaptation import HindsightSecrets, adaptation_config, start_adaptation
 from alignrl.agents.agent import Agent
-from alignrl.apparatus import make_apparatus
+from alignrl.apparatus import MeasurementError, make_apparatus
+from alignrl.apparatus.synthetic import PRESET_DIR, load_sem_config
 from alignrl.checkpoints import load_checkpoint
 from alignrl.cli import main
 from alignrl.config import TaskOptions, parse_experiment
@@ -186,9 +187,6 @@ def _focus_episodes(hindsight: HindsightSecrets, count: int) -> list[tuple[float
     blind slot): a scripted aligner jumps towards the optimum with a shrinking error and
     stops after 2-5 moves; the stop's setting is read twice (reading, verification image).
     Returns (true secret, stand-in secret, verification reading) at each stop."""
-    from alignrl.apparatus import MeasurementError
-    from alignrl.apparatus.registry import make_apparatus
-
     column = make_apparatus("synthetic-b", {"analytic": True}, seed=1)
     low, high = column.knobs["defocus"]
     rng = np.random.default_rng(0)
@@ -238,11 +236,18 @@ def test_hindsight_posterior_tells_a_borderline_stop_how_far_the_optimum_is() ->
     hindsight = HindsightSecrets(np.array([True]), optimum="posterior")
     posterior = _focus_episodes(hindsight, 400)
     slope, best, noise = hindsight.posterior.curve
-    # synthetic-b: sigma^2 = 1.4^2 + (0.28 V^-1 x 120 V x setting)^2, read at 0.973 x 2.563 sigma
-    assert np.sqrt(slope) == pytest.approx(0.973 * 2.563 * 0.28 * 120, rel=0.15)
-    assert best == pytest.approx(0.973 * 2.563 * 1.4, rel=0.1)
-    assert 0.01 < noise < 0.08  # the preset's reading noise at focus: 2.4 %
-    truth, stand_in, verification = (np.array(column) for column in zip(*posterior, strict=True))
+    # The preset's probe: sigma^2 = sigma0^2 + (gain x interval x setting)^2, read near focus
+    # at reading_ratio x 2.563 sigma, with a relative reading noise of noise_rel.
+    preset = load_sem_config(PRESET_DIR / "synthetic-b.yaml")
+    calibration = preset.analytic_calibration
+    low, high = preset.defocus_interval_v
+    px_per_sigma = calibration.reading_ratio[0] * 2.563
+    assert np.sqrt(slope) == pytest.approx(
+        px_per_sigma * preset.gain_px_per_v * (high - low), rel=0.15
+    )
+    assert best == pytest.approx(px_per_sigma * preset.probe_sigma0_px, rel=0.1)
+    assert 0.01 < noise < 0.08  # the preset's reading noise at focus: noise_rel, 2.4 %
+    truth, stand_in, verification = (np.array(values) for values in zip(*posterior, strict=True))
     assert np.allclose(truth, [row[0] for row in sharpest])  # the same episodes both times
     borderline = verification > 1.15 * best
     assert borderline.sum() > 20
@@ -251,7 +256,7 @@ def test_hindsight_posterior_tells_a_borderline_stop_how_far_the_optimum_is() ->
     assert np.median(errors_posterior) < 0.7 * np.median(errors_sharpest)
     # ... without losing the aligned stops: there both are near the optimum.
     aligned = verification < 1.05 * best
-    assert np.median(np.abs(stand_in - truth)[aligned]) * 120 < 1.5  # volts
+    assert np.median(np.abs(stand_in - truth)[aligned]) * (high - low) < 1.5  # volts
 
 
 @pytest.mark.parametrize("hindsight", [True, False])
