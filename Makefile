@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: install run test lint format bench scenarios clean
+.PHONY: install run test test-slow lint format bench scenarios clean
 
 $(STAMP): pyproject.toml
 	test -d $(VENV) || $(PYTHON) -m venv $(VENV)
@@ -37,7 +37,12 @@ run: $(STAMP)
 test: $(STAMP)
 	$(BIN)/ruff check alignrl tests benchmarks docs/examples docs/gen_configs.py
 	$(BIN)/ruff format --check alignrl tests benchmarks docs/examples docs/gen_configs.py
-	$(BIN)/pytest
+	$(BIN)/pytest -m "not slow"
+
+# The exhaustive variants that `make test` samples (a kill at every file write of a league and
+# of a trainer, tests/test_crash_windows.py): minutes, so not on every commit.
+test-slow: $(STAMP)
+	$(BIN)/pytest -m slow
 
 lint: $(STAMP)
 	$(BIN)/ruff check alignrl tests benchmarks docs/examples docs/gen_configs.py

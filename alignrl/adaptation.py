@@ -15,13 +15,12 @@ for a warm-up; it learns as soon as one batch of new transitions is stored.
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from alignrl.apparatus.base import Apparatus
+from alignrl.apparatus.shield import DEFAULT_CALL_TIMEOUT_S, JsonLinesAudit, ShieldOptions
 from alignrl.config import (
     HINDSIGHT_OPTIMA,
     AdaptationConfig,
@@ -36,8 +35,8 @@ __all__ = [
     "FocusPosterior",
     "HindsightSecrets",
     "adaptation_config",
+    "adaptation_shield",
     "start_adaptation",
-    "training_shield",
 ]
 
 
@@ -56,6 +55,7 @@ def adaptation_config(
     seed: int = 0,
     limits: dict[str, tuple[float, float]] | None = None,
     max_step: dict[str, float] | None = None,
+    call_timeout_s: float = DEFAULT_CALL_TIMEOUT_S,
     spec_px: float | None = None,
     complexity: float = 1.0,
     updates_per_step: float | None = None,
@@ -105,6 +105,7 @@ def adaptation_config(
             "source_steps": source.agent.steps_seen,
             "limits": limits or {},
             "max_step": max_step or {},
+            "call_timeout_s": call_timeout_s,
             "critic_warmup_steps": critic_warmup_steps,
             "hindsight_secrets": hindsight_secrets,
             "hindsight_optimum": hindsight_optimum,
@@ -122,36 +123,35 @@ def start_adaptation(config: ExperimentConfig, source: PolicySource, runs_root: 
     if config.adaptation is None:
         raise ValueError(f"{config.name}: not an adaptation config (no `adaptation:` section)")
     trainer = Trainer.create(config, runs_root)
-    trainer.agent.load_state_dict(source.agent.state_dict(replay=False))
-    # The source's optimizer state carries its own step size; the run's config says which
-    # one adaptation uses (by default the source's, copied into the config).
-    trainer.agent.set_learning_rate(config.learner.learning_rate)
-    # The zero-shot evaluation, at 0 env steps: on record in metrics/evaluations.csv, and the
-    # source is best.pt until an adapted aligner does strictly better, so the best an
-    # adaptation gives back is never worse than what it started from on that session.
-    trainer.evaluate_and_keep_best()
-    trainer.checkpoint()
+    try:
+        trainer.agent.load_state_dict(source.agent.state_dict(replay=False))
+        # The source's optimizer state carries its own step size; the run's config says
+        # which one adaptation uses (by default the source's, copied into the config).
+        trainer.agent.set_learning_rate(config.learner.learning_rate)
+        # The zero-shot evaluation, at 0 env steps: on record in metrics/evaluations.csv,
+        # and the source is best.pt until an adapted aligner does strictly better, so the
+        # best an adaptation gives back is never worse than what it started from on that
+        # session.
+        trainer.evaluate_and_keep_best()
+        trainer.checkpoint()
+    except BaseException:  # an instrument that failed, Ctrl-C, a full disk: no run yet
+        trainer.unstart()
+        raise
     return trainer
 
 
-def training_shield(config: AdaptationConfig, audit_path: Path) -> Callable[[Apparatus], Apparatus]:
-    """What wraps every apparatus of an adaptation run: a TrainingShield with the run's site
+def adaptation_shield(config: AdaptationConfig, audit_path: Path) -> ShieldOptions:
+    """How every apparatus of an adaptation run is shielded, simulated or not: the run's site
     limits and maximum steps, all writing to one audit log (JSON lines, appended on resume).
-    Limits that do not fit the apparatus are a ShieldConfigError on the first one wrapped,
-    before anything is written."""
-    from alignrl.deploy.align import JsonLinesAudit
-    from alignrl.deploy.shield import TrainingShield, resolve_limits
-
-    audit = JsonLinesAudit(audit_path)
-    count = 0
-
-    def wrap(apparatus: Apparatus) -> Apparatus:
-        nonlocal count
-        limits = resolve_limits(apparatus.knobs, config.limits, config.max_step)
-        count += 1  # records name their apparatus: 1..envs for training, then evaluations
-        return TrainingShield(apparatus, limits, audit, unit=str(count))  # type: ignore[return-value]
-
-    return wrap
+    Limits that do not fit the apparatus are a ShieldConfigError when the first one is
+    opened, before anything is written."""
+    return ShieldOptions(
+        site_limits=config.limits,
+        max_step=config.max_step,
+        call_timeout_s=config.call_timeout_s,
+        audit=JsonLinesAudit(audit_path),
+        simulators=True,
+    )
 
 
 Transition = tuple[np.ndarray, ...]  # what Agent.observe takes, secrets included

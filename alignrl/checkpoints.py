@@ -2,14 +2,18 @@
 
 A write goes to a temporary file in the same folder, is flushed and fsynced, then renamed over
 the target: a run killed at any moment leaves either the old file or the new one, never half
-of one. Loading uses `torch.load(weights_only=True)`: tensors, numbers, strings and
+of one (and perhaps a temporary `.<name>.<random>.partial`, which `remove_partial_writes`
+clears). A write that fails on the disk (full, read-only) is an OSError naming the target.
+Loading uses `torch.load(weights_only=True)`: tensors, numbers, strings and
 containers only, never arbitrary pickled objects.
 """
 
 from __future__ import annotations
 
 import os
+import re
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -21,8 +25,15 @@ __all__ = [
     "atomic_write",
     "atomic_write_text",
     "load_checkpoint",
+    "naming_path",
+    "remove_partial_writes",
     "save_checkpoint",
 ]
+
+PARTIAL_SUFFIX = ".partial"
+# What atomic_write leaves when killed: .<target>.<8 random characters>[.partial] (the
+# suffix came later; runs killed before it still have the bare form).
+_PARTIAL_NAME = re.compile(r"\..+\.[a-z0-9_]{8}(\.partial)?")
 
 
 class CheckpointError(ValueError):
@@ -46,11 +57,36 @@ def _umask() -> int:
     return mask
 
 
+def _os_errors(error: BaseException) -> Iterator[OSError]:
+    seen: set[int] = set()
+    while error is not None and id(error) not in seen:
+        seen.add(id(error))
+        if isinstance(error, OSError):
+            yield error
+        error = error.__cause__ or error.__context__
+
+
+def naming_path(error: BaseException, path: str | Path) -> OSError | None:
+    """The OSError behind `error` (torch.save reports a failed write as a RuntimeError whose
+    context is the OSError), with `path` in its message where it named none; None if no
+    OSError is behind it. "[Errno 28] No space left on device" alone does not say where."""
+    for cause in _os_errors(error):
+        if cause.filename is not None:
+            return cause
+        return OSError(cause.errno, cause.strerror or str(cause), str(path))
+    return None
+
+
 def atomic_write(path: Path, write: Any) -> None:
     """Create or replace `path` with what `write(handle)` writes to a binary handle, so that
     a reader (or a crash) sees the old file or the new one, never part of either."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle = tempfile.NamedTemporaryFile(dir=path.parent, prefix=f".{path.name}.", delete=False)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        handle = tempfile.NamedTemporaryFile(
+            dir=path.parent, prefix=f".{path.name}.", suffix=PARTIAL_SUFFIX, delete=False
+        )
+    except OSError as error:
+        raise naming_path(error, path) from None
     try:
         with handle:
             write(handle)
@@ -59,9 +95,22 @@ def atomic_write(path: Path, write: Any) -> None:
         os.chmod(handle.name, 0o666 & ~_umask())  # as open() would make it, not 0600
         os.replace(handle.name, path)
         _fsync_directory(path.parent)
-    except BaseException:
+    except BaseException as error:
         Path(handle.name).unlink(missing_ok=True)
-        raise
+        disk = naming_path(error, path) if isinstance(error, Exception) else None
+        if disk is None or disk is error:
+            raise
+        raise disk from error
+
+
+def remove_partial_writes(folder: Path, recursive: bool = True) -> None:
+    """Delete the temporaries that writes killed midway left in `folder` (and below, if
+    `recursive`); call it only where no other process is writing."""
+    if not folder.is_dir():
+        return
+    for path in folder.rglob(".*") if recursive else folder.glob(".*"):
+        if path.is_file() and _PARTIAL_NAME.fullmatch(path.name):
+            path.unlink(missing_ok=True)
 
 
 def atomic_write_text(path: str | Path, text: str) -> None:

@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import functools
 import json
+import os
 import signal
 import sys
 import time
@@ -36,8 +37,12 @@ from alignrl.apparatus.scenarios import (
     ScenarioWriter,
     read_scenarios,
 )
+from alignrl.apparatus.shield import DEFAULT_CALL_TIMEOUT_S, DriverFailure, ShieldStop
 
 EXIT_USAGE = 2  # bad input: a clear message, nothing written
+EXIT_SHIELD_STOP = 3  # the shield ended the work: watchdog, refused write, abort (as align)
+EXIT_DRIVER_FAILURE = 4  # a driver call failed, hung or answered what cannot be (as align)
+EXIT_INTERNAL = 70  # a bug in alignrl (EX_SOFTWARE): one line, never a refusal of input
 EXIT_INTERRUPTED = 130
 
 
@@ -45,14 +50,68 @@ class CommandError(Exception):
     """A user-facing failure: printed as one line, exit code 2."""
 
 
+JSON_LIMIT = 100_000  # characters of a JSON option: arguments, limits, steps are a few dozen
+
+
 def _json_object(text: str, option: str) -> dict[str, Any]:
+    if len(text) > JSON_LIMIT:
+        raise CommandError(f"{option}: {len(text)} characters of JSON; at most {JSON_LIMIT}")
     try:
         value = json.loads(text)
     except json.JSONDecodeError as error:
         raise CommandError(f"{option}: not valid JSON ({error})") from None
+    except RecursionError:
+        raise CommandError(f"{option}: the JSON nests too deeply") from None
+    except ValueError as error:  # e.g. an integer of more than 4300 digits
+        raise CommandError(f"{option}: not usable JSON ({str(error)[:200]})") from None
     if not isinstance(value, dict):
         raise CommandError(f"{option}: expected a JSON object such as '{{\"noise\": 0.02}}'")
     return value
+
+
+def _parsed(text: str, kind: type[int] | type[float]) -> Any:
+    """An option's text as an int or a float; argparse's one-line error where it is not."""
+    try:
+        return kind(text)
+    except ValueError:
+        what = "an integer" if kind is int else "a number"
+        raise argparse.ArgumentTypeError(f"{text[:40]!r} is not {what}") from None
+
+
+def _seed(text: str) -> int:
+    """A --seed: an integer in [0, 2^63), as numpy and the scenario files store seeds."""
+    value = _parsed(text, int)
+    if not 0 <= value < 2**63:
+        raise argparse.ArgumentTypeError(f"{text[:40]} is outside [0, 2^63 - 1]")
+    return value
+
+
+def _at_least_one(text: str) -> int:
+    """A count option (processes, ...): an integer of at least 1."""
+    value = _parsed(text, int)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{value} must be at least 1")
+    return value
+
+
+def _updates_per_step(text: str) -> float:
+    """--updates-per-step: gradient updates per acquisition, in (0, MAX_UPDATES_PER_STEP]."""
+    from alignrl.config import MAX_UPDATES_PER_STEP
+
+    value = _parsed(text, float)
+    if not 0 < value <= MAX_UPDATES_PER_STEP:
+        raise argparse.ArgumentTypeError(
+            f"{text[:40]} must be above 0 and at most {MAX_UPDATES_PER_STEP} updates per "
+            "acquisition"
+        )
+    return value
+
+
+def _renamed(config: Any, name: str) -> Any:
+    """`config` under the run name of --name, validated as a name in the file would be."""
+    from alignrl.config import parse_config
+
+    return parse_config(type(config), {**config.model_dump(), "name": name}, "--name")
 
 
 def _emit(payload: dict[str, Any], as_json: bool, lines: Sequence[str]) -> None:
@@ -90,7 +149,9 @@ def cmd_record(args: argparse.Namespace) -> int:
     if args.scenarios < 1:
         raise CommandError("--scenarios must be at least 1")
     apparatus_args = _json_object(args.apparatus_args, "--apparatus-args")
-    factory = functools.partial(make_apparatus, args.apparatus, apparatus_args)
+    factory = functools.partial(
+        make_apparatus, args.apparatus, apparatus_args, shield=_shield_options(args)
+    )
     apparatus = factory()  # opened once; worker processes open their own
     plan = sweep_plan(apparatus.knobs, knob=args.knob, step=args.step)
     out = Path(args.out)
@@ -280,7 +341,9 @@ def _run_evaluations(
     if args.budget is not None and args.budget < 1:
         raise CommandError("--budget must be at least 1 acquisition")
     apparatus = make_apparatus(
-        args.apparatus, _json_object(args.apparatus_args, "--apparatus-args")
+        args.apparatus,
+        _json_object(args.apparatus_args, "--apparatus-args"),
+        shield=_shield_options(args),
     )
     bar = tqdm(
         total=args.scenarios * len(controllers),
@@ -339,13 +402,19 @@ def cmd_train(args: argparse.Namespace) -> int:
     from alignrl.training import Trainer
 
     if args.resume:
+        if args.config or args.name is not None:
+            given = "an experiment config" if args.config else "--name"
+            raise CommandError(
+                f"--resume RUN continues RUN with its own config and name: give {given} or "
+                "--resume, not both"
+            )
         trainer = Trainer.resume(args.resume)
     else:
         if not args.config:
             raise CommandError("give an experiment config (experiments/X.yaml) or --resume RUN")
         config = load_experiment(args.config)
-        if args.name:
-            config = config.model_copy(update={"name": args.name})
+        if args.name is not None:
+            config = _renamed(config, args.name)
         if config.adaptation is not None:
             # An adaptation written as a YAML (e.g. a copy of a run's config.yaml with other
             # settings): it starts from its source, as `alignrl adapt` does, never from scratch.
@@ -363,16 +432,22 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 
 def _train_to_the_end(trainer: Any, args: argparse.Namespace, resume: str) -> int:
-    """Run a Trainer (alignrl train or adapt) to its budget; one summary at the end."""
+    """Run a Trainer (alignrl train or adapt) to its budget; one summary at the end. SIGTERM
+    (a `kill`, a job scheduler) stops it as Ctrl-C does."""
     from alignrl.agents.sac import NonFiniteError
+    from alignrl.deploy.align import operator_signals
 
     run_dir = trainer.run_dir
     from tqdm import tqdm
 
     log = None if args.quiet else (lambda line: tqdm.write(line, file=sys.stderr))
+    if trainer.finished:
+        finished = f"{run_dir} is finished at {trainer.env_steps} env steps: nothing to train"
+        print(finished, file=sys.stderr)
     started = time.perf_counter()
     try:
-        result = trainer.run(progress=not args.quiet, log=log)
+        with operator_signals():
+            result = trainer.run(progress=not args.quiet, log=log)
     except KeyboardInterrupt:
         print(
             f"\ninterrupted at {trainer.env_steps} env steps; the last checkpoint is kept: "
@@ -383,6 +458,11 @@ def _train_to_the_end(trainer: Any, args: argparse.Namespace, resume: str) -> in
     except NonFiniteError as error:
         raise CommandError(
             f"training stopped: {error}; the last checkpoint in {run_dir} is intact"
+        ) from None
+    except ShieldStop as error:  # main() says which kind; here, what the run keeps
+        raise type(error)(
+            f"{error}; the last checkpoint in {run_dir} is kept: continue with "
+            f"`{resume} {run_dir}` once the instrument answers"
         ) from None
     payload = {
         "run": str(run_dir),
@@ -446,13 +526,22 @@ def cmd_adapt(args: argparse.Namespace) -> int:
         seed=args.seed,
         limits=_json_object(args.limits, "--limits"),
         max_step=_json_object(args.max_step, "--max-step"),
+        call_timeout_s=args.call_timeout,
         spec_px=args.spec_px,
         updates_per_step=args.updates_per_step,
         critic_warmup_steps=args.critic_warmup,
         hindsight_secrets=args.hindsight_secrets,
         hindsight_optimum=args.hindsight_optimum,
     )
-    trainer = start_adaptation(config, source, args.runs_dir)
+    try:
+        trainer = start_adaptation(config, source, args.runs_dir)
+    except ShieldStop as error:
+        run_dir = Path(args.runs_dir) / config.name
+        raise type(error)(
+            f"{error}; the adaptation stopped in its zero-shot session, before its first "
+            f"checkpoint: {run_dir} keeps only its audit log; run the same command again once "
+            "the instrument answers"
+        ) from None
     return _train_to_the_end(trainer, args, "alignrl adapt --resume")
 
 
@@ -624,12 +713,14 @@ def _run_league(league: Any, args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from alignrl.agents.sac import NonFiniteError
+    from alignrl.deploy.align import operator_signals
     from alignrl.league.loop import WorkerFailedError, leaderboard
 
     log = None if args.quiet else (lambda line: tqdm.write(line, file=sys.stderr))
     started = time.perf_counter()
     try:
-        league.run(progress=not args.quiet, log=log)
+        with operator_signals():  # SIGTERM stops the league as Ctrl-C does
+            league.run(progress=not args.quiet, log=log)
     except KeyboardInterrupt:
         print(
             f"\ninterrupted at iteration {league.iteration}; the last checkpoint is kept: "
@@ -640,6 +731,11 @@ def _run_league(league: Any, args: argparse.Namespace) -> int:
     except (NonFiniteError, WorkerFailedError) as error:
         raise CommandError(
             f"league stopped: {error}; the last checkpoint in {league.run_dir} is intact"
+        ) from None
+    except ShieldStop as error:  # main() says which kind; here, what the run keeps
+        raise type(error)(
+            f"{error}; the last checkpoint in {league.run_dir} is kept: continue with "
+            f"`alignrl league resume {league.run_dir}` once the instrument answers"
         ) from None
     finally:
         league.close()  # a Ray backend's workers
@@ -670,8 +766,8 @@ def cmd_league_run(args: argparse.Namespace) -> int:
     from alignrl.league.loop import League
 
     config, aligners, misaligners = load_league(args.config)
-    if args.name:
-        config = config.model_copy(update={"name": args.name})
+    if args.name is not None:
+        config = _renamed(config, args.name)
     return _run_league(League.create(config, aligners, misaligners, args.runs_dir), args)
 
 
@@ -739,15 +835,10 @@ def _setting_text(setting: dict[str, float] | None) -> str:
 def cmd_align(args: argparse.Namespace) -> int:
     """One alignment through the safety shield; the exit code says how it ended
     (alignrl/deploy/align.py: 0 aligned, 1 not, 2 config, 3 aborted, 4 driver failure)."""
-    from alignrl.deploy.align import (
-        EXIT_ABORTED,
-        EXIT_DRIVER,
-        JsonLinesAudit,
-        align,
-        operator_signals,
-    )
+    from alignrl.apparatus.registry import build_apparatus
+    from alignrl.apparatus.shield import JsonLinesAudit, MemoryAudit, resolve_limits
+    from alignrl.deploy.align import EXIT_ABORTED, EXIT_DRIVER, align, operator_signals
     from alignrl.deploy.policy import load_deployable
-    from alignrl.deploy.shield import MemoryAudit, resolve_limits
     from alignrl.envs.task import get_task
 
     apparatus_args = _json_object(args.apparatus_args, "--apparatus-args")
@@ -773,7 +864,10 @@ def cmd_align(args: argparse.Namespace) -> int:
                     f"not {args.task!r}"
                 )
             try:
-                apparatus = make_apparatus(args.apparatus, apparatus_args, seed=args.seed)
+                # Unshielded here: align() puts its own shield (with the watchdog) around it.
+                apparatus = build_apparatus(
+                    args.apparatus, apparatus_args, args.seed, args.call_timeout
+                )
             except ApparatusError as error:
                 print(f"alignrl: apparatus error: {error}", file=sys.stderr)
                 return EXIT_DRIVER
@@ -793,6 +887,7 @@ def cmd_align(args: argparse.Namespace) -> int:
                 spec_px=args.spec_px,
                 dry_run=args.dry_run,
                 timeout_s=args.timeout,
+                call_timeout_s=args.call_timeout,
                 max_acquisitions=args.max_acquisitions,
                 restore_on_abort=args.restore_on_abort,
                 log_path=args.log,
@@ -877,6 +972,52 @@ def cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_shield_options(
+    parser: argparse.ArgumentParser, limits: bool = True, log: bool = True
+) -> None:
+    """The options of every verb that may touch an instrument: a driver's calls all pass the
+    shield (alignrl/apparatus/shield.py); these set its site limits, largest step, call time
+    limit and audit log."""
+    if limits:
+        parser.add_argument(
+            "--limits",
+            default="{}",
+            metavar="JSON",
+            help="site limits inside the knobs' intervals, e.g. '{\"defocus\": [40, 60]}'",
+        )
+        parser.add_argument(
+            "--max-step",
+            default="{}",
+            metavar="JSON",
+            help="largest change per write, e.g. '{\"defocus\": 2.0}' (instrument units)",
+        )
+    parser.add_argument(
+        "--call-timeout",
+        type=float,
+        default=DEFAULT_CALL_TIMEOUT_S,
+        metavar="S",
+        help="longest one driver call may take before it is abandoned and the work ends "
+        f"(default: {DEFAULT_CALL_TIMEOUT_S:g} s)",
+    )
+    if log:
+        parser.add_argument("--log", metavar="FILE", help="audit log of driver calls, JSON lines")
+
+
+def _shield_options(args: argparse.Namespace) -> Any:
+    """The ShieldOptions of a verb with _add_shield_options; the audit log (a file with
+    --log, else the newest records in memory) is closed by the caller."""
+    from alignrl.apparatus.shield import JsonLinesAudit, ShieldOptions
+
+    if not (args.call_timeout > 0 and np.isfinite(args.call_timeout)):
+        raise CommandError(f"--call-timeout must be positive seconds, got {args.call_timeout}")
+    return ShieldOptions(
+        site_limits=_json_object(getattr(args, "limits", "{}"), "--limits"),
+        max_step=_json_object(getattr(args, "max_step", "{}"), "--max-step"),
+        call_timeout_s=args.call_timeout,
+        audit=JsonLinesAudit(args.log) if args.log else None,
+    )
+
+
 def _add_session_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--apparatus", required=True, help="apparatus spec, e.g. synthetic")
     parser.add_argument("--apparatus-args", default="{}", help="JSON keyword arguments")
@@ -889,7 +1030,7 @@ def _add_session_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--scenarios", type=int, default=100, help="alignments in the session (default: 100)"
     )
-    parser.add_argument("--seed", type=int, default=0, help="seed of the scenarios and starts")
+    parser.add_argument("--seed", type=_seed, default=0, help="seed of the scenarios and starts")
     parser.add_argument(
         "--spec-px",
         type=float,
@@ -908,6 +1049,7 @@ def _add_session_options(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.add_argument("--json", action="store_true", help="machine-readable summary")
+    _add_shield_options(parser)
 
 
 # --- the parser -------------------------------------------------------------------------
@@ -930,17 +1072,18 @@ def build_parser() -> argparse.ArgumentParser:
     record.add_argument("--apparatus-args", default="{}", help="JSON keyword arguments")
     record.add_argument("--scenarios", type=int, required=True, help="total scenarios wanted")
     record.add_argument("--out", required=True, help="output CSV (.csv or .csv.gz)")
-    record.add_argument("--seed", type=int, default=0, help="base seed of the scenarios")
+    record.add_argument("--seed", type=_seed, default=0, help="base seed of the scenarios")
     record.add_argument("--step", choices=("constant", "adaptive"), default="adaptive")
     record.add_argument("--knob", default="defocus", help="the knob to sweep")
     record.add_argument(
-        "--workers", type=int, default=1, help="processes (simulated apparatus only)"
+        "--workers", type=_at_least_one, default=1, help="processes (simulated apparatus only)"
     )
     existing = record.add_mutually_exclusive_group()
     existing.add_argument("--force", action="store_true", help="replace an existing file")
     existing.add_argument("--append", action="store_true", help="continue an existing file")
     record.add_argument("--quiet", action="store_true", help="no progress bar")
     record.add_argument("--json", action="store_true", help="machine-readable summary")
+    _add_shield_options(record, limits=False)
     record.set_defaults(handler=cmd_record)
 
     scenarios = verbs.add_parser("scenarios", help="inspect scenario CSV files")
@@ -1013,17 +1156,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     adapt.add_argument("--eval-scenarios", type=int, default=100, help="alignments per evaluation")
     adapt.add_argument("--envs", type=int, default=8, help="apparatus instances stepped together")
-    adapt.add_argument("--seed", type=int, default=0, help="seeds the adaptation run")
-    adapt.add_argument(
-        "--limits",
-        default="{}",
-        help="site limits inside the knobs' intervals, e.g. '{\"defocus\": [40, 60]}'",
-    )
-    adapt.add_argument(
-        "--max-step",
-        default="{}",
-        help="largest change per aligner write, e.g. '{\"defocus\": 5.0}'",
-    )
+    adapt.add_argument("--seed", type=_seed, default=0, help="seeds the adaptation run")
+    _add_shield_options(adapt, log=False)  # the audit log is the run's audit.jsonl
     adapt.add_argument(
         "--spec-px",
         type=float,
@@ -1032,7 +1166,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     adapt.add_argument(
         "--updates-per-step",
-        type=float,
+        type=_updates_per_step,
         help="(SAC) gradient updates per acquisition (default: the source's)",
     )
     adapt.add_argument(
@@ -1116,18 +1250,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="success threshold, edge width in px (default: relative to the best the "
         "apparatus can reach, where it can say)",
     )
-    align.add_argument(
-        "--limits",
-        default="{}",
-        metavar="JSON",
-        help="site limits inside the knobs' intervals, e.g. '{\"defocus\": [40, 60]}'",
-    )
-    align.add_argument(
-        "--max-step",
-        default="{}",
-        metavar="JSON",
-        help="largest change per write, e.g. '{\"defocus\": 2.0}' (instrument units)",
-    )
+    _add_shield_options(align)
     align.add_argument(
         "--dry-run", action="store_true", help="decide and log every write, make none"
     )
@@ -1146,8 +1269,7 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="after Ctrl-C, SIGTERM or the watchdog, write the starting setting back",
     )
-    align.add_argument("--log", metavar="FILE", help="audit log, JSON lines (appended)")
-    align.add_argument("--seed", type=int, default=0, help="seed of a simulated apparatus")
+    align.add_argument("--seed", type=_seed, default=0, help="seed of a simulated apparatus")
     align.add_argument("--json", action="store_true", help="machine-readable result")
     align.set_defaults(handler=cmd_align)
 
@@ -1176,6 +1298,16 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+MESSAGE_LIMIT = 2000  # characters of one error message: never an echo of an unbounded value
+
+
+def _message(error: BaseException) -> str:
+    text = str(error)
+    if len(text) <= MESSAGE_LIMIT:
+        return text
+    return f"{text[:MESSAGE_LIMIT]}... ({len(text) - MESSAGE_LIMIT} more characters not shown)"
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -1183,12 +1315,30 @@ def main(argv: Sequence[str] | None = None) -> int:
     signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         return int(args.handler(args))
+    except ShieldStop as error:  # the shield ended work on an instrument: nothing more sent
+        failure = isinstance(error, DriverFailure)
+        print(
+            f"alignrl: {'driver failure' if failure else 'stopped by the shield'}: "
+            f"{_message(error)}; nothing more was sent to the apparatus",
+            file=sys.stderr,
+        )
+        return EXIT_DRIVER_FAILURE if failure else EXIT_SHIELD_STOP
     except ApparatusError as error:  # before ValueError: NoEdgesError is both
-        print(f"alignrl: apparatus error: {error}", file=sys.stderr)
+        print(f"alignrl: apparatus error: {_message(error)}", file=sys.stderr)
         return EXIT_USAGE
     except (CommandError, ValueError, OSError) as error:
-        print(f"alignrl: error: {error}", file=sys.stderr)
+        print(f"alignrl: error: {_message(error)}", file=sys.stderr)
         return EXIT_USAGE
+    except Exception as error:  # the last resort: a bug, said in one line, never a traceback
+        if os.environ.get("ALIGNRL_DEBUG"):
+            raise
+        print(
+            f"alignrl: internal error ({type(error).__name__}: {_message(error)}); this is a "
+            "bug in alignrl: please report it with the command (ALIGNRL_DEBUG=1 shows the "
+            "traceback)",
+            file=sys.stderr,
+        )
+        return EXIT_INTERNAL
 
 
 if __name__ == "__main__":

@@ -7,11 +7,25 @@ code derives new values into new objects, never edits a loaded config.
 
 from __future__ import annotations
 
+import numbers
+import re
 from pathlib import Path
-from typing import Any, Literal, TypeVar, get_args
+from typing import Annotated, Any, Literal, TypeVar, get_args
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import (
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
+
+from alignrl.apparatus.shield import DEFAULT_CALL_TIMEOUT_S
+from alignrl.yaml_io import YAMLInputError, read_yaml_file
 
 __all__ = [
     "AdaptationConfig",
@@ -22,6 +36,7 @@ __all__ = [
     "LearnerConfig",
     "RunConfig",
     "TaskOptions",
+    "check_file_name",
     "load_experiment",
 ]
 
@@ -34,7 +49,61 @@ class ConfigError(ValueError):
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # allow_inf_nan: `.inf` or `.nan` in a YAML is a typo, never a setting.
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+
+def _whole_number(value: Any) -> Any:
+    """A count is written as an integer: `true` is not 1, and `8.0` or `"8"` are typos."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+        raise ValueError("expected a whole number such as 8")
+    return int(value)
+
+
+Count = Annotated[int, BeforeValidator(_whole_number)]
+
+SEED_LIMIT = 2**63  # seeds are stored as int64 (numpy, scenario files)
+MAX_HIDDEN_WIDTH = 8192  # units of one hidden layer: a 8192 x 8192 layer is 256 MB already
+MAX_HIDDEN_LAYERS = 16
+MAX_BUFFER_SIZE = 10_000_000  # replay transitions: a few GB at a history of 8
+DEFAULT_BUFFER_SIZE = 200_000  # the SAC learner's replay capacity (alignrl.agents.agent)
+MAX_UPDATES_PER_STEP = 16  # (SAC) gradient updates per env step
+HiddenWidth = Annotated[Count, Field(ge=1, le=MAX_HIDDEN_WIDTH)]
+
+# A run name or member id becomes one folder or file name (runs/<name>/, members/<id>.pt).
+FILE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,99}")
+
+
+def check_file_name(value: str, what: str) -> str:
+    """`value` if it is one safe path component, else a ValueError saying what is allowed."""
+    if not FILE_NAME.fullmatch(value):
+        raise ValueError(
+            f"{what} must be one folder name: 1 to 100 letters, digits, '.', '_' or '-', "
+            "starting with a letter or digit (no '/', no '..')"
+        )
+    return value
+
+
+DEVICE = re.compile(r"cpu|mps|cuda(:[0-9]{1,3})?")
+
+
+def check_device_available(device: str) -> None:
+    """A ValueError unless torch can use `device` on this machine (CUDA present, its index in
+    range). Called for configs about to run, not for a run's config read back elsewhere."""
+    if device == "cpu":
+        return
+    import torch
+
+    if device == "mps":
+        if not torch.backends.mps.is_available():
+            raise ValueError("this machine has no Apple GPU torch can use (mps); use cpu")
+        return
+    if not torch.cuda.is_available():
+        raise ValueError("CUDA is not available on this machine; use cpu")
+    index = int(device.partition(":")[2] or 0)
+    count = torch.cuda.device_count()
+    if index >= count:
+        raise ValueError(f"this machine has {count} CUDA device(s), cuda:0 to cuda:{count - 1}")
 
 
 SAC_ONLY = ("tau", "initial_alpha", "updates_per_step", "buffer_size", "learning_starts",
@@ -52,21 +121,29 @@ class LearnerConfig(_Strict):
     encoder_kwargs: dict[str, Any] = Field(
         default_factory=dict, description="encoder settings, e.g. {d_model: 32} for gtrxl"
     )
-    hidden: tuple[int, ...] = Field(
-        (256, 256), description="hidden widths of the heads (critics join action and secret here)"
+    hidden: tuple[HiddenWidth, ...] = Field(
+        (256, 256),
+        max_length=MAX_HIDDEN_LAYERS,
+        description="hidden widths of the heads (critics join action and secret here)",
     )
     learning_rate: float = Field(3e-4, gt=0, lt=1, description="Adam step size")
     gamma: float = Field(0.99, gt=0, le=1, description="discount per step")
-    batch_size: int = Field(256, ge=1, description="transitions per gradient step (PPO: minibatch)")
+    batch_size: Count = Field(
+        256, ge=1, le=MAX_BUFFER_SIZE, description="transitions per gradient step (PPO: minibatch)"
+    )
     secret_critics: bool = Field(True, description="critics see optimum - setting")
     tau: float | None = Field(None, gt=0, le=1, description="(SAC) target follow rate, 0.005")
     initial_alpha: float | None = Field(None, gt=0, description="(SAC) initial entropy coef, 0.2")
     updates_per_step: float | None = Field(
-        None, gt=0, le=16, description="(SAC) gradient updates per env step, 1"
+        None, gt=0, le=MAX_UPDATES_PER_STEP, description="(SAC) gradient updates per env step, 1"
     )
-    buffer_size: int | None = Field(None, ge=1000, description="(SAC) replay capacity, 200000")
-    learning_starts: int | None = Field(None, ge=0, description="(SAC) steps before updates, 1000")
-    random_steps: int | None = Field(None, ge=0, description="(SAC) uniform random steps, 2000")
+    buffer_size: Count | None = Field(
+        None, ge=1000, le=MAX_BUFFER_SIZE, description="(SAC) replay capacity, 200000"
+    )
+    learning_starts: Count | None = Field(
+        None, ge=0, description="(SAC) steps before updates, 1000"
+    )
+    random_steps: Count | None = Field(None, ge=0, description="(SAC) uniform random steps, 2000")
     shared_critic_encoder: bool | None = Field(
         None, description="(SAC) Q1, Q2 and V read one history encoder, false"
     )
@@ -74,11 +151,18 @@ class LearnerConfig(_Strict):
     clip_range: float | None = Field(None, gt=0, lt=1, description="(PPO) ratio clip, 0.2")
     entropy_coef: float | None = Field(None, ge=0, description="(PPO) entropy bonus, 0")
     value_coef: float | None = Field(None, gt=0, description="(PPO) value loss weight, 0.5")
-    epochs: int | None = Field(None, ge=1, le=100, description="(PPO) passes per rollout, 10")
-    rollout_steps: int | None = Field(None, ge=1, description="(PPO) steps per env slot, 64")
+    epochs: Count | None = Field(None, ge=1, le=100, description="(PPO) passes per rollout, 10")
+    rollout_steps: Count | None = Field(None, ge=1, description="(PPO) steps per env slot, 64")
     initial_log_std: float | None = Field(
         None, ge=-5, le=1, description="(PPO) initial policy log-std, -0.5"
     )
+
+    @field_validator("hidden")
+    @classmethod
+    def _some_layer(cls, hidden: tuple[int, ...]) -> tuple[int, ...]:
+        if not hidden:
+            raise ValueError("give at least one hidden width, e.g. [256, 256]")
+        return hidden
 
     @model_validator(mode="after")
     def _fields_of_the_algorithm(self) -> LearnerConfig:
@@ -88,6 +172,12 @@ class LearnerConfig(_Strict):
             raise ValueError(
                 f"{', '.join(wrong)} {'does' if len(wrong) == 1 else 'do'} not apply to "
                 f"algorithm {self.algorithm}"
+            )
+        capacity = self.buffer_size or DEFAULT_BUFFER_SIZE
+        if self.algorithm == "sac" and self.batch_size > capacity:
+            raise ValueError(
+                f"batch_size {self.batch_size} exceeds the replay capacity (buffer_size "
+                f"{capacity}): no batch could ever be drawn"
             )
         return self
 
@@ -105,7 +195,7 @@ class LearnerConfig(_Strict):
 class TaskOptions(_Strict):
     """Changes to a named task; unset fields keep the task's own values."""
 
-    episode_steps: int | None = Field(None, ge=1, description="acquisitions after the first")
+    episode_steps: Count | None = Field(None, ge=1, description="acquisitions after the first")
     max_step_fraction: float | None = Field(None, gt=0, le=2, description="action scale")
     acquisition_cost: float | None = Field(None, ge=0, description="reward cost per image")
     out_of_bounds_penalty: float | None = Field(None, ge=0, description="bound penalty")
@@ -160,16 +250,16 @@ class CurriculumConfig(_Strict):
     enabled: bool = Field(False, description="raise the complexity as the aligner succeeds")
     level: float = Field(0.1, gt=0, le=1, description="starting complexity level")
     step: float = Field(0.1, gt=0, le=1, description="change of the level per promotion")
-    window: int = Field(200, ge=1, description="episodes judged per decision")
+    window: Count = Field(200, ge=1, description="episodes judged per decision")
     raise_at: float = Field(0.8, ge=0, le=1, description="success rate that raises the level")
     lower_at: float = Field(0.3, ge=0, le=1, description="success rate that lowers it")
 
 
 class BudgetConfig(_Strict):
-    env_steps: int = Field(30_000, ge=1, description="environment steps (acquisitions) to train")
-    eval_every: int = Field(5000, ge=1, description="env steps between evaluation sessions")
-    eval_scenarios: int = Field(100, ge=1, description="alignments per evaluation session")
-    checkpoint_every: int = Field(5000, ge=1, description="env steps between checkpoints")
+    env_steps: Count = Field(30_000, ge=1, description="environment steps (acquisitions) to train")
+    eval_every: Count = Field(5000, ge=1, description="env steps between evaluation sessions")
+    eval_scenarios: Count = Field(100, ge=1, description="alignments per evaluation session")
+    checkpoint_every: Count = Field(5000, ge=1, description="env steps between checkpoints")
 
 
 class RunConfig(_Strict):
@@ -178,7 +268,9 @@ class RunConfig(_Strict):
     their own keys."""
 
     name: str = Field("experiment", min_length=1, description="run name (runs/<name>/)")
-    seed: int = Field(0, ge=0, description="seeds everything: networks, envs, sampling")
+    seed: Count = Field(
+        0, ge=0, lt=SEED_LIMIT, description="seeds everything: networks, envs, sampling"
+    )
     apparatus: str = Field("csv:default", description="apparatus spec trained on")
     apparatus_args: dict[str, Any] = Field(
         default_factory=lambda: {"noise": 0.02, "split": "train"},
@@ -193,13 +285,13 @@ class RunConfig(_Strict):
     task_options: TaskOptions = Field(
         default_factory=lambda: TaskOptions(), description="changes to the named task"
     )
-    history: int = Field(8, ge=1, le=64, description="history rows the aligner sees")
-    envs: int = Field(8, ge=1, le=1024, description="apparatus instances stepped together")
+    history: Count = Field(8, ge=1, le=64, description="history rows the aligner sees")
+    envs: Count = Field(8, ge=1, le=1024, description="apparatus instances stepped together")
     complexity: float = Field(
         1.0, gt=0, le=1, description="misalignment window (share of interval), no curriculum"
     )
     device: str = Field("cpu", description="torch device: cpu, cuda, cuda:1, ...")
-    threads: int = Field(
+    threads: Count = Field(
         1, ge=1, le=256, description="torch CPU threads (small networks: 1 is fastest)"
     )
 
@@ -213,10 +305,23 @@ class RunConfig(_Strict):
 
         return self.task_options.apply(get_task(self.task))
 
+    @field_validator("name")
+    @classmethod
+    def _name_is_a_folder(cls, name: str) -> str:
+        return check_file_name(name, "a run name")
+
+    @field_validator("device")
+    @classmethod
+    def _a_torch_device(cls, device: str, info: ValidationInfo) -> str:
+        if not DEVICE.fullmatch(device):
+            shown = device if len(device) <= 40 else f"{device[:40]}..."
+            raise ValueError(f"{shown!r} is not a torch device: use cpu, cuda, cuda:N or mps")
+        if (info.context or {}).get("check_device"):
+            check_device_available(device)
+        return device
+
     @model_validator(mode="after")
     def _check(self) -> RunConfig:
-        if not self.name.replace("-", "").replace("_", "").replace(".", "").isalnum():
-            raise ValueError(f"name {self.name!r}: use letters, digits, '-', '_' and '.'")
         if self.curriculum.lower_at >= self.curriculum.raise_at:
             raise ValueError("curriculum.lower_at must be below curriculum.raise_at")
         self.resolved_task()  # an unknown task, or options it cannot take
@@ -230,16 +335,22 @@ HINDSIGHT_OPTIMA: tuple[str, ...] = get_args(HindsightOptimum)
 
 class AdaptationConfig(_Strict):
     """Where an adaptation run (`alignrl adapt`) came from, and the safety shield every one of
-    its writes passes on the new apparatus (alignrl/deploy/shield.py)."""
+    its writes passes on the new apparatus (alignrl/apparatus/shield.py)."""
 
     source: str = Field(description="the pre-trained aligner's checkpoint file it started from")
     source_member: str = Field(description="the pre-trained member's id")
-    source_steps: int = Field(ge=0, description="env steps the aligner had seen before")
+    source_steps: Count = Field(ge=0, description="env steps the aligner had seen before")
     limits: dict[str, tuple[float, float]] = Field(
         default_factory=dict, description="site limits per knob, instrument units (low, high)"
     )
     max_step: dict[str, float] = Field(
         default_factory=dict, description="largest change per write per knob, instrument units"
+    )
+    call_timeout_s: float = Field(
+        DEFAULT_CALL_TIMEOUT_S,
+        gt=0,
+        allow_inf_nan=False,
+        description="longest one driver call may take before it is abandoned and the run stops",
     )
     hindsight_secrets: bool = Field(
         True,
@@ -257,7 +368,7 @@ class AdaptationConfig(_Strict):
             "(one knob; else sharpest), or the setting of its sharpest reading"
         ),
     )
-    critic_warmup_steps: int = Field(
+    critic_warmup_steps: Count = Field(
         0,
         ge=0,
         description=(
@@ -280,38 +391,56 @@ class ExperimentConfig(RunConfig):
     )
 
 
+SHOWN_VALUE = 100  # characters of a rejected value echoed in a message
+SHOWN_ERRORS = 10  # problems listed in one message
+
+
+def _shown(value: Any, limit: int = SHOWN_VALUE) -> str:
+    text = value if isinstance(value, str) else repr(value)
+    return text if len(text) <= limit else f"{text[:limit]}... ({len(text) - limit} more)"
+
+
 def _describe(error: ValidationError) -> str:
+    """The problems of a validation, one per key path, each value echoed in short."""
     lines = []
-    for item in error.errors():
-        key = ".".join(str(part) for part in item["loc"]) or "(top level)"
+    problems = error.errors()
+    for item in problems[:SHOWN_ERRORS]:
+        key = _shown(".".join(str(part) for part in item["loc"]) or "(top level)", 200)
         found = item.get("input")
-        shown = "" if isinstance(found, dict) else f" (found {found!r})"
-        lines.append(f"{key}: {item['msg']}{shown}")
+        shown = "" if isinstance(found, dict) else f" (found {_shown(repr(found))})"
+        message = item["msg"].removeprefix("Value error, ")
+        lines.append(f"{key}: {_shown(message, 400)}{shown}")
+    if len(problems) > SHOWN_ERRORS:
+        lines.append(f"and {len(problems) - SHOWN_ERRORS} more problems")
     return "; ".join(lines)
 
 
-def parse_config(model: type[ModelT], data: Any, source: str) -> ModelT:
+def parse_config(model: type[ModelT], data: Any, source: str, check_device: bool = False) -> ModelT:
     """`data` (a YAML mapping) as a `model`; any problem is a ConfigError naming `source`,
-    the key path and what was expected."""
+    the key path and what was expected. `check_device`: also refuse a torch device this
+    machine lacks (for a config about to run here)."""
     if not isinstance(data, dict):
         raise ConfigError(f"{source}: expected a mapping of settings at the top level")
     try:
-        return model(**data)
+        return model.model_validate(data, context={"check_device": check_device})
     except ValidationError as error:
         raise ConfigError(f"{source}: {_describe(error)}") from None
 
 
 def read_yaml(path: Path, what: str) -> Any:
-    """A YAML file read with yaml.safe_load (an empty file is an empty mapping)."""
+    """A YAML file read strictly and within bounds (alignrl.yaml_io: no duplicate keys, no
+    alias bombs); an empty file is an error, never a file of defaults."""
     try:
-        text = path.read_text()
+        data = read_yaml_file(path)
     except FileNotFoundError:
         raise ConfigError(f"{what} {path} does not exist") from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as error:
-        raise ConfigError(f"{path}: not valid YAML: {error}") from None
-    return {} if data is None else data
+    except IsADirectoryError:
+        raise ConfigError(f"{what} {path} is a folder, not a YAML file") from None
+    except YAMLInputError as error:
+        raise ConfigError(str(error)) from None
+    if data is None:
+        raise ConfigError(f"{path}: empty {what}: write its settings (experiments/*.yaml)")
+    return data
 
 
 def parse_experiment(data: Any, source: str = "config") -> ExperimentConfig:
@@ -319,9 +448,11 @@ def parse_experiment(data: Any, source: str = "config") -> ExperimentConfig:
 
 
 def load_experiment(path: str | Path) -> ExperimentConfig:
-    """Read an experiment YAML strictly (yaml.safe_load; unknown keys are errors)."""
+    """Read an experiment YAML strictly (unknown keys are errors) to run it on this machine
+    (its device must be one this machine has)."""
     path = Path(path)
-    return parse_experiment(read_yaml(path, "experiment config"), str(path))
+    data = read_yaml(path, "experiment config")
+    return parse_config(ExperimentConfig, data, str(path), check_device=True)
 
 
 def dump_experiment(config: ExperimentConfig) -> str:

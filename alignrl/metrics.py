@@ -4,6 +4,7 @@ resumed run can cut back to its last checkpoint. Torch-free, so reports read it 
 from __future__ import annotations
 
 import csv
+import io
 from pathlib import Path
 from typing import Any
 
@@ -14,6 +15,7 @@ __all__ = [
     "LEAGUE_ITERATION_COLUMNS",
     "LINEAGE_COLUMNS",
     "CsvLog",
+    "truncate_csv",
 ]
 
 # metrics/episodes.csv: one row per finished training episode (alignrl train, league members)
@@ -56,33 +58,65 @@ LEAGUE_EVALUATION_COLUMNS = (
 LINEAGE_COLUMNS = ("iteration", "member", "parent", "replaced", "learning_rate")
 
 
+def _rows_of(text: str) -> list[list[str]]:
+    """The complete rows of a CSV's text: a last line without its line break is the row a
+    kill cut short, and is left out."""
+    if text and not text.endswith("\n"):
+        text = text[: text.rfind("\n") + 1]
+    return list(csv.reader(io.StringIO(text, newline="")))
+
+
+def _csv_text(rows: list[list[str]]) -> str:
+    buffer = io.StringIO(newline="")
+    csv.writer(buffer).writerows(rows)
+    return buffer.getvalue()
+
+
+def _named(error: OSError, path: Path) -> OSError:
+    if error.filename is not None:
+        return error
+    return OSError(error.errno, error.strerror or str(error), str(path))
+
+
+def truncate_csv(path: Path, key: str, count: int) -> None:
+    """Keep the rows of the CSV at `path` whose `key` is at most `count`, and its header; a row
+    cut short by a kill goes too. The file is left as it is where nothing changes (a resumed
+    run that is already finished writes nothing)."""
+    with path.open(newline="") as handle:
+        text = handle.read()
+    header, *rows = _rows_of(text) or [[]]
+    if not header:
+        return  # made and killed before its header: CsvLog writes one
+    if key not in header:
+        raise ValueError(f"{path}: no column {key!r} (the header is {','.join(header)})")
+    column = header.index(key)
+    kept = [row for row in rows if len(row) == len(header) and int(row[column]) <= count]
+    if len(kept) == len(rows) and text.endswith("\n"):
+        return
+    from alignrl.checkpoints import atomic_write_text  # (torch loads only when needed)
+
+    atomic_write_text(path, _csv_text([header, *kept]))
+
+
 class CsvLog:
     """Append-only CSV with a fixed header; rows past a checkpoint's count of `key` (env
     steps, league iterations) are dropped on resume."""
 
     def __init__(self, path: Path, fields: list[str], key: str = "env_steps") -> None:
         self.path, self.fields, self.key = path, fields, key
-        path.parent.mkdir(parents=True, exist_ok=True)
-        if not path.exists():
-            with path.open("w", newline="") as handle:
-                csv.writer(handle).writerow(fields)
+        if not path.exists() or path.stat().st_size == 0:  # (empty: killed as it was made)
+            from alignrl.checkpoints import atomic_write_text
+
+            atomic_write_text(path, _csv_text([fields]))
 
     def truncate_after(self, count: int) -> None:
-        with self.path.open(newline="") as handle:
-            rows = list(csv.DictReader(handle))
-        kept = [row for row in rows if int(row[self.key]) <= count]
-        text = (
-            ",".join(self.fields)
-            + "\n"
-            + "".join(",".join(row[field] for field in self.fields) + "\n" for row in kept)
-        )
-        from alignrl.checkpoints import atomic_write_text  # (torch loads only when needed)
-
-        atomic_write_text(self.path, text)
+        truncate_csv(self.path, self.key, count)
 
     def write(self, rows: list[dict[str, Any]]) -> None:
         if not rows:
             return
-        with self.path.open("a", newline="") as handle:
-            writer = csv.DictWriter(handle, self.fields)
-            writer.writerows(rows)
+        try:
+            with self.path.open("a", newline="") as handle:
+                csv.DictWriter(handle, self.fields).writerows(rows)
+        except OSError as error:  # a full disk: say which file
+            raise _named(error, self.path) from None

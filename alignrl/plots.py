@@ -13,6 +13,7 @@ pyplot's global state.
 from __future__ import annotations
 
 import csv
+import io
 import json
 import math
 from collections.abc import Callable, Collection, Sequence
@@ -131,18 +132,20 @@ def read_metrics_csv(
     """A metrics CSV as float64 columns, read strictly: every column must hold numbers (blank
     cells only in `blank_allowed`, as NaN), except `text_columns`, kept as strings (the
     member ids of a league's CSVs). A missing or empty file gives zero rows, because a run
-    killed before its first update or evaluation is a run, not an error."""
+    killed before its first update or evaluation is a run, not an error; so is a last line
+    without its line break, the row a kill cut short (left out: the resumed run rewrites it)."""
     import pandas as pd
 
-    if not path.exists() or path.stat().st_size == 0:
+    try:
+        text = path.read_text(encoding="utf-8") if path.exists() else ""
+        text = text[: text.rfind("\n") + 1]
+        header, *rows = csv.reader(io.StringIO(text, newline="")) if text else [[]]
+    except (UnicodeDecodeError, csv.Error) as error:
+        raise ReportError(f"{path}: not a CSV text file ({error})") from None
+    if not header:
         return pd.DataFrame(
             {name: np.empty(0, object if name in text_columns else float) for name in required}
         )
-    try:
-        with path.open(newline="", encoding="utf-8") as handle:
-            header, *rows = csv.reader(handle)
-    except (UnicodeDecodeError, csv.Error) as error:
-        raise ReportError(f"{path}: not a CSV text file ({error})") from None
     missing = [name for name in required if name not in header]
     if missing:
         raise ReportError(f"{path}: no column {missing[0]!r} (the header is {','.join(header)})")
@@ -469,9 +472,11 @@ def _read_config(run_dir: Path) -> dict[str, Any]:
     """config.yaml as plain data: only shown, so an older or newer config still reports."""
     import yaml
 
+    from alignrl.yaml_io import read_yaml_file
+
     path = run_dir / "config.yaml"
     try:
-        config = yaml.safe_load(path.read_text())
+        config = read_yaml_file(path)
     except yaml.YAMLError as error:
         raise ReportError(f"{path}: not valid YAML: {error}") from None
     if not isinstance(config, dict):
@@ -567,11 +572,13 @@ def _markdown(
 def write_run_report(run_dir: Path, out_dir: Path | None = None) -> RunReport:
     """Write the figures and report.md of a run into `out_dir` (default <run_dir>/report/).
     Nothing else in the run directory is touched, and every file is replaced atomically;
-    report.md goes last, so that it never links a figure not yet written."""
-    from alignrl.checkpoints import atomic_write_text
+    report.md goes last, so that it never links a figure not yet written. Temporaries that a
+    report killed midway left in `out_dir` are removed."""
+    from alignrl.checkpoints import atomic_write_text, remove_partial_writes
 
     run_dir = Path(run_dir)
     out_dir = run_dir / "report" if out_dir is None else Path(out_dir)
+    remove_partial_writes(out_dir, recursive=False)
     metrics = read_run_metrics(run_dir)
     config = _read_config(run_dir)
     figures = write_figures(metrics, out_dir)

@@ -16,13 +16,17 @@ every so often, and checkpoint. A run lives in runs/<name>/:
     tensorboard/              the same as TensorBoard events
 
 A resumed run continues from last.pt: networks, optimizers, replay, counters, curriculum and
-random generators; metrics written after that checkpoint are dropped and written again, and
-episodes in flight at the kill start over.
+random generators; metrics rows and TensorBoard events written after that checkpoint are
+dropped and written again, and episodes in flight at the kill start over. A run resumed after
+its budget (its final evaluation is in last.pt) writes nothing.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import shutil
 from collections.abc import Callable
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -30,9 +34,15 @@ import numpy as np
 import torch
 
 from alignrl.agents.agent import Agent, MemberSpec
-from alignrl.apparatus.base import Apparatus
 from alignrl.apparatus.registry import make_apparatus
-from alignrl.checkpoints import atomic_write_text, load_checkpoint, save_checkpoint
+from alignrl.apparatus.shield import JsonLinesAudit, ShieldOptions
+from alignrl.checkpoints import (
+    CheckpointError,
+    atomic_write_text,
+    load_checkpoint,
+    remove_partial_writes,
+    save_checkpoint,
+)
 from alignrl.config import ExperimentConfig, dump_experiment, parse_experiment
 from alignrl.envs import Curriculum, VectorAlignmentEnv, make_apparatus_copies
 from alignrl.envs.alignment import aligner_spaces
@@ -44,7 +54,7 @@ from alignrl.metrics import EPISODE_COLUMNS, EVALUATION_COLUMNS, CsvLog
 if TYPE_CHECKING:
     from alignrl.adaptation import HindsightSecrets
 
-__all__ = ["Trainer", "evaluate_policy", "load_policy", "member_spec"]
+__all__ = ["EvaluationSummary", "Trainer", "evaluate_policy", "load_policy", "member_spec"]
 
 CHECKPOINT_FORMAT = "alignrl-train-2"  # -1: a bare SAC state (policies still load)
 EVALUATION_SEED = 1_000_000  # evaluation scenarios never overlap training seeds
@@ -60,14 +70,25 @@ def evaluate_policy(
     scenarios: int,
     seed: int = EVALUATION_SEED,
     name: str = "policy",
-    shield: Callable[[Apparatus], Apparatus] | None = None,
+    shield: ShieldOptions | None = None,
 ) -> SessionResult:
     """An evaluation session (alignrl/evaluation/session.py) with a deterministic policy:
-    held-out scenarios, starts anywhere in the interval, a verification image each. With
-    `shield`, every call to the apparatus passes through what it wraps it in."""
+    held-out scenarios, starts anywhere in the interval, a verification image each, on an
+    apparatus opened with `shield` (a driver is always shielded)."""
     controller = PolicyController(name, act, task, history)
-    unit = make_apparatus(apparatus, apparatus_args)
-    return run_session(controller, shield(unit) if shield else unit, task, scenarios, seed)
+    unit = make_apparatus(apparatus, apparatus_args, shield=shield)
+    return run_session(controller, unit, task, scenarios, seed)
+
+
+@dataclass(frozen=True)
+class EvaluationSummary:
+    """The figures of an evaluation session that a checkpoint keeps: what a finished run,
+    resumed, reports without running the session again."""
+
+    successes: int
+    scenarios: int
+    median_acquisitions: float
+    p90_acquisitions: float
 
 
 def member_spec(config: ExperimentConfig, member_id: str | None = None) -> MemberSpec:
@@ -96,13 +117,16 @@ class Trainer:
         torch.set_num_threads(config.threads)
         torch.manual_seed(config.seed)
         self.rng = np.random.default_rng(config.seed)
-        apparatus = make_apparatus_copies(config.apparatus, config.apparatus_args, config.envs)
-        self.shield: Callable[[Apparatus], Apparatus] | None = None
-        if config.adaptation is not None:  # on an instrument: every call through the shield
-            from alignrl.adaptation import training_shield
+        # A driver is always shielded, its calls on record in the run; an adaptation shields
+        # whatever it adapts to, with its site limits and maximum steps.
+        self.shield = ShieldOptions(audit=JsonLinesAudit(self.run_dir / "audit.jsonl"))
+        if config.adaptation is not None:
+            from alignrl.adaptation import adaptation_shield
 
-            self.shield = training_shield(config.adaptation, self.run_dir / "audit.jsonl")
-            apparatus = [self.shield(unit) for unit in apparatus]
+            self.shield = adaptation_shield(config.adaptation, self.run_dir / "audit.jsonl")
+        apparatus = make_apparatus_copies(
+            config.apparatus, config.apparatus_args, config.envs, self.shield
+        )
         self.curriculum = (
             Curriculum(
                 level=config.curriculum.level,
@@ -129,6 +153,7 @@ class Trainer:
         self.env_steps = self.episodes = 0
         self.best_successes = -1
         self.starts = 0  # how many times this run was started (resumes change env seeds)
+        self.last_evaluation: EvaluationSummary | None = None
         metrics = self.run_dir / "metrics"
         self.update_log = CsvLog(
             metrics / "updates.csv", ["env_steps", "updates", *self.agent.metric_names]
@@ -136,6 +161,7 @@ class Trainer:
         self.episode_log = CsvLog(metrics / "episodes.csv", list(EPISODE_COLUMNS))
         self.evaluation_log = CsvLog(metrics / "evaluations.csv", list(EVALUATION_COLUMNS))
         self._tensorboard = None
+        self._purge_step: int | None = None  # resumed: TensorBoard drops events from here on
 
     # --- run directory ------------------------------------------------------------------
 
@@ -153,18 +179,36 @@ class Trainer:
 
     @classmethod
     def resume(cls, run_dir: str | Path) -> Trainer:
-        import yaml
+        from alignrl.yaml_io import read_yaml_file
 
         run_dir = Path(run_dir)
         config_path = run_dir / "config.yaml"
         if not config_path.exists():
             raise FileNotFoundError(f"{run_dir} is not a run directory (no config.yaml)")
-        config = parse_experiment(yaml.safe_load(config_path.read_text()), str(config_path))
+        config = parse_experiment(read_yaml_file(config_path), str(config_path))
         trainer = cls(config, run_dir)
         last = run_dir / "checkpoints" / "last.pt"
         if last.exists():
-            trainer._restore(load_checkpoint(last, config.device))
+            state = load_checkpoint(last, config.device)
+            try:
+                trainer._restore(state)
+            except CheckpointError:
+                raise
+            except (ValueError, KeyError, TypeError) as error:  # tensors of another network
+                raise CheckpointError(f"{last}: not a checkpoint of this run: {error}") from None
+        elif config.adaptation is not None:
+            raise FileNotFoundError(
+                f"{run_dir}: the adaptation was stopped before its first checkpoint (no "
+                f"{last}), so it cannot start from its source again here: remove {run_dir} "
+                "and run `alignrl adapt` again"
+            )
+        trainer._cut_back_to_checkpoint()
         return trainer
+
+    @property
+    def finished(self) -> bool:
+        """The budget is spent and its final evaluation checkpointed."""
+        return self.env_steps >= self.config.budget.env_steps
 
     def _state(self) -> dict[str, Any]:
         return {
@@ -174,6 +218,7 @@ class Trainer:
             "episodes": self.episodes,
             "best_successes": self.best_successes,
             "starts": self.starts,
+            "evaluation": asdict(self.last_evaluation) if self.last_evaluation else {},
             "numpy_rng": self.rng.bit_generator.state,
             "torch_rng": torch.get_rng_state(),
             "curriculum": self.curriculum.state_dict() if self.curriculum else {},
@@ -188,15 +233,39 @@ class Trainer:
         self.agent.load_state_dict(state["agent"])
         self.env_steps, self.episodes = int(state["env_steps"]), int(state["episodes"])
         self.best_successes, self.starts = int(state["best_successes"]), int(state["starts"])
+        if state.get("evaluation"):  # (older checkpoints have none)
+            self.last_evaluation = EvaluationSummary(**state["evaluation"])
         self.rng.bit_generator.state = state["numpy_rng"]
         torch.set_rng_state(state["torch_rng"])
         if self.curriculum and state["curriculum"]:
             self.curriculum.load_state_dict(state["curriculum"])
             self.env.set_complexity(self.curriculum.level)
+
+    def _cut_back_to_checkpoint(self) -> None:
+        """Before a resumed run continues: metrics rows and TensorBoard events after its
+        checkpoint (or all, where it has none yet) go, and so do writes a kill cut short."""
+        for folder in ("checkpoints", "metrics"):
+            remove_partial_writes(self.run_dir / folder)
         for log in (self.update_log, self.episode_log, self.evaluation_log):
             log.truncate_after(self.env_steps)
+        self._purge_step = self.env_steps + 1
+
+    def unstart(self) -> None:
+        """Undo a start that failed before the run's first checkpoint (an adaptation whose
+        instrument failed in its zero-shot session): the run directory is no run again, so
+        the same command starts it afresh. Its audit log of what reached the instrument is
+        kept (appended to by the next start)."""
+        if (self.run_dir / "checkpoints" / "last.pt").exists():
+            raise ValueError(f"{self.run_dir} has a checkpoint: resume it instead")
+        if self._tensorboard is not None:
+            self._tensorboard.close()
+        for name in ("metrics", "tensorboard", "checkpoints"):
+            shutil.rmtree(self.run_dir / name, ignore_errors=True)
+        (self.run_dir / "config.yaml").unlink(missing_ok=True)
 
     def checkpoint(self) -> None:
+        if self._tensorboard is not None:
+            self._tensorboard.flush()  # the events up to this checkpoint are on disk
         save_checkpoint(self.run_dir / "checkpoints" / "last.pt", self._state())
 
     # --- the loop -----------------------------------------------------------------------
@@ -205,7 +274,9 @@ class Trainer:
         if self._tensorboard is None:
             from torch.utils.tensorboard import SummaryWriter
 
-            self._tensorboard = SummaryWriter(str(self.run_dir / "tensorboard"))
+            self._tensorboard = SummaryWriter(
+                str(self.run_dir / "tensorboard"), purge_step=self._purge_step
+            )
         return self._tensorboard
 
     def evaluate(self) -> SessionResult:
@@ -219,7 +290,7 @@ class Trainer:
                 cfg.history,
                 cfg.budget.eval_scenarios,
                 name=cfg.name,
-                shield=self.shield,
+                shield=dataclasses.replace(self.shield, unit="evaluation"),
             )
 
     def evaluate_and_keep_best(self) -> SessionResult:
@@ -232,6 +303,9 @@ class Trainer:
             "p90_acquisitions": result.p90_acquisitions,
             "median_final_px": round(median_final, 4) if median_final is not None else "",
         }
+        self.last_evaluation = EvaluationSummary(
+            result.successes, result.scenarios, result.median_acquisitions, result.p90_acquisitions
+        )
         self.evaluation_log.write(
             [{"env_steps": self.env_steps, **summary, "seconds": round(result.seconds, 2)}]
         )
@@ -286,11 +360,17 @@ class Trainer:
         adaptation = self.config.adaptation
         return adaptation is None or self.env_steps > adaptation.critic_warmup_steps
 
-    def run(self, progress: bool = True, log: Callable[[str], None] | None = None) -> SessionResult:
-        """Train to the budget; `log` receives a line per evaluation and per checkpoint."""
+    def run(
+        self, progress: bool = True, log: Callable[[str], None] | None = None
+    ) -> SessionResult | EvaluationSummary:
+        """Train to the budget; `log` receives a line per evaluation and per checkpoint. A
+        finished run writes nothing and gives back its final evaluation."""
         from tqdm import tqdm
 
         cfg, budget = self.config, self.config.budget
+        if self.finished:
+            # (An older checkpoint keeps no evaluation: run the deterministic session again.)
+            return self.last_evaluation or self.evaluate()
         self.starts += 1
         observation, infos = self.env.reset(seed=cfg.seed * 1000 + self.starts)
         secret = infos["secret"]
@@ -367,7 +447,9 @@ class Trainer:
                     success=f"{np.mean(recent[-200:]):.2f}",
                     level=f"{self.env.episodes.complexity:.2f}",
                 )
-            if self.env_steps >= next_eval:
+            # The final evaluation comes before the final checkpoint: a run resumed after
+            # that checkpoint is finished, with nothing to write again.
+            if self.env_steps >= next_eval or self.env_steps >= budget.env_steps:
                 result = self.evaluate_and_keep_best()
                 if log:
                     log(
@@ -381,9 +463,6 @@ class Trainer:
                     log(f"checkpoint at {self.env_steps} env steps")
                 next_checkpoint += budget.checkpoint_every
         bar.close()
-        if result is None or self.env_steps % budget.eval_every:
-            result = self.evaluate_and_keep_best()
-            self.checkpoint()
         if self._tensorboard is not None:
             self._tensorboard.flush()
         return result
@@ -391,7 +470,7 @@ class Trainer:
 
 def load_policy(path: str | Path, device: str = "cpu") -> tuple[Agent, ExperimentConfig]:
     """A trained aligner from a run directory (its best.pt) or a checkpoint file."""
-    import yaml
+    from alignrl.yaml_io import parse_yaml
 
     path = Path(path)
     checkpoint = path / "checkpoints" / "best.pt" if path.is_dir() else path
@@ -403,7 +482,8 @@ def load_policy(path: str | Path, device: str = "cpu") -> tuple[Agent, Experimen
         return agent, parse_experiment(
             {"name": agent.id, "history": agent.spec.observation_shape[0]}, str(checkpoint)
         )
-    config = parse_experiment(yaml.safe_load(state["config"]), f"{checkpoint} (config)")
+    source = f"{checkpoint} (config)"
+    config = parse_experiment(parse_yaml(state["config"], source), source)
     spec = member_spec(config)
     agent = Agent(spec, device=device)
     saved = state["agent"]

@@ -21,6 +21,8 @@ from typing import Any, Literal
 import annotated_types
 from pydantic import BaseModel
 from pydantic.fields import FieldInfo
+from pydantic.functional_validators import BeforeValidator
+from pydantic.types import AllowInfNan
 
 from alignrl.config import ExperimentConfig
 from alignrl.league.config import LeagueConfig, Roster
@@ -110,8 +112,17 @@ BOUNDS = {
 
 def _bounds(key: str, field: FieldInfo) -> dict[str, Any]:
     """The field's constraints by name: ge, gt, le, lt, min_length, max_length."""
+    return _constraints(key, field.metadata)
+
+
+def _constraints(key: str, metadata: list[Any]) -> dict[str, Any]:
     found: dict[str, Any] = {}
-    for item in field.metadata:
+    for item in metadata:
+        if isinstance(item, BeforeValidator | AllowInfNan):
+            continue  # checks of the input's kind (a whole number, finite), not bounds
+        if isinstance(item, FieldInfo):  # the Field(...) of an Annotated type
+            found |= _constraints(key, item.metadata)
+            continue
         name = BOUNDS.get(type(item))
         if name is None:
             raise ValueError(f"{key}: the constraint {item!r} is not shown; teach _bounds() it")
@@ -145,9 +156,18 @@ def _unwrap(key: str, annotation: Any) -> tuple[Any, bool]:
     return members[0], len(members) < len(typing.get_args(annotation))
 
 
+def _annotated(key: str, annotation: Any) -> tuple[Any, dict[str, Any]]:
+    """`Annotated[X, ...]` as (X, its bounds); any other type as (it, {})."""
+    if typing.get_origin(annotation) is not typing.Annotated:
+        return annotation, {}
+    base, *metadata = typing.get_args(annotation)
+    return base, _constraints(key, metadata)
+
+
 def _allowed(key: str, field: FieldInfo) -> str:
     annotation, optional = _unwrap(key, field.annotation)
-    bounds = _bounds(key, field)
+    annotation, inner_bounds = _annotated(key, annotation)
+    bounds = {**inner_bounds, **_bounds(key, field)}
     origin, args = typing.get_origin(annotation), typing.get_args(annotation)
     nested = _nested(annotation)
     if nested is not None:
@@ -179,10 +199,13 @@ def _allowed(key: str, field: FieldInfo) -> str:
 
 
 def _noun(key: str, item: Any) -> str:
-    nouns = {int: "integers", float: "numbers", str: "texts"}
+    """'integers', or with bounds on each item 'integers, each 1 ≤ integer ≤ 8192'."""
+    item, bounds = _annotated(key, item)
+    nouns = {int: ("integers", "integer"), float: ("numbers", "number"), str: ("texts", "text")}
     if item not in nouns:
         raise ValueError(f"{key}: a list of {item!r} is not shown; teach _noun() it")
-    return nouns[item]
+    plural, singular = nouns[item]
+    return f"{plural}, each {_range(singular, bounds)}" if bounds else plural
 
 
 def rows(model: type[BaseModel], prefix: str = "") -> Iterator[Row]:

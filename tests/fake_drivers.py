@@ -6,9 +6,12 @@ w = 2.563 * sqrt(sigma0^2 + (gain * (V - V_opt))^2), so tests know every number 
 
 from __future__ import annotations
 
+import builtins
 import math
+import threading
 import time
 from collections.abc import Mapping
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -185,3 +188,72 @@ class FiveKnobColumn:
 
     def best_quality(self) -> float:
         return TEN_NINETY * self.sigma0
+
+
+class HostileLens(ParabolicLens):
+    """A ParabolicLens that lies, fails or hangs as told, and records every write it
+    receives before checking it (`HostileLens.received`, across the instances a command
+    builds), so a test can see what got through the shield.
+
+    read_value: what read() says the defocus is; width: what measure() returns (a number,
+    or "nan"); write_error / measure_error / read_error: the name of an exception class
+    ("RuntimeError", "ApparatusError", ...) that call raises; hang: "read", "write",
+    "measure" or "reset": that call blocks for `hang_s` seconds (None: forever);
+    hang_after: calls of that kind that return normally first.
+    """
+
+    received: ClassVar[list[dict[str, float]]] = []
+    instances: ClassVar[list[HostileLens]] = []
+
+    def __init__(
+        self,
+        read_value: float | None = None,
+        width: float | str | None = None,
+        write_error: str | None = None,
+        measure_error: str | None = None,
+        read_error: str | None = None,
+        hang: str | None = None,
+        hang_s: float | None = None,
+        hang_after: int = 0,
+        **options: Any,
+    ) -> None:
+        self.read_value, self.width = read_value, width
+        self.errors = {"write": write_error, "measure": measure_error, "read": read_error}
+        self.hang, self.hang_s, self.hang_after = hang, hang_s, hang_after
+        self.counts: dict[str, int] = {}
+        self.hung = threading.Event()  # set while a call hangs
+        super().__init__(**options)
+        HostileLens.instances.append(self)
+
+    def _misbehave(self, call: str) -> None:
+        self.counts[call] = self.counts.get(call, 0) + 1
+        if call == self.hang and self.counts[call] > self.hang_after:
+            self.hung.set()
+            threading.Event().wait(self.hang_s)  # None: never returns
+        name = self.errors.get(call)
+        if name is not None:
+            error = ApparatusError if name == "ApparatusError" else getattr(builtins, name)
+            raise error(f"vendor SDK: {call} failed (E_{call.upper()}_42)")
+
+    def reset(self, seed: int | None = None) -> None:
+        if hasattr(self, "counts"):  # ParabolicLens.__init__ resets before ours is done
+            self._misbehave("reset")
+        super().reset(seed)
+
+    def read(self) -> dict[str, float]:
+        self._misbehave("read")
+        if self.read_value is not None:
+            return {"defocus": self.read_value}
+        return super().read()
+
+    def write(self, values: Mapping[str, float]) -> None:
+        HostileLens.received.append({name: float(value) for name, value in values.items()})
+        self._misbehave("write")
+        super().write(values)
+
+    def measure(self) -> float:
+        self._misbehave("measure")
+        true_width = super().measure()
+        if self.width is None:
+            return true_width
+        return float(self.width)

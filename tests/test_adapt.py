@@ -20,12 +20,12 @@ import yaml
 from alignrl.adaptation import HindsightSecrets, adaptation_config, start_adaptation
 from alignrl.agents.agent import Agent
 from alignrl.apparatus import MeasurementError, make_apparatus
+from alignrl.apparatus.shield import TrainingShield
 from alignrl.apparatus.synthetic import PRESET_DIR, load_sem_config
 from alignrl.checkpoints import load_checkpoint
 from alignrl.cli import main
 from alignrl.config import TaskOptions, parse_experiment
 from alignrl.deploy.export import resolve_source
-from alignrl.deploy.shield import TrainingShield
 from alignrl.envs import AlignmentEnv
 from alignrl.envs.core import feature_layout
 from alignrl.envs.task import get_task
@@ -383,7 +383,6 @@ def _near_focus_successes(agent: Agent, gain: float, scenarios: int = 40) -> int
     return successes
 
 
-@pytest.mark.slow
 def test_adaptation_lifts_success_on_a_new_lens(tmp_path: Path) -> None:
     """An aligner pre-trained briefly on the recordings (near focus, as in test_training)
     meets an analytic lens with another focus curve; 3000 shielded steps there lift it."""
@@ -412,14 +411,14 @@ def test_a_shielded_evaluation_session_is_the_same_session(
 ) -> None:
     # Sessions on the recordings walk the held-out rows in order (reset_to): the shield must
     # pass that through, or an adaptation's zero-shot figure would be another session's.
-    from alignrl.adaptation import training_shield
+    from alignrl.adaptation import adaptation_shield
     from alignrl.config import AdaptationConfig
     from alignrl.training import evaluate_policy
 
     source = resolve_source(small_source)
     act = lambda history: source.agent.act(history, deterministic=True)  # noqa: E731
     args = {"noise": 0.02, "split": "test"}
-    shield = training_shield(
+    shield = adaptation_shield(
         AdaptationConfig(source="s", source_member="m", source_steps=0), tmp_path / "a.jsonl"
     )
     plain = evaluate_policy(act, "csv:default", args, source.task, 8, 6)

@@ -375,8 +375,8 @@ def test_align_a_safetensors_champion_end_to_end(
 
 
 def test_the_log_file_is_strict_json_even_for_a_nan_action(tmp_path: Path) -> None:
-    from alignrl.deploy.align import JsonLinesAudit, align
-    from alignrl.deploy.shield import resolve_limits
+    from alignrl.apparatus.shield import JsonLinesAudit, resolve_limits
+    from alignrl.deploy.align import align
 
     driver = RecordingDriver()
     path = tmp_path / "audit.jsonl"
@@ -420,7 +420,7 @@ def _misaligned_column() -> Any:
 
 
 def test_a_sequence_of_task_champions_aligns_the_column_through_the_shield() -> None:
-    from alignrl.deploy.shield import MemoryAudit, resolve_limits
+    from alignrl.apparatus.shield import MemoryAudit, resolve_limits
     from alignrl.envs.task import get_task
 
     column = _misaligned_column()
@@ -440,7 +440,7 @@ def test_a_sequence_of_task_champions_aligns_the_column_through_the_shield() -> 
 
 
 def test_a_sequence_that_skips_the_stigmators_is_not_aligned() -> None:
-    from alignrl.deploy.shield import MemoryAudit, resolve_limits
+    from alignrl.apparatus.shield import MemoryAudit, resolve_limits
     from alignrl.envs.task import get_task
 
     column = _misaligned_column()
@@ -453,7 +453,7 @@ def test_a_sequence_that_skips_the_stigmators_is_not_aligned() -> None:
 
 
 def test_a_sequence_needs_a_task_that_covers_its_policies() -> None:
-    from alignrl.deploy.shield import MemoryAudit, resolve_limits
+    from alignrl.apparatus.shield import MemoryAudit, resolve_limits
     from alignrl.envs.task import get_task
 
     column = _misaligned_column()

@@ -40,7 +40,10 @@ def test_rows_render_defaults_bounds_and_choices() -> None:
     assert rows["history"] == ("`8`", "1 ≤ integer ≤ 64", "history rows the aligner sees")
     assert rows["learner.algorithm"][:2] == ("`sac`", "`sac`, `ppo`")
     assert rows["learner.tau"][:2] == ("`null`", "0 < number ≤ 1, or `null`")
-    assert rows["learner.hidden"][:2] == ("`[256, 256]`", "list of integers")
+    assert rows["learner.hidden"][:2] == (
+        "`[256, 256]`",
+        "list of integers, each 1 ≤ integer ≤ 8192",
+    )
     assert rows["apparatus_args"][0] == "`{noise: 0.02, split: train}`"
     assert rows["name"][2] == "run name (runs/\\<name\\>/)"  # not an HTML tag
     assert rows["budget"][:2] == ("`{}`", "mapping of the `budget.*` keys below")

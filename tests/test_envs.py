@@ -9,6 +9,7 @@ import warnings
 
 import numpy as np
 import pytest
+from fake_drivers import ParabolicLens
 from gymnasium.utils.env_checker import check_env
 from pettingzoo.test import api_test, seed_test
 
@@ -57,9 +58,7 @@ def test_default_constructors_build_the_focus_task_on_the_shipped_scenarios() ->
 
 
 def _lens_env(**kwargs) -> AlignmentEnv:
-    return AlignmentEnv(
-        apparatus=make_apparatus(LENS), task=kwargs.pop("task", LENS_TASK), **kwargs
-    )
+    return AlignmentEnv(apparatus=ParabolicLens(), task=kwargs.pop("task", LENS_TASK), **kwargs)
 
 
 def test_steps_inside_the_interval_pay_nothing_until_the_final_reward() -> None:
@@ -154,7 +153,7 @@ def test_the_secret_reaches_info_but_never_the_observation() -> None:
     identical observations: the policy cannot see where the optimum is."""
     observations, secrets = [], []
     for optimum in (30.0, 60.0):
-        lens = make_apparatus(LENS)
+        lens = ParabolicLens()
         env = AlignmentEnv(apparatus=lens, task=LENS_TASK)
         env.reset(seed=0, options={"misalignment": [0.0]})
         lens.optimum_v = optimum
@@ -168,7 +167,7 @@ def test_the_secret_reaches_info_but_never_the_observation() -> None:
 
 
 def test_failed_measurements_are_a_defined_outcome() -> None:
-    env = AlignmentEnv(apparatus=make_apparatus(LENS, {"blind_beyond_v": 10.0}), task=LENS_TASK)
+    env = AlignmentEnv(apparatus=ParabolicLens(blind_beyond_v=10.0), task=LENS_TASK)
     observation, info = env.reset(seed=0, options={"misalignment": [-1.0]})
     lens = env.apparatus
     assert lens.voltage == 0.0 and lens.optimum_v > 10.0  # far out: no edges to measure

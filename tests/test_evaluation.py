@@ -190,7 +190,7 @@ def test_the_baselines_align_the_noisy_synthetic_column() -> None:
 
 
 def test_counting_apparatus_counts_records_and_stops_at_the_budget() -> None:
-    apparatus = make_apparatus(LENS, {"blind_beyond_v": 10.0})
+    apparatus = ParabolicLens(blind_beyond_v=10.0)
     apparatus.reset(0)
     counting = CountingApparatus(apparatus, budget=3)
     counting.write({"defocus": apparatus.optimum_v})

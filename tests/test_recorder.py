@@ -12,8 +12,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from fake_drivers import ParabolicLens
 
-from alignrl.apparatus import make_apparatus, read_scenarios
+from alignrl.apparatus import read_scenarios
 from alignrl.apparatus.recorder import SweepPlan, scenario_seed, sweep, sweep_plan
 from alignrl.cli import main
 
@@ -21,8 +22,8 @@ TESTS = Path(__file__).resolve().parent
 LENS = "fake_drivers:ParabolicLens"
 
 
-def lens(**args: object):
-    return make_apparatus(LENS, args)
+def lens(**args: object) -> ParabolicLens:
+    return ParabolicLens(**args)  # type: ignore[arg-type]
 
 
 def test_constant_sweep_covers_the_interval_in_equal_steps() -> None:

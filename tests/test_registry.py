@@ -17,6 +17,7 @@ from alignrl.apparatus import (
 )
 from alignrl.apparatus.recorder import sweep, sweep_plan
 from alignrl.apparatus.scenarios import ScenarioWriter
+from alignrl.apparatus.shield import TrainingShield
 
 
 def test_presets_are_listed_and_built() -> None:
@@ -64,7 +65,8 @@ def test_csv_spec_builds_the_scenario_simulator_with_arguments(tmp_path: Path) -
 
 def test_import_path_loads_a_users_driver_with_keyword_arguments() -> None:
     lens = make_apparatus("fake_drivers:ParabolicLens", {"gain_px_per_v": 0.5})
-    assert lens.gain == 0.5
+    assert isinstance(lens, TrainingShield)  # a driver is a real instrument: always shielded
+    assert lens.driver.gain == 0.5
     lens.write({"defocus": lens.optimum()["defocus"] + 10.0})
     assert lens.measure() == pytest.approx(2.563 * np.hypot(1.0, 5.0))
 
@@ -76,8 +78,10 @@ def test_the_documented_example_driver_loads_and_measures() -> None:
     low, high = microscope.knobs["defocus"]
     microscope.write({"defocus": 0.5 * (low + high)})
     assert microscope.measure() > 0
-    with pytest.raises(ValueError):
-        microscope.write({"defocus": high + 1.0})
+    with pytest.raises(ValueError):  # the driver itself refuses a value off its interval,
+        microscope.driver.write({"defocus": high + 1.0})
+    microscope.write({"defocus": high + 1.0})  # ... and the shield clamps it into it
+    assert microscope.read()["defocus"] == high
 
 
 @pytest.mark.parametrize(

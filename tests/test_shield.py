@@ -18,9 +18,7 @@ import pytest
 
 from alignrl.apparatus import ApparatusError, NoEdgesError
 from alignrl.apparatus.registry import make_apparatus
-from alignrl.deploy.align import align
-from alignrl.deploy.policy import DeployablePolicy
-from alignrl.deploy.shield import (
+from alignrl.apparatus.shield import (
     KnobLimits,
     MemoryAudit,
     RefusedWrite,
@@ -31,6 +29,8 @@ from alignrl.deploy.shield import (
     clamp_write,
     resolve_limits,
 )
+from alignrl.deploy.align import align
+from alignrl.deploy.policy import DeployablePolicy
 from alignrl.envs.core import feature_layout
 from alignrl.envs.task import get_task
 

@@ -20,7 +20,8 @@ back.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
+import math
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -32,7 +33,16 @@ from alignrl.agents.ppo import PPO, PPOConfig, RolloutBuffer
 from alignrl.agents.replay import Batch, ReplayBuffer
 from alignrl.agents.sac import SAC, SACConfig
 
-__all__ = ["ALGORITHMS", "TEAMS", "Agent", "MemberSpec"]
+__all__ = [
+    "ALGORITHMS",
+    "TEAMS",
+    "Agent",
+    "MemberSpec",
+    "check_learner_state",
+    "check_tensors",
+    "finite_problem",
+    "tensor_problem",
+]
 
 TEAMS = ("aligner", "misaligner")
 ALGORITHMS = ("sac", "ppo")
@@ -130,11 +140,210 @@ class MemberSpec:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> MemberSpec:
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(data) - names)
+        """The spec a saved record holds, its fields checked by type (a record comes from a
+        file: a hand-edited or foreign one is refused here, not deep inside a network)."""
+        if not isinstance(data, dict):
+            raise ValueError(f"member record is a {type(data).__name__}, not a mapping")
+        names = [f.name for f in dataclasses.fields(cls)]
+        unknown = sorted(set(map(str, data)) - set(names))
         if unknown:
             raise ValueError(f"member record has unknown fields {', '.join(unknown)}")
+        missing = [name for name in names if name not in data and name not in OPTIONAL_FIELDS]
+        if missing:
+            raise ValueError(f"member record has no field {', '.join(missing)}")
+        _check_record(data)
         return cls(**data)
+
+
+# --- what a saved member may hold -------------------------------------------------------
+
+OPTIONAL_FIELDS = ("hyperparameters", "parent")
+STATE_KEYS = ("format", "spec", "learner", "steps_seen", "update_debt")  # + "replay"
+MAX_SIZE = 1 << 16  # rows, features, actions or hidden units: beyond it a record is not ours
+
+
+def _is_integer(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool)
+
+
+def _check_record(data: dict[str, Any]) -> None:
+    """The types of a member record's fields (MemberSpec.from_dict); ValueError naming the
+    first field that is wrong."""
+
+    def size(value: Any, low: int) -> bool:
+        return _is_integer(value) and low <= value <= MAX_SIZE
+
+    for name in ("id", "team", "algorithm"):
+        if not isinstance(data[name], str):
+            raise ValueError(f"member record field {name} is {data[name]!r}, not a string")
+    shape = data["observation_shape"]
+    if not (isinstance(shape, list | tuple) and len(shape) == 2 and all(size(n, 1) for n in shape)):
+        raise ValueError(
+            f"member record field observation_shape is {shape!r}: it must be [history rows, "
+            f"features], two whole numbers from 1 to {MAX_SIZE}"
+        )
+    if not size(data["action_dim"], 1):
+        raise ValueError(
+            f"member record field action_dim is {data['action_dim']!r}: it must be a whole "
+            f"number from 1 to {MAX_SIZE}"
+        )
+    if not size(data["secret_dim"], 0):
+        raise ValueError(
+            f"member record field secret_dim is {data['secret_dim']!r}, not a whole number >= 0"
+        )
+    hyperparameters = data.get("hyperparameters", {})
+    if not isinstance(hyperparameters, dict) or not all(map(_is_name, hyperparameters)):
+        raise ValueError("member record field hyperparameters is not a mapping of names")
+    hidden = hyperparameters.get("hidden", [1])
+    if not (isinstance(hidden, list | tuple) and all(size(n, 1) for n in hidden)):
+        raise ValueError(
+            f"member record field hyperparameters.hidden is {hidden!r}: it must be a list of "
+            f"layer widths, whole numbers from 1 to {MAX_SIZE}"
+        )
+    for name, value in hyperparameters.items():
+        if _is_number(value) and not math.isfinite(value):
+            raise ValueError(f"member record field hyperparameters.{name} is {value}")
+    parent = data.get("parent")
+    if parent is not None and not isinstance(parent, str):
+        raise ValueError(f"member record field parent is {parent!r}, not a string or null")
+
+
+def _is_name(key: Any) -> bool:
+    return isinstance(key, str)
+
+
+def _shape(shape: Sequence[int]) -> str:
+    return "(" + ", ".join(str(n) for n in shape) + ("," if len(shape) == 1 else "") + ")"
+
+
+def tensor_problem(name: str, held: Any, wanted: torch.Tensor) -> str | None:
+    """What is wrong with the saved `held` where the network has `wanted`, in words naming
+    the tensor; None where it fits (same shape and dtype, every value finite)."""
+    if not isinstance(held, torch.Tensor):
+        return (
+            f"{name} is a {type(held).__name__}, where the spec needs a tensor of shape "
+            f"{_shape(wanted.shape)}"
+        )
+    if held.shape != wanted.shape:
+        return f"{name} has shape {_shape(held.shape)}, the spec needs {_shape(wanted.shape)}"
+    if held.dtype != wanted.dtype:
+        dtypes = (str(held.dtype), str(wanted.dtype))
+        found, needed = (text.removeprefix("torch.") for text in dtypes)
+        return f"{name} is {found}, the spec needs {needed}"
+    return finite_problem(name, held)
+
+
+def finite_problem(name: str, tensor: torch.Tensor) -> str | None:
+    """A tensor holding NaN or infinity, in words; None where every value is finite. A
+    network with such a weight answers NaN: it is refused when loaded, never run."""
+    if not (tensor.is_floating_point() or tensor.is_complex()):
+        return None
+    bad = int((~torch.isfinite(tensor)).sum())
+    if not bad:
+        return None
+    return f"{name} contains non-finite values ({bad} of {tensor.numel()} are NaN or infinite)"
+
+
+def check_tensors(held: Any, wanted: Mapping[str, torch.Tensor], where: str) -> None:
+    """The saved tensors `held` are exactly a network's `wanted` ones (names, shapes,
+    dtypes, finite values); else ValueError naming the first that is not."""
+    if not isinstance(held, dict):
+        raise ValueError(f"{where} is a {type(held).__name__}, where the spec needs tensors")
+    for name, tensor in wanted.items():
+        if name not in held:
+            raise ValueError(
+                f"{where}.{name} is missing: the spec needs a tensor of shape "
+                f"{_shape(tensor.shape)}"
+            )
+        problem = tensor_problem(f"{where}.{name}", held[name], tensor)
+        if problem:
+            raise ValueError(problem)
+    unexpected = sorted(set(map(str, held)) - set(wanted))
+    if unexpected:
+        raise ValueError(f"{where}.{unexpected[0]} is not a tensor of the spec's network")
+
+
+def _check_optimizer(held: Any, optimizer: torch.optim.Optimizer, where: str) -> None:
+    """A saved optimizer state fits `optimizer`: as many parameters per group, and each
+    parameter's running statistics shaped as the parameter and finite."""
+    if not isinstance(held, dict) or set(held) != {"state", "param_groups"}:
+        raise ValueError(f"{where} is not an optimizer state (keys state and param_groups)")
+    groups = held["param_groups"]
+    if not isinstance(groups, list) or len(groups) != len(optimizer.param_groups):
+        count = len(groups) if isinstance(groups, list) else type(groups).__name__
+        raise ValueError(
+            f"{where}.param_groups holds {count} group(s), the spec's optimizer has "
+            f"{len(optimizer.param_groups)}"
+        )
+    parameters: dict[Any, torch.Tensor] = {}
+    for index, (saved, own) in enumerate(zip(groups, optimizer.param_groups, strict=True)):
+        ids = saved.get("params") if isinstance(saved, dict) else None
+        if not isinstance(ids, list) or len(ids) != len(own["params"]):
+            count = len(ids) if isinstance(ids, list) else "no list of"
+            raise ValueError(
+                f"{where}.param_groups[{index}] holds {count} parameters, the spec's network "
+                f"has {len(own['params'])}"
+            )
+        for name, value in saved.items():
+            if _is_number(value) and not math.isfinite(value):
+                raise ValueError(f"{where}.param_groups[{index}].{name} is {value}")
+        parameters.update(zip(ids, own["params"], strict=True))
+    state = held["state"]
+    if not isinstance(state, dict):
+        raise ValueError(f"{where}.state is a {type(state).__name__}, not a mapping")
+    for key, entry in state.items():
+        if key not in parameters or not isinstance(entry, dict):
+            raise ValueError(f"{where}.state[{key!r}] belongs to no parameter of the network")
+        for name, value in entry.items():
+            if not isinstance(value, torch.Tensor):
+                continue
+            label = f"{where}.state[{key}].{name}"
+            if value.ndim and value.shape != parameters[key].shape:
+                raise ValueError(
+                    f"{label} has shape {_shape(value.shape)}, the spec needs "
+                    f"{_shape(parameters[key].shape)}"
+                )
+            problem = finite_problem(label, value)
+            if problem:
+                raise ValueError(problem)
+
+
+def check_learner_state(held: Any, learner: SAC | PPO) -> None:
+    """A saved learner state (SAC.state_dict, PPO.state_dict) fits `learner`: the same keys,
+    each network's tensors shaped as this learner's, finite, and its optimizers' statistics
+    shaped as their parameters; else ValueError naming the first key or tensor that does
+    not ("learner.actor.head.0.weight has shape (64, 256), the spec needs (16, 256)")."""
+    wanted = learner.state_dict()
+    if not isinstance(held, dict):
+        raise ValueError(f"learner is a {type(held).__name__}, not a learner's state")
+    for key, value in wanted.items():
+        where = f"learner.{key}"
+        if key not in held:
+            raise ValueError(f"{where} is missing from the saved state")
+        own = getattr(learner, key, None)
+        if isinstance(own, torch.nn.Module):
+            check_tensors(held[key], value, where)
+        elif isinstance(own, torch.optim.Optimizer):
+            _check_optimizer(held[key], own, where)
+        elif isinstance(value, torch.Tensor):
+            problem = tensor_problem(where, held[key], value)
+            if problem:
+                raise ValueError(problem)
+        elif _is_integer(value) and not (_is_integer(held[key]) and held[key] >= 0):
+            raise ValueError(f"{where} is {held[key]!r}, not a whole number >= 0")
+        elif isinstance(value, dict) and not isinstance(held[key], dict):
+            raise ValueError(f"{where} is a {type(held[key]).__name__}, not a mapping")
+    unexpected = sorted(set(map(str, held)) - set(wanted))
+    if unexpected:
+        raise ValueError(f"learner.{unexpected[0]} is not part of a {learner_name(learner)} state")
+
+
+def learner_name(learner: SAC | PPO) -> str:
+    return "SAC" if isinstance(learner, SAC) else "PPO"
 
 
 class Agent:
@@ -330,8 +539,21 @@ class Agent:
         return state
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Take a saved state (state_dict) whole, or refuse it untouched: a ValueError
+        naming the first key or tensor that does not fit this member's networks (wrong
+        shape or dtype, missing, unexpected, not a tensor, NaN or infinite)."""
+        if not isinstance(state, dict):
+            raise ValueError(f"member state is a {type(state).__name__}, not a mapping")
         if state.get("format") != MEMBER_FORMAT:
             raise ValueError(f"member state format {state.get('format')!r} is not {MEMBER_FORMAT}")
+        missing = [key for key in STATE_KEYS if key not in state]
+        unexpected = sorted(set(map(str, state)) - {*STATE_KEYS, "replay"})
+        if missing or unexpected:
+            raise ValueError(
+                f"member state has no {', '.join(missing)}"
+                if missing
+                else f"member state has unexpected key(s) {', '.join(unexpected)}"
+            )
         saved = MemberSpec.from_dict(state["spec"])
         if (saved.algorithm, saved.observation_shape, saved.action_dim, saved.secret_dim) != (
             self.spec.algorithm,
@@ -345,9 +567,17 @@ class Agent:
                 f"{self.spec.algorithm} with {self.spec.observation_shape}, "
                 f"{self.spec.action_dim} actions"
             )
+        check_learner_state(state["learner"], self.learner)
+        steps_seen, update_debt = state["steps_seen"], state["update_debt"]
+        if not (_is_integer(steps_seen) and steps_seen >= 0):
+            raise ValueError(f"steps_seen is {steps_seen!r}, not a whole number >= 0")
+        if not (_is_number(update_debt) and math.isfinite(update_debt) and update_debt >= 0):
+            raise ValueError(f"update_debt is {update_debt!r}, not a finite number >= 0")
+        if "replay" in state and not isinstance(state["replay"], dict):
+            raise ValueError(f"replay is a {type(state['replay']).__name__}, not a mapping")
         self.learner.load_state_dict(state["learner"])
-        self.steps_seen = int(state["steps_seen"])
-        self._update_debt = float(state["update_debt"])
+        self.steps_seen = steps_seen
+        self._update_debt = float(update_debt)
         if "replay" in state:
             replay = {
                 key: value.numpy() if isinstance(value, torch.Tensor) else value
@@ -373,15 +603,22 @@ class Agent:
     def load_policy_state(self, state: dict[str, Any]) -> None:
         """Take the acting network's weights and steps_seen of `policy_state`; critics,
         optimizers and experience are left as they are."""
-        if state.get("format") != POLICY_FORMAT:
-            raise ValueError(f"policy state format {state.get('format')!r} is not {POLICY_FORMAT}")
-        if state["spec"] != self.spec.to_dict():
+        if not isinstance(state, dict) or state.get("format") != POLICY_FORMAT:
+            found = state.get("format") if isinstance(state, dict) else type(state).__name__
+            raise ValueError(f"policy state format {found!r} is not {POLICY_FORMAT}")
+        spec = state.get("spec")
+        if spec != self.spec.to_dict():
+            owner = spec.get("id") if isinstance(spec, dict) else None
             raise ValueError(
                 f"member {self.id}: the policy state is of another member or other settings "
-                f"({state['spec']['id']!r})"
+                f"({owner!r})"
             )
+        check_tensors(state.get("policy"), self._acting_network.state_dict(), "policy")
+        steps_seen = state.get("steps_seen")
+        if not (_is_integer(steps_seen) and steps_seen >= 0):
+            raise ValueError(f"steps_seen is {steps_seen!r}, not a whole number >= 0")
         self._acting_network.load_state_dict(state["policy"])
-        self.steps_seen = int(state["steps_seen"])
+        self.steps_seen = steps_seen
 
     @classmethod
     def from_policy_state(cls, state: dict[str, Any], device: str | torch.device = "cpu") -> Agent:

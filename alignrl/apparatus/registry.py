@@ -11,6 +11,12 @@ For presets, `sem:` and `csv:` the same arguments override instrument or simulat
 (for example `{"dose_electrons_per_px": 50}` or `{"noise": 0.02, "split": "test"}`). For presets
 and `sem:` the argument `analytic` (true or false) switches the synthetic SEM to its analytic
 mode: readings computed from the probe, without images (docs/physics.md).
+
+A driver is a real instrument: `make_apparatus` returns it behind the safety shield
+(alignrl/apparatus/shield.py: intervals, site limits, maximum steps, finite values, bounded
+calls, audit), whatever command opens it, so nothing reaches a microscope around the shield.
+Only `alignrl align`, which puts its own single-alignment shield around the driver, opens one
+unshielded (`build_apparatus`).
 """
 
 from __future__ import annotations
@@ -23,10 +29,12 @@ from pathlib import Path
 from typing import Any
 
 from alignrl.apparatus.base import APPARATUS_METHODS, Apparatus
+from alignrl.apparatus.guard import DEFAULT_CALL_TIMEOUT_S, construct_within
+from alignrl.apparatus.shield import ShieldOptions, shield_apparatus
 from alignrl.apparatus.simulator import ScenarioSimulator, default_scenarios_path
 from alignrl.apparatus.synthetic import PRESET_DIR, SyntheticSEM, load_sem_config
 
-__all__ = ["make_apparatus", "preset_names", "spec_form"]
+__all__ = ["build_apparatus", "make_apparatus", "preset_names", "spec_form"]
 
 
 def preset_names() -> list[str]:
@@ -82,7 +90,9 @@ def _construct(target: Any, spec: str, args: Mapping[str, Any], **fixed: Any) ->
     return target(**args, **fixed)
 
 
-def _import_driver(spec: str, args: Mapping[str, Any]) -> Apparatus:
+def _import_driver(
+    spec: str, args: Mapping[str, Any], call_timeout_s: float | None = DEFAULT_CALL_TIMEOUT_S
+) -> Apparatus:
     module_name, _, attribute = spec.partition(":")
     try:
         module = importlib.import_module(module_name)
@@ -98,7 +108,12 @@ def _import_driver(spec: str, args: Mapping[str, Any]) -> Apparatus:
         ) from None
     if not callable(target):
         raise ValueError(f"apparatus {spec!r}: {attribute!r} is not a class or factory")
-    return _check_protocol(_construct(target, spec, args), spec)
+    driver = construct_within(
+        f"apparatus {spec!r}: the driver's constructor",
+        lambda: _construct(target, spec, args),
+        call_timeout_s,
+    )
+    return _check_protocol(driver, spec)
 
 
 def spec_form(spec: str) -> str:
@@ -120,10 +135,15 @@ def spec_form(spec: str) -> str:
     )
 
 
-def make_apparatus(
-    spec: str, args: Mapping[str, Any] | None = None, seed: int | None = None
+def build_apparatus(
+    spec: str,
+    args: Mapping[str, Any] | None = None,
+    seed: int | None = None,
+    call_timeout_s: float | None = DEFAULT_CALL_TIMEOUT_S,
 ) -> Apparatus:
-    """Build the apparatus a spec names (see the module docstring)."""
+    """The apparatus a spec names (see the module docstring), a driver unshielded: only for
+    code that shields it itself (alignrl/deploy/align.py). Everything else: make_apparatus.
+    A driver's constructor is bounded by `call_timeout_s` as its calls are."""
     args = dict(args or {})
     form = spec_form(spec)
     if form == "csv":
@@ -138,4 +158,20 @@ def make_apparatus(
                 f"apparatus {spec!r}: analytic must be true or false, got {analytic!r}"
             )
         return SyntheticSEM(load_sem_config(path, **args), seed=seed, analytic=analytic)
-    return _import_driver(spec, args)
+    return _import_driver(spec, args, call_timeout_s)
+
+
+def make_apparatus(
+    spec: str,
+    args: Mapping[str, Any] | None = None,
+    seed: int | None = None,
+    shield: ShieldOptions | None = None,
+) -> Apparatus:
+    """The apparatus a spec names; a driver always behind the shield (default options: the
+    driver's own intervals, no site limits, DEFAULT_CALL_TIMEOUT_S a call, audit in memory),
+    a simulator too where `shield.simulators` says so."""
+    timeout_s = shield.call_timeout_s if shield is not None else DEFAULT_CALL_TIMEOUT_S
+    apparatus = build_apparatus(spec, args, seed, timeout_s)
+    if spec_form(spec) == "driver" or (shield is not None and shield.simulators):
+        return shield_apparatus(apparatus, shield)
+    return apparatus

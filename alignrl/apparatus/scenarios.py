@@ -17,7 +17,9 @@ the voltage, until the knob's interval is swept. The file (docs/scenarios.md) is
 Rows differ in length: a row ends after its `n_pairs` pairs (trailing cells absent or empty);
 the header carries as many pair columns as the longest possible sweep. Files may be gzipped
 (`.csv.gz`). Reading is strict: a bad cell is an error naming file, row, line and column;
-nothing is dropped or repaired.
+nothing is dropped or repaired. Reading is bounded: a file (a gzipped one once decompressed)
+holds at most MAX_TEXT_BYTES; knob values and edge widths must be physical (MAX_KNOB_VALUE,
+MAX_EDGE_WIDTH_PX) and a sweep must span at least MIN_SPAN of its knob.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ import gzip
 import io
 import math
 import os
+import zlib
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -47,6 +50,13 @@ __all__ = [
 
 META_COLUMNS = ("scenario", "seed", "knob", "low", "high", "n_pairs", "n_failed")
 MIN_PAIRS = 5  # fewer points cannot locate a focus minimum
+MAX_TEXT_BYTES = 200 * 1024 * 1024  # the shipped 2000 scenarios take 0.8 MB
+READ_CHUNK = 1024 * 1024
+INT64_LIMIT = 2**63  # ids, seeds and counts are stored as int64
+MAX_KNOB_VALUE = 1e6  # |volts| (or the knob's unit) beyond any lens or stigmator setting
+MAX_EDGE_WIDTH_PX = 1e6  # an edge wider than any frame
+MIN_SPAN = 1e-6  # knob units a sweep must cover: less cannot locate a focus (the fit is singular)
+SHOWN_CELL = 40  # characters of a bad cell echoed in a message
 
 
 class ScenarioFormatError(ValueError):
@@ -142,13 +152,30 @@ def _is_gzip(path: Path) -> bool:
     return path.suffix == ".gz"
 
 
+def _read_bounded(path: Path) -> bytes:
+    """The file's bytes (decompressed for .gz), read in chunks and refused past
+    MAX_TEXT_BYTES: a small gzip file may decompress to gigabytes."""
+    opened = gzip.open(path, "rb") if _is_gzip(path) else open(path, "rb")
+    chunks, size = [], 0
+    with opened as handle:
+        while chunk := handle.read(READ_CHUNK):
+            size += len(chunk)
+            if size > MAX_TEXT_BYTES:
+                what = "decompresses to" if _is_gzip(path) else "holds"
+                raise ScenarioFormatError(
+                    f"{path}: {what} more than {MAX_TEXT_BYTES // (1024 * 1024)} MB; a scenario "
+                    "file of 100,000 scenarios takes about 40 MB"
+                )
+            chunks.append(chunk)
+    return b"".join(chunks)
+
+
 def _read_text(path: Path) -> str:
     try:
-        with _open_for_reading(path) as handle:
-            return handle.read()
+        return _read_bounded(path).decode("utf-8")
     except FileNotFoundError:
         raise FileNotFoundError(f"scenario file {path} does not exist") from None
-    except (EOFError, gzip.BadGzipFile, UnicodeDecodeError) as error:
+    except (EOFError, gzip.BadGzipFile, zlib.error, UnicodeDecodeError) as error:
         hint = ""
         if isinstance(error, EOFError):
             hint = (
@@ -175,21 +202,38 @@ class _Where:
         return ScenarioFormatError(f"{place}: {message}")
 
 
+def _shown(text: str) -> str:
+    """A cell as echoed in a message: its repr, cut short."""
+    return repr(text) if len(text) <= SHOWN_CELL else f"{text[:SHOWN_CELL]!r}..."
+
+
 def _number(text: str, where: _Where, row: int, column: int) -> float:
     try:
         value = float(text)
     except ValueError:
-        raise where(row, column, f"{text!r} is not a number") from None
+        raise where(row, column, f"{_shown(text)} is not a number") from None
     if not math.isfinite(value):
-        raise where(row, column, f"{text!r} is not a finite number")
+        raise where(row, column, f"{_shown(text)} is not a finite number")
     return value
 
 
-def _integer(text: str, where: _Where, row: int, column: int) -> int:
+def _integer(text: str, where: _Where, row: int, column: int, low: int = -INT64_LIMIT) -> int:
+    """An integer cell in [low, 2^63): ids, seeds and counts are stored as int64."""
     try:
-        return int(text)
-    except ValueError:
-        raise where(row, column, f"{text!r} is not an integer") from None
+        value = int(text)
+    except ValueError:  # also a number of more than 4300 digits
+        raise where(row, column, f"{_shown(text)} is not an integer") from None
+    if not low <= value < INT64_LIMIT:
+        allowed = "[0, 2^63 - 1]" if low == 0 else "[-2^63, 2^63 - 1] (a 64-bit integer)"
+        raise where(row, column, f"{_shown(text)} is outside {allowed}")
+    return value
+
+
+def _knob_value(text: str, where: _Where, row: int, column: int) -> float:
+    value = _number(text, where, row, column)
+    if abs(value) > MAX_KNOB_VALUE:
+        raise where(row, column, f"{value:g} lies beyond +-{MAX_KNOB_VALUE:g}, no lens setting")
+    return value
 
 
 def _check_header(names: list[str], path: Path) -> int:
@@ -199,7 +243,8 @@ def _check_header(names: list[str], path: Path) -> int:
         if found != expected:
             raise ScenarioFormatError(
                 f"{path}, line 1 (header), column {position + 1}: expected {expected!r}, found "
-                f"{found!r}. The header must start with {','.join(META_COLUMNS)}"
+                f"{found if found is None else _shown(found)}. The header must start with "
+                f"{','.join(META_COLUMNS)}"
             )
     pair_names = names[len(META_COLUMNS) :]
     if len(pair_names) % 2:
@@ -215,7 +260,7 @@ def _check_header(names: list[str], path: Path) -> int:
             column = len(META_COLUMNS) + 2 * i - 1
             raise ScenarioFormatError(
                 f"{path}, line 1 (header), column {column}: expected {','.join(want)}, "
-                f"found {','.join(got)}"
+                f"found {_shown(','.join(got))}"
             )
     if max_pairs < MIN_PAIRS:
         raise ScenarioFormatError(
@@ -233,14 +278,21 @@ def _parse_row(cells: list[str], row: int, where: _Where, max_pairs: int) -> Sce
         if column >= len(cells) or cells[column].strip() == "":
             raise where(row, column, "empty cell: every metadata column needs a value")
     scenario = _integer(cells[0], where, row, 0)
-    seed = _integer(cells[1], where, row, 1)
+    seed = _integer(cells[1], where, row, 1, low=0)  # numpy seeds are non-negative
     knob = cells[2].strip()
     if not knob.isidentifier():
-        raise where(row, 2, f"{knob!r} is not a knob name")
-    low = _number(cells[3], where, row, 3)
-    high = _number(cells[4], where, row, 4)
+        raise where(row, 2, f"{_shown(knob)} is not a knob name")
+    low = _knob_value(cells[3], where, row, 3)
+    high = _knob_value(cells[4], where, row, 4)
     if not low < high:
         raise where(row, 4, f"high {high:g} must be above low {low:g}")
+    if high - low < MIN_SPAN:
+        raise where(
+            row,
+            4,
+            f"the interval [{low:g}, {high:g}] spans only {high - low:.3g}; a sweep "
+            f"needs at least {MIN_SPAN:g}",
+        )
     n_pairs = _integer(cells[5], where, row, 5)
     n_failed = _integer(cells[6], where, row, 6)
     if n_failed < 0:
@@ -280,8 +332,21 @@ def _parse_row(cells: list[str], row: int, where: _Where, max_pairs: int) -> Sce
                 f"{voltages[i]:g} V is not above the previous voltage {voltages[i - 1]:g} V; "
                 "voltages must increase along a row",
             )
-        if widths[i] <= 0:
-            raise where(row, column + 1, f"edge width {widths[i]:g} px must be positive")
+        if not 0 < widths[i] <= MAX_EDGE_WIDTH_PX:
+            raise where(
+                row,
+                column + 1,
+                f"edge width {widths[i]:g} px must be positive and at most "
+                f"{MAX_EDGE_WIDTH_PX:g} px",
+            )
+    span = voltages[-1] - voltages[0]
+    if span < MIN_SPAN:
+        raise where(
+            row,
+            n_meta + 2 * (n_pairs - 1),
+            f"the voltages span only {span:.3g} V; a focus curve needs at least {MIN_SPAN:g} V "
+            "between its first and last point",
+        )
     return ScenarioRecord(scenario, seed, knob, low, high, voltages, widths, n_failed)
 
 
@@ -299,12 +364,15 @@ def iter_records(path: str | Path) -> Iterator[ScenarioRecord]:
             "with --append"
         )
     reader = csv.reader(io.StringIO(text))
-    names = next(reader)
+    try:
+        names = next(reader)
+    except csv.Error as error:
+        raise ScenarioFormatError(f"{path}, line 1 (header): not CSV: {error}") from None
     max_pairs = _check_header(names, path)
     where = _Where(path, names)
     knob: str | None = None
     first_row_of: dict[int, int] = {}
-    for row, cells in enumerate(reader, start=1):
+    for row, cells in enumerate(_rows(reader, where), start=1):
         if not cells:
             raise where(row, None, "blank line inside the file")
         record = _parse_row(cells, row, where, max_pairs)
@@ -323,11 +391,29 @@ def iter_records(path: str | Path) -> Iterator[ScenarioRecord]:
         yield record
 
 
+def _rows(reader: Iterator[list[str]], where: _Where) -> Iterator[list[str]]:
+    """The reader's rows; a line the csv module cannot split (a cell over its 128 KB field
+    limit, a stray quote) is an error naming the row."""
+    row = 0
+    while True:
+        row += 1
+        try:
+            cells = next(reader)
+        except StopIteration:
+            return
+        except csv.Error as error:
+            raise where(row, None, f"not CSV: {error}") from None
+        yield cells
+
+
 def read_header_pairs(path: str | Path) -> int:
     """Number of pair columns declared by an existing file's header."""
     path = Path(path)
     with _open_for_reading(path) as handle:
-        names = next(csv.reader(handle), [])
+        try:
+            names = next(csv.reader(handle), [])
+        except csv.Error as error:
+            raise ScenarioFormatError(f"{path}, line 1 (header): not CSV: {error}") from None
     return _check_header(names, path)
 
 

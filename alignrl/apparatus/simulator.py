@@ -27,7 +27,7 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Literal, get_args
 
 import numpy as np
 
@@ -49,6 +49,13 @@ RANDOMIZE_STREAM = 2  # second entropy word of the randomization generator (see 
 OPTIMUM_MARGIN = 0.05  # a shifted optimum stays this share of the interval inside it
 
 Split = Literal["all", "train", "test"]
+SPLITS: tuple[str, ...] = get_args(Split)
+
+
+def _shown(value: object, limit: int = 60) -> str:
+    """An argument as echoed in a message, cut short."""
+    text = repr(value)
+    return text if len(text) <= limit else f"{text[:limit]}..."
 
 
 def default_scenarios_path() -> Path:
@@ -84,12 +91,12 @@ class Randomization:
         if not isinstance(value, Mapping):
             raise ValueError(
                 "randomize must be a mapping such as {shift_v: 20, gain: [0.8, 2], "
-                f"width: [0.9, 1.5]}}, got {value!r}"
+                f"width: [0.9, 1.5]}}, got {_shown(value)}"
             )
-        unknown = sorted(set(value) - {"shift_v", "gain", "width"})
+        unknown = sorted(map(str, set(value) - {"shift_v", "gain", "width"}))
         if unknown:
             raise ValueError(
-                f"randomize: unknown key(s) {', '.join(map(repr, unknown))} "
+                f"randomize: unknown key(s) {_shown(', '.join(unknown))} "
                 "(it takes: shift_v, gain, width)"
             )
         shift = value.get("shift_v", 0.0)
@@ -98,7 +105,9 @@ class Randomization:
             or not isinstance(shift, int | float)
             or not (math.isfinite(shift) and shift >= 0)
         ):
-            raise ValueError(f"randomize.shift_v must be a number of volts >= 0, got {shift!r}")
+            raise ValueError(
+                f"randomize.shift_v must be a number of volts >= 0, got {_shown(shift)}"
+            )
         ranges = {}
         for key in ("gain", "width"):
             pair = value.get(key, (1.0, 1.0))
@@ -113,7 +122,7 @@ class Randomization:
             )
             if not ok:
                 raise ValueError(
-                    f"randomize.{key} must be [low, high] with 0 < low <= high, got {pair!r}"
+                    f"randomize.{key} must be [low, high] with 0 < low <= high, got {_shown(pair)}"
                 )
             ranges[key] = (float(pair[0]), float(pair[1]))
         return cls(float(shift), ranges["gain"], ranges["width"])
@@ -196,13 +205,24 @@ class ScenarioSimulator:
         scenarios: ScenarioSet | None = None,
         randomize: Mapping[str, object] | None = None,
     ) -> None:
-        self.randomize = Randomization.parse(randomize)
+        # Errors in the arguments name the recording they were given for.
+        source = scenarios.path if scenarios is not None else str(path or "csv:default")
+        try:
+            self.randomize = Randomization.parse(randomize)
+        except ValueError as error:
+            raise ValueError(f"{source}: {error}") from None
         # This scenario's variation: optimum shift (V), steepness and width factors.
         self._shift, self._gain, self._scale = 0.0, 1.0, 1.0
         if isinstance(noise, bool) or not isinstance(noise, int | float):
-            raise ValueError(f"noise must be a number (relative std, e.g. 0.02), got {noise!r}")
+            raise ValueError(
+                f"{source}: noise must be a number (relative std, e.g. 0.02), got {_shown(noise)}"
+            )
         if not 0.0 <= noise < 1.0:
-            raise ValueError(f"noise must be a relative std in [0, 1), got {noise}")
+            raise ValueError(f"{source}: noise must be a relative std in [0, 1), got {noise}")
+        if split not in SPLITS:
+            raise ValueError(
+                f"{source}: split must be {', '.join(map(repr, SPLITS))}, got {_shown(split)}"
+            )
         self.scenarios = (
             scenarios
             if scenarios is not None

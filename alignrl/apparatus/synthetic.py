@@ -53,12 +53,12 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from alignrl.apparatus import quality
 from alignrl.apparatus.base import ApparatusError, MeasurementError, NoEdgesError, check_write
 from alignrl.apparatus.quality import TEN_NINETY_PER_SIGMA, edge_width
+from alignrl.yaml_io import read_yaml_file
 
 __all__ = [
     "KNOB_NAMES",
@@ -347,15 +347,18 @@ class SEMConfig(BaseModel):
         return self
 
 
+SHOWN_PROBLEMS = 10  # problems of a bad instrument config listed in one message
+
+
 def load_sem_config(path: str | Path, **overrides: Any) -> SEMConfig:
     """Read a synthetic-SEM YAML file (strictly: an unknown key is an error)."""
     path = Path(path)
     try:
-        data = yaml.safe_load(path.read_text()) or {}
+        data = read_yaml_file(path)  # bounded, no duplicate keys (alignrl/yaml_io.py)
     except FileNotFoundError:
         raise FileNotFoundError(f"synthetic SEM config {path} does not exist") from None
-    except yaml.YAMLError as error:
-        raise ValueError(f"{path}: not valid YAML: {error}") from None
+    if data is None:
+        raise ValueError(f"{path}: empty synthetic SEM config: write its instrument parameters")
     if not isinstance(data, dict):
         raise ValueError(f"{path}: expected a mapping of instrument parameters")
     data.update(overrides)
@@ -367,8 +370,11 @@ def load_sem_config(path: str | Path, **overrides: Any) -> SEMConfig:
             key = ".".join(str(part) for part in item["loc"]) or "(top)"
             # Say where the bad value came from: the file, or the caller's overrides.
             origin = "apparatus argument " if item["loc"] and item["loc"][0] in overrides else ""
-            problems.append(f"{origin}{key}: {item['msg']}")
-        raise ValueError(f"{path}: {'; '.join(problems)}") from None
+            problems.append(f"{origin}{key[:200]}: {item['msg'][:400]}")
+        shown = problems[:SHOWN_PROBLEMS]
+        if len(problems) > SHOWN_PROBLEMS:
+            shown.append(f"and {len(problems) - SHOWN_PROBLEMS} more problems")
+        raise ValueError(f"{path}: {'; '.join(shown)}") from None
 
 
 def _covariance(sigma_u: float, sigma_v: float, axis: float) -> np.ndarray:

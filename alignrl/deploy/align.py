@@ -21,23 +21,21 @@ Every read, write and measurement, and the shield's decision on it, goes to the 
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
-import os
 import signal
 import threading
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
-from pathlib import Path
-from typing import Any, TextIO
+from typing import Any
 
 import numpy as np
 
+from alignrl.apparatus.audit import plain
 from alignrl.apparatus.base import Apparatus, ApparatusError
-from alignrl.deploy.policy import DeployablePolicy
-from alignrl.deploy.shield import (
+from alignrl.apparatus.shield import (
+    DEFAULT_CALL_TIMEOUT_S,
     OPERATOR_ABORT,
     AuditSink,
     DriverFailure,
@@ -47,6 +45,7 @@ from alignrl.deploy.shield import (
     StartOutsideLimits,
     Watchdog,
 )
+from alignrl.deploy.policy import DeployablePolicy
 from alignrl.envs.core import AlignmentEpisodes
 from alignrl.envs.task import Task
 from alignrl.evaluation.session import verify_task
@@ -58,7 +57,6 @@ __all__ = [
     "EXIT_DRIVER",
     "EXIT_NOT_ALIGNED",
     "AlignResult",
-    "JsonLinesAudit",
     "align",
     "operator_signals",
 ]
@@ -76,57 +74,6 @@ EXIT_CODES = {
     "aborted": EXIT_ABORTED,
     "driver-failure": EXIT_DRIVER,
 }
-
-
-# --- the audit log file -------------------------------------------------------------------
-
-
-def plain(value: Any) -> Any:
-    """`value` as strict JSON data: numpy numbers as Python numbers, NaN and infinities as
-    the strings "nan", "inf", "-inf" (JSON has no such numbers)."""
-    if isinstance(value, Mapping):
-        return {str(key): plain(item) for key, item in value.items()}
-    if isinstance(value, list | tuple | np.ndarray):
-        return [plain(item) for item in value]
-    if isinstance(value, np.generic):
-        value = value.item()
-    if isinstance(value, float) and not math.isfinite(value):
-        return str(value)
-    return value
-
-
-class JsonLinesAudit:
-    """The audit log as a JSON-lines file, appended to. Each record is flushed and fsynced
-    before the call it records returns, so a crash or a power cut loses nothing."""
-
-    def __init__(self, path: str | Path) -> None:
-        self.path = Path(path)
-        if self.path.is_dir():
-            raise ValueError(f"--log {self.path} is a directory; give a file name")
-        self._file: TextIO | None = None  # opened with the first record
-        self._closed = False
-
-    def record(self, entry: dict[str, Any]) -> None:
-        if self._closed:
-            raise ValueError(f"the audit log {self.path} is closed")
-        if self._file is None:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            self._file = self.path.open("a", encoding="utf-8")
-        self._file.write(json.dumps(plain(entry), allow_nan=False) + "\n")
-        self._file.flush()
-        os.fsync(self._file.fileno())
-
-    def close(self) -> None:
-        self._closed = True
-        if self._file is not None:
-            self._file.close()
-            self._file = None
-
-    def __enter__(self) -> JsonLinesAudit:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
 
 # --- operator signals ---------------------------------------------------------------------
@@ -271,6 +218,7 @@ def align(
     timeout_s: float | None = None,
     max_acquisitions: int | None = None,
     restore_on_abort: bool = False,
+    call_timeout_s: float | None = DEFAULT_CALL_TIMEOUT_S,
     clock: Callable[[], float] | None = None,
     log_path: str | None = None,
 ) -> AlignResult:
@@ -308,7 +256,7 @@ def align(
             (one.task.episode_steps + 1) * one.task.acquisitions_per_step for one in policies
         )
     watchdog = Watchdog(timeout_s, max_acquisitions, clock or time.monotonic)
-    shield = ShieldedApparatus(apparatus, limits, audit, watchdog, dry_run)
+    shield = ShieldedApparatus(apparatus, limits, audit, watchdog, dry_run, call_timeout_s)
     task.check_apparatus(shield.knobs)
     stages = []
     for one in policies:
@@ -353,6 +301,7 @@ def align(
         limits={name: knob.as_dict() for name, knob in limits.items()},
         dry_run=dry_run,
         timeout_s=timeout_s,
+        call_timeout_s=call_timeout_s,
         max_acquisitions=max_acquisitions,
         restore_on_abort=restore_on_abort,
         spec_px=spec_px,
@@ -360,7 +309,7 @@ def align(
     threshold: float | None = None
     try:
         shield.begin()
-        threshold = _spec_threshold(task, apparatus, spec_px, shield)
+        threshold = _spec_threshold(task, shield.inner, spec_px, shield)
         reasons = []
         for one, episodes in stages:
             if len(stages) > 1:

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import hashlib
 import json
 import os
 import shlex
@@ -49,7 +50,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from alignrl.agents.agent import MEMBER_FORMAT, Agent, MemberSpec
+from alignrl.agents.agent import MEMBER_FORMAT, Agent, MemberSpec, finite_problem
 from alignrl.agents.networks import GTrXLEncoder, Memory
 from alignrl.agents.sac import SAC
 from alignrl.envs.core import feature_layout, observation_bounds
@@ -69,10 +70,12 @@ __all__ = [
     "check_parity",
     "export_command",
     "export_policy",
+    "graph_signature",
     "knob_limits",
     "load_exported",
     "random_histories",
     "resolve_source",
+    "sha256_of",
 ]
 
 CARD_FORMAT = "alignrl-policy-card-1"
@@ -133,14 +136,13 @@ def _member_ids(run_dir: Path) -> list[str]:
 
 
 def _league_config(run_dir: Path) -> tuple[Any, Path]:
-    import yaml
-
     from alignrl.league.config import parse_league
+    from alignrl.yaml_io import read_yaml_file
 
     path = run_dir / "config.yaml"
     if not path.exists():
         raise ExportError(f"{run_dir} is not a league run: it has no config.yaml")
-    return parse_league(yaml.safe_load(path.read_text()), str(path)), path
+    return parse_league(read_yaml_file(path), str(path)), path
 
 
 def _league_root(member_file: Path) -> Path | None:
@@ -152,7 +154,14 @@ def _league_root(member_file: Path) -> Path | None:
 
 
 def _only_aligners(state: dict[str, Any], path: Path) -> None:
-    spec = state.get("spec") or {}
+    spec = state.get("spec")
+    if not isinstance(spec, dict):
+        from alignrl.checkpoints import CheckpointError
+
+        raise CheckpointError(
+            f"{path}: not a usable member checkpoint: its spec is a {type(spec).__name__}, "
+            "not a member record"
+        )
     team = spec.get("team")
     if team != "aligner":
         raise ExportError(
@@ -213,12 +222,21 @@ def _league_source(run_dir: Path, member: str | None) -> PolicySource:
 
 
 def _training_source(run_dir: Path | None, checkpoint: Path, chosen_as: str) -> PolicySource:
-    from alignrl.checkpoints import load_checkpoint
+    from alignrl.checkpoints import CheckpointError, load_checkpoint
     from alignrl.training import load_policy
 
-    agent, config = load_policy(checkpoint)
+    try:
+        agent, config = load_policy(checkpoint)
+    except CheckpointError:
+        raise  # names the file already
+    except (KeyError, TypeError, ValueError, RuntimeError, AttributeError) as error:
+        # ValueError includes the config's own errors and a tensor that does not fit.
+        reason = f"{error}" if not isinstance(error, KeyError) else f"it has no {error}"
+        raise CheckpointError(f"{checkpoint}: not a usable training checkpoint: {reason}") from None
     state = load_checkpoint(checkpoint)
     env_steps = state.get("env_steps")
+    if env_steps is not None and (isinstance(env_steps, bool) or not isinstance(env_steps, int)):
+        raise CheckpointError(f"{checkpoint}: env_steps is {env_steps!r}, not a whole number")
     config_file = (
         run_dir / "config.yaml" if run_dir and (run_dir / "config.yaml").exists() else None
     )
@@ -367,26 +385,10 @@ class PolicyGraph(nn.Module):
 
     def signature(self) -> dict[str, list[dict[str, Any]]]:
         """Names, dtypes and shapes of the inputs and outputs ("batch": any size)."""
-        memory_shape: list[Any] = ["batch", self.memory_length]
         width = getattr(self.encoder, "d_model", 0)
-        shapes = {
-            "history": ["batch", self.history, self.features],
-            "action": ["batch", self.action_dim],
-            "knob_step": ["batch", self.knobs],
-            "memory_valid_in": memory_shape,
-            "memory_valid_out": memory_shape,
-        }
-        return {
-            side: [
-                {
-                    "name": name,
-                    "dtype": "float32",
-                    "shape": shapes.get(name, [*memory_shape, width]),
-                }
-                for name in names
-            ]
-            for side, names in (("inputs", self.input_names), ("outputs", self.output_names))
-        }
+        return graph_signature(
+            self.history, self.features, self.knobs, self.memory_length, self.memory_layers, width
+        )
 
     def empty_memory(self, batch: int) -> dict[str, np.ndarray]:
         """Memory inputs of the first step of an alignment: every slot empty."""
@@ -414,6 +416,32 @@ class PolicyGraph(nn.Module):
         if updated is None:
             return action, knob_step
         return (action, knob_step, *updated.layers, updated.valid.to(action.dtype))
+
+
+def graph_signature(
+    history: int, features: int, knobs: int, memory_length: int, memory_layers: int, d_model: int
+) -> dict[str, list[dict[str, Any]]]:
+    """The inputs and outputs of a policy graph: per tensor its name, dtype and shape
+    ("batch": any size), as card.json lists them."""
+    memory_shape: list[Any] = ["batch", memory_length]
+    shapes = {
+        "history": ["batch", history, features],
+        "action": ["batch", knobs + 1],
+        "knob_step": ["batch", knobs],
+        "memory_valid_in": memory_shape,
+        "memory_valid_out": memory_shape,
+    }
+    inputs, outputs = ["history"], ["action", "knob_step"]
+    if memory_length:
+        inputs += [*(f"memory_in_{i}" for i in range(memory_layers)), "memory_valid_in"]
+        outputs += [*(f"memory_out_{i}" for i in range(memory_layers)), "memory_valid_out"]
+    return {
+        side: [
+            {"name": name, "dtype": "float32", "shape": shapes.get(name, [*memory_shape, d_model])}
+            for name in names
+        ]
+        for side, names in (("inputs", inputs), ("outputs", outputs))
+    }
 
 
 def random_histories(
@@ -483,6 +511,7 @@ def _onnx_runner(path: Path) -> tuple[Runner, str]:
     options.intra_op_num_threads = 1  # a policy this small runs fastest on one thread
     options.inter_op_num_threads = 1
     session = onnxruntime.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+    _check_onnx_weights(path)
     names = [output.name for output in session.get_outputs()]
 
     def run(inputs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -492,12 +521,32 @@ def _onnx_runner(path: Path) -> tuple[Runner, str]:
     return run, f"onnxruntime {onnxruntime.__version__}"
 
 
+def _check_onnx_weights(path: Path) -> None:
+    """Every weight (initializer) of an ONNX graph is finite. Needs the onnx package (the
+    `onnx` extra installs it with onnxruntime); without it the probe of load_exported,
+    which runs the graph, is the check."""
+    try:
+        import onnx
+        from onnx import numpy_helper
+    except ImportError:
+        return
+    for initializer in onnx.load(str(path)).graph.initializer:
+        weights = torch.from_numpy(np.array(numpy_helper.to_array(initializer)))
+        problem = finite_problem(f"weight {initializer.name!r}", weights)
+        if problem:
+            raise ExportError(f"policy file {path}: {problem}; export it again")
+
+
 def _torchscript_runner(
     path: Path, input_names: Sequence[str], output_names: Sequence[str]
 ) -> tuple[Runner, str]:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", DeprecationWarning)  # torch.jit: still the format
         module = torch.jit.load(str(path), map_location="cpu").eval()
+    for name, tensor in module.state_dict().items():
+        problem = finite_problem(f"tensor {name!r}", tensor)
+        if problem:
+            raise ExportError(f"policy file {path}: {problem}; export it again")
 
     @torch.no_grad()
     def run(inputs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -524,10 +573,12 @@ def _check_tensors(path: Path, found: dict[str, Tensor], expected: dict[str, Ten
             return f"has no tensor {name!r}, which {network} needs ({described(wanted)})"
         if (held.shape, held.dtype) != (wanted.shape, wanted.dtype):
             return f"holds {name!r} as {described(held)}; {network} needs {described(wanted)}"
-        return None
+        return finite_problem(f"holds {name!r}, which", held)
 
     names = [*expected, *sorted(set(found) - set(expected))]
     first = next((text for text in map(problem, names) if text), None)
+    if first and "non-finite" in first:
+        raise ExportError(f"policy file {path} {first}: export it again from a sound member")
     if first:
         raise ExportError(
             f"policy file {path} {first}: the file and the card are of different members; "
@@ -835,7 +886,7 @@ def export_policy(
     safetensors) with its model card. The written file is loaded back and checked against
     the member on `histories` random histories; beyond `tolerance` nothing is written
     (ExportError)."""
-    from alignrl.deploy.card import build_card, render_model_card
+    from alignrl.deploy.card import build_card, check_card, render_model_card
 
     if export_format not in EXPORT_FORMATS:
         raise ExportError(
@@ -867,7 +918,13 @@ def export_policy(
                 + f") on {histories} histories, more than {tolerance:g}: nothing was written "
                 f"to {out}"
             )
-        card = build_card(source, graph, knobs, export_format, parity, command)
+        card = build_card(
+            source, graph, knobs, export_format, parity, command, sha256_of(policy_path)
+        )
+        try:  # a card that load_exported would refuse is never written
+            check_card(card, out / "card.json")
+        except ExportError as error:
+            raise ExportError(f"{error}; nothing was written to {out}") from None
         _write_text(staging / "card.json", json.dumps(card, indent=2) + "\n")
         _write_text(staging / "model_card.md", render_model_card(card))
         _publish(staging, out)
@@ -950,13 +1007,78 @@ def _card_spec(member: dict[str, Any]) -> MemberSpec:
     return MemberSpec.from_dict({f.name: member[f.name] for f in dataclasses.fields(MemberSpec)})
 
 
+def sha256_of(path: Path) -> str:
+    """The policy file's SHA-256, hex: card.json's `policy_sha256`."""
+    digest = hashlib.sha256()
+    with path.open("rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+PROBE_HISTORIES = 8  # histories a loaded policy answers before it is handed out
+
+
+def _probe(run: Runner, card: dict[str, Any], policy_path: Path, max_step: np.ndarray) -> None:
+    """Run a freshly loaded policy file on a zero history and a few random ones, as its card
+    describes them: it must take the card's inputs, give the card's outputs in their shapes,
+    every value finite, and knob_step = action x the card's max_step. A file of another
+    member, or a card whose steps were edited, is refused here, before any instrument."""
+    knobs = len(max_step)
+    history, features = int(card["history"]), int(card["features"])
+    rng = np.random.default_rng(0)
+    histories = random_histories(PROBE_HISTORIES, history, features, rng, knobs)
+    histories[0] = 0.0  # the first call of an alignment sees a padded, empty history
+    inputs: dict[str, np.ndarray] = {"history": histories}
+    for entry in card["inputs"][1:]:
+        shape = [PROBE_HISTORIES if size == "batch" else int(size) for size in entry["shape"]]
+        inputs[entry["name"]] = np.zeros(shape, np.float32)
+    try:
+        outputs = run(inputs)
+    except Exception as error:  # any runtime's own error: the file does not fit the card
+        raise ExportError(
+            f"policy file {policy_path} does not run on the inputs its card.json names "
+            f"({type(error).__name__}: {str(error).strip()[:300]}): the file and the card are "
+            "of different members; export it again"
+        ) from None
+    for entry in card["outputs"]:
+        name = entry["name"]
+        shape = tuple(PROBE_HISTORIES if size == "batch" else int(size) for size in entry["shape"])
+        value = outputs.get(name)
+        if value is None or np.shape(value) != shape:
+            found = "nothing" if value is None else f"shape {np.shape(value)}"
+            raise ExportError(
+                f"policy file {policy_path} answers {found} as {name!r}, where its card.json "
+                f"says {shape}: the file and the card are of different members; export it again"
+            )
+        if not np.all(np.isfinite(value)):
+            raise ExportError(
+                f"policy file {policy_path} answers non-finite values as {name!r}: its weights "
+                "hold NaN or infinity; export it again from a sound member"
+            )
+    action, knob_step = outputs["action"], outputs["knob_step"]
+    expected = action[:, :knobs].astype(np.float64) * max_step
+    allowed = PARITY_TOLERANCE * max(1.0, float(np.max(max_step)))
+    if not np.allclose(knob_step, expected, rtol=1e-5, atol=allowed):
+        scale = float(
+            np.max(np.abs(knob_step)) / max(float(np.max(np.abs(action[:, :knobs]))), 1e-12)
+        )
+        raise ExportError(
+            f"policy file {policy_path} scales its actions by about {scale:.4g}, where its "
+            f"card.json's knobs[].max_step say {max_step.tolist()}: the card's steps were "
+            "changed after the export; export it again"
+        )
+
+
 def load_exported(path: str | Path) -> ExportedPolicy:
     """An exported policy from its folder (or its policy file): ONNX through onnxruntime,
     TorchScript through torch.jit.load, safetensors weights in the member rebuilt from the
-    card (Agent.act). A missing or corrupt card or policy file is an ExportError naming it;
-    ONNX without onnxruntime installed is an ImportError."""
-    from alignrl.config import TaskOptions
-    from alignrl.envs.task import get_task
+    card (Agent.act). The card is checked field by field (alignrl.deploy.card.check_card),
+    the policy file against it (its tensors, its outputs on a few histories, its SHA-256
+    where the card has one): a missing, corrupt or tampered card or policy file is an
+    ExportError naming the file and what is wrong; ONNX without onnxruntime installed is an
+    ImportError."""
+    from alignrl.deploy.card import check_card
 
     path = Path(path)
     folder = path if path.is_dir() else path.parent
@@ -970,25 +1092,25 @@ def load_exported(path: str | Path) -> ExportedPolicy:
         card = json.loads(card_path.read_text(encoding="utf-8"))
     except (json.JSONDecodeError, UnicodeDecodeError) as error:
         raise ExportError(f"{card_path} is not valid JSON ({error})") from None
-    if not isinstance(card, dict) or card.get("format") != CARD_FORMAT:
-        found = card.get("format") if isinstance(card, dict) else type(card).__name__
-        raise ExportError(f"{card_path}: card format {found!r} is not {CARD_FORMAT}")
-    try:
-        export_format = card["export_format"]
-        policy_path = folder / card["policy_file"]
-        task = TaskOptions(**card["task"]["options"]).apply(get_task(card["task"]["name"]))
-        history, features = int(card["history"]), int(card["features"])
-        max_step = np.array([knob["max_step"] for knob in card["knobs"]], np.float64)
-        interface = PolicyInterface(
-            input_names=[entry["name"] for entry in card["inputs"]],
-            output_names=[entry["name"] for entry in card["outputs"]],
-            max_step=max_step.tolist(),
-            # Only weights need the member: a graph carries its own network.
-            spec=_card_spec(card["member"]) if export_format == "safetensors" else None,
-        )
-    except (KeyError, TypeError, ValueError) as error:
-        raise ExportError(f"{card_path} is incomplete or inconsistent: {error}") from None
-    if export_format not in EXPORT_FORMATS:
-        raise ExportError(f"{card_path}: unknown export format {export_format!r}")
+    task = check_card(card, card_path)
+    export_format = card["export_format"]
+    policy_path = folder / card["policy_file"]
+    max_step = np.array([knob["max_step"] for knob in card["knobs"]], np.float64)
+    interface = PolicyInterface(
+        input_names=[entry["name"] for entry in card["inputs"]],
+        output_names=[entry["name"] for entry in card["outputs"]],
+        max_step=max_step.tolist(),
+        # Only weights need the member: a graph carries its own network.
+        spec=_card_spec(card["member"]) if export_format == "safetensors" else None,
+    )
     run, runtime = _load_runner(policy_path, export_format, interface)
+    _probe(run, card, policy_path, max_step)
+    recorded = card.get("policy_sha256")
+    if recorded is not None and sha256_of(policy_path) != recorded:
+        raise ExportError(
+            f"{card_path}: policy_sha256 {recorded} is not the SHA-256 of {policy_path} "
+            f"({sha256_of(policy_path)}): the card and the policy file are not of one export; "
+            "export it again"
+        )
+    history, features = int(card["history"]), int(card["features"])
     return ExportedPolicy(folder, card, task, history, features, max_step, runtime, run)

@@ -10,16 +10,18 @@ key path and what was expected.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import Field, field_validator, model_validator
 
 from alignrl.apparatus.registry import spec_form
 from alignrl.config import (
     ConfigError,
+    Count,
     LearnerConfig,
     RunConfig,
     _Strict,
+    check_file_name,
     parse_config,
     read_yaml,
 )
@@ -57,8 +59,7 @@ class MemberConfig(_Strict):
 
     @model_validator(mode="after")
     def _id_is_a_name(self) -> MemberConfig:
-        if not self.id.replace("-", "").replace("_", "").replace(".", "").isalnum():
-            raise ValueError(f"member id {self.id!r}: use letters, digits, '-', '_' and '.'")
+        check_file_name(self.id, f"member id {self.id[:100]!r}")
         if self.init_from is not None and not self.init_from.strip():
             raise ValueError(f"member {self.id!r}: init_from is empty")
         if self.init_replay and self.init_from is None:
@@ -87,14 +88,14 @@ class Roster(_Strict):
 
 
 class ScheduleConfig(_Strict):
-    iterations: int = Field(200, ge=1, description="league iterations to run")
-    matches: int = Field(32, ge=1, description="matches (alignment episodes) per iteration")
-    snapshot_every: int = Field(25, ge=1, description="iterations between frozen snapshots")
-    pbt_every: int = Field(50, ge=1, description="iterations between exploit/explore steps")
-    evaluate_every: int = Field(50, ge=1, description="iterations between evaluation sessions")
-    eval_scenarios: int = Field(100, ge=1, description="alignments per evaluation session")
-    checkpoint_every: int = Field(10, ge=1, description="iterations between checkpoints")
-    keep_best: int = Field(3, ge=1, description="best members kept per team")
+    iterations: Count = Field(200, ge=1, description="league iterations to run")
+    matches: Count = Field(32, ge=1, description="matches (alignment episodes) per iteration")
+    snapshot_every: Count = Field(25, ge=1, description="iterations between frozen snapshots")
+    pbt_every: Count = Field(50, ge=1, description="iterations between exploit/explore steps")
+    evaluate_every: Count = Field(50, ge=1, description="iterations between evaluation sessions")
+    eval_scenarios: Count = Field(100, ge=1, description="alignments per evaluation session")
+    checkpoint_every: Count = Field(10, ge=1, description="iterations between checkpoints")
+    keep_best: Count = Field(3, ge=1, description="best members kept per team")
     uniform_starts: float = Field(
         0.0,
         ge=0,
@@ -111,7 +112,7 @@ class MatchmakingConfig(_Strict):
     weighting: Literal["hard", "variance", "linear"] = Field(
         "hard", description="PFSP weight of an opponent beaten at rate p: (1-p)^2, p(1-p), 1-p"
     )
-    max_snapshots: int = Field(8, ge=0, description="frozen snapshots kept per team")
+    max_snapshots: Count = Field(8, ge=0, description="frozen snapshots kept per team")
 
     @model_validator(mode="after")
     def _some_weight(self) -> MatchmakingConfig:
@@ -125,10 +126,15 @@ class RatingConfig(_Strict):
     k_factor: float = Field(16.0, gt=0, le=100, description="Elo step size")
 
 
+# A copied learning rate is multiplied by one of these: 0 would stop its learning, a negative
+# factor would make the rate negative, and beyond 10x one copy leaves the sane range.
+PerturbFactor = Annotated[float, Field(gt=0, le=10)]
+
+
 class PBTConfig(_Strict):
     enabled: bool = Field(True, description="weakest members copy stronger ones")
     fraction: float = Field(0.34, gt=0, lt=1, description="share of a team replaced per step")
-    perturb: tuple[float, float] = Field(
+    perturb: tuple[PerturbFactor, PerturbFactor] = Field(
         (0.8, 1.25), description="factors a copied learning rate is multiplied by"
     )
     min_gap: float = Field(
@@ -148,7 +154,7 @@ class RayWorkerConfig(_Strict):
         description="its arguments; null: the experiment's apparatus_args where apparatus is "
         "null too, else none",
     )
-    envs: int | None = Field(
+    envs: Count | None = Field(
         None, ge=1, le=1024, description="apparatus copies stepped together; null: the experiment's"
     )
     resources: dict[str, float] = Field(
@@ -181,7 +187,7 @@ class RayConfig(_Strict):
         min_length=1,
         description="one worker per microscope; null: 2 workers on the experiment's apparatus",
     )
-    max_restarts: int = Field(
+    max_restarts: Count = Field(
         3, ge=0, le=100, description="times a lost worker is restarted within one iteration"
     )
     num_cpus_per_worker: float = Field(1.0, gt=0, description="CPUs Ray reserves per worker")
@@ -250,7 +256,9 @@ def load_league(path: str | Path) -> tuple[LeagueConfig, Roster, Roster]:
     """A league experiment and its two rosters. Roster paths are read relative to the
     working directory first, then to the experiment file's folder's parent (the repo)."""
     path = Path(path)
-    config = parse_league(read_yaml(path, "league config"), str(path))
+    config = parse_config(
+        LeagueConfig, read_yaml(path, "league config"), str(path), check_device=True
+    )
     rosters = []
     for team, name in (("aligner", config.aligners), ("misaligner", config.misaligners)):
         candidate = Path(name)

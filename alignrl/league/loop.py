@@ -19,10 +19,16 @@ A run lives in runs/<name>/:
     checkpoints/LATEST                              names the newest complete checkpoint
     checkpoints/iteration-NNNNNN/                   league.pt + members/<id>.pt (atomic)
     snapshots/<id>@<iteration>.pt                   frozen members of the opponent pool
+    initial/<id>.pt                                 the members as they started
     best/<id>.pt, best/best.json                    the best aligners by evaluation session
     metrics/iterations.csv, metrics/evaluations.csv, metrics/lineage.csv
     metrics/members/<id>/updates.csv|episodes.csv   per-member learner figures (alignrl report)
     tensorboard/
+
+Whatever the newest checkpoint refers to stays on disk until a newer one is LATEST (a
+snapshot leaving the pool is deleted only then), so a run killed at any moment resumes; the
+resumed run cuts every file back to that checkpoint (metrics rows, snapshots frozen after it,
+TensorBoard events) and, being deterministic given it, writes them again as they were.
 
 Matches run through the backend `backend:` names: `InProcessBackend` here, or the Ray
 backend (alignrl.league.ray_backend, docs/scaling.md), which sends the two members' weights
@@ -37,6 +43,7 @@ import math
 import shutil
 import time
 from collections.abc import Callable
+from copy import deepcopy
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -49,6 +56,7 @@ from alignrl.checkpoints import (
     CheckpointError,
     atomic_write_text,
     load_checkpoint,
+    remove_partial_writes,
     save_checkpoint,
 )
 from alignrl.config import ConfigError, LearnerConfig, dump_experiment
@@ -72,8 +80,10 @@ from alignrl.metrics import (
     LEAGUE_ITERATION_COLUMNS,
     LINEAGE_COLUMNS,
     CsvLog,
+    truncate_csv,
 )
 from alignrl.training import evaluate_policy
+from alignrl.yaml_io import read_yaml_file
 
 __all__ = [
     "BACKENDS",
@@ -385,6 +395,7 @@ class League:
         self.best: dict[str, dict[str, Any]] = {}  # aligner id -> its best evaluation
         self._snapshot_cache: dict[str, Agent] = {}
         self._tensorboard = None
+        self._purge_step: int | None = None  # resumed: TensorBoard drops events from here on
         metrics = self.run_dir / "metrics"
         self.iteration_log = CsvLog(
             metrics / "iterations.csv", list(LEAGUE_ITERATION_COLUMNS), key="iteration"
@@ -455,7 +466,6 @@ class League:
             atomic_write_text(
                 run_dir / name, yaml.safe_dump(roster.model_dump(mode="json"), sort_keys=False)
             )
-        atomic_write_text(run_dir / "config.yaml", dump_experiment(config))
         league = cls(config, aligners, misaligners, run_dir)
         for member_id, (source, replay) in sources.items():
             # Weights, critics, optimizers, entropy coefficient and steps seen (its random
@@ -466,6 +476,10 @@ class League:
             agent.set_learning_rate(float(agent.spec.hyperparameters["learning_rate"]))
         for member_id, agent in league.members.items():  # the starting point
             agent.save(run_dir / "initial" / f"{member_id}.pt")
+        # Iteration 0 checkpointed (warm starts included), and config.yaml last: a run killed
+        # before it is no run and starts again; one killed after resumes from its start.
+        league.checkpoint()
+        atomic_write_text(run_dir / "config.yaml", dump_experiment(config))
         return league
 
     @classmethod
@@ -479,7 +493,7 @@ class League:
         path = run_dir / "config.yaml"
         if not path.exists():
             raise FileNotFoundError(f"{run_dir} is not a league run (no config.yaml)")
-        config = parse_league(yaml.safe_load(path.read_text()), str(path))
+        config = parse_league(read_yaml_file(path), str(path))
         league = cls(
             config,
             load_roster(run_dir / "aligners.yaml", "aligner"),
@@ -488,7 +502,9 @@ class League:
         )
         latest = run_dir / "checkpoints" / "LATEST"
         if latest.exists():
-            league._restore(run_dir / "checkpoints" / latest.read_text().strip(), read_only)
+            league._restore(run_dir / "checkpoints" / latest.read_text().strip())
+        if not read_only:
+            league._cut_back_to_checkpoint()
         return league
 
     def _state(self) -> dict[str, Any]:
@@ -509,20 +525,58 @@ class League:
 
     def checkpoint(self) -> Path:
         """A new checkpoint folder (members first, league state last), then LATEST names
-        it; older folders are removed only after that. A kill at any moment leaves LATEST
-        naming a complete checkpoint."""
+        it; only after that are older folders removed, and the snapshots the pool no longer
+        lists. A kill at any moment leaves LATEST naming a complete checkpoint and all it
+        refers to; a write that fails (a full disk) removes the new folder and leaves the
+        previous checkpoint as it was."""
         root = self.run_dir / "checkpoints"
         folder = root / f"iteration-{self.iteration:06d}"
-        for member_id, agent in self.members.items():
-            agent.save(folder / "members" / f"{member_id}.pt", replay=True)
-        save_checkpoint(folder / "league.pt", self._state())
-        atomic_write_text(root / "LATEST", folder.name + "\n")
-        for old in root.glob("iteration-*"):
-            if old != folder and old.is_dir():
-                shutil.rmtree(old, ignore_errors=True)
+        if self._tensorboard is not None:
+            self._tensorboard.flush()  # the events up to this checkpoint are on disk
+        try:
+            for member_id, agent in self.members.items():
+                agent.save(folder / "members" / f"{member_id}.pt", replay=True)
+            save_checkpoint(folder / "league.pt", self._state())
+            atomic_write_text(root / "LATEST", folder.name + "\n")
+        except OSError:
+            if self._latest() != folder.name:
+                shutil.rmtree(folder, ignore_errors=True)
+            raise
+        self._remove_unreferenced()
         return folder
 
-    def _restore(self, folder: Path, read_only: bool = False) -> None:
+    def _latest(self) -> str | None:
+        latest = self.run_dir / "checkpoints" / "LATEST"
+        return latest.read_text().strip() if latest.exists() else None
+
+    def _remove_unreferenced(self) -> None:
+        """Checkpoint folders other than LATEST's, and snapshot files its pool does not list
+        (pruned from it, or frozen after it by a run that was killed)."""
+        current = self._latest()
+        for folder in (self.run_dir / "checkpoints").glob("iteration-*"):
+            if folder.name != current and folder.is_dir():
+                shutil.rmtree(folder, ignore_errors=True)
+        listed = {snapshot.id for team in ("aligner", "misaligner")
+                  for snapshot in self.pool.snapshots(team)}  # fmt: skip
+        for path in (self.run_dir / "snapshots").glob("*.pt"):
+            if path.stem not in listed:
+                path.unlink(missing_ok=True)
+
+    def _cut_back_to_checkpoint(self) -> None:
+        """Before a resumed league continues: every file written after its checkpoint goes
+        back to what that checkpoint knew (metrics rows, snapshots, unfinished checkpoints and
+        writes, TensorBoard events), for the run to write it again."""
+        self._remove_unreferenced()
+        for folder in ("checkpoints", "snapshots", "best", "metrics", "initial"):
+            remove_partial_writes(self.run_dir / folder)
+        for log in (self.iteration_log, self.evaluation_log, self.lineage_log):
+            log.truncate_after(self.iteration)
+        # Every member's, also one that a PBT copy after the checkpoint made (it comes back).
+        for path in sorted((self.run_dir / "metrics" / "members").glob("*/*.csv")):
+            truncate_csv(path, "env_steps", self.env_steps)
+        self._purge_step = self.iteration + 1
+
+    def _restore(self, folder: Path) -> None:
         state = load_checkpoint(folder / "league.pt", self.config.device)
         if state.get("format") != STATE_FORMAT:
             raise CheckpointError(f"{folder}/league.pt: format {state.get('format')!r}")
@@ -542,13 +596,6 @@ class League:
             self.backend.set_complexity(self.curriculum.level)
         self.rng.bit_generator.state = state["numpy_rng"]
         torch.set_rng_state(state["torch_rng"])
-        if read_only:
-            return
-        for log in (self.iteration_log, self.evaluation_log, self.lineage_log):
-            log.truncate_after(self.iteration)
-        for member in self.members:
-            for log in self._member_log(member):
-                log.truncate_after(self.env_steps)
 
     # --- one iteration -----------------------------------------------------------------
 
@@ -652,24 +699,22 @@ class League:
         if self._tensorboard is None:
             from torch.utils.tensorboard import SummaryWriter
 
-            self._tensorboard = SummaryWriter(str(self.run_dir / "tensorboard"))
+            self._tensorboard = SummaryWriter(
+                str(self.run_dir / "tensorboard"), purge_step=self._purge_step
+            )
         return self._tensorboard
 
     # --- snapshots, PBT, evaluation ---------------------------------------------------
 
     def snapshot(self) -> list[str]:
-        """Freeze every active member into the opponent pool."""
+        """Freeze every active member into the opponent pool. The files of snapshots it
+        pushes out stay until the next checkpoint, which no longer lists them, is LATEST."""
         frozen = []
         for member_id, agent in self.members.items():
             snapshot_id = self.pool.freeze(member_id, self.iteration)
             agent.save(self._snapshot_path(snapshot_id))
             self.ratings.add(snapshot_id, self.ratings.rating(member_id))
             frozen.append(snapshot_id)
-        kept = {path.stem for path in (self.run_dir / "snapshots").glob("*.pt")}
-        for stale in kept - {
-            c for team in ("aligner", "misaligner") for c in self.pool.candidates(team)
-        }:
-            self._snapshot_path(stale).unlink(missing_ok=True)
         return frozen
 
     def exploit_and_explore(self) -> list[dict[str, Any]]:
@@ -701,7 +746,10 @@ class League:
                     }
                 )
                 copy = Agent(spec, self.config.envs, self.config.device)
-                state = source.state_dict(replay=True)
+                # A deep copy: Optimizer.load_state_dict keeps the tensors it is given, and a
+                # copy sharing its source's Adam moments would move them as it learns (and
+                # a resumed league, loading each from its own file, would not).
+                state = deepcopy(source.state_dict(replay=True))
                 state["spec"] = spec.to_dict()
                 copy.load_state_dict(state)
                 copy.set_learning_rate(learning_rate)
@@ -763,14 +811,15 @@ class League:
             self.best.values(), key=lambda r: (-r["successes"], r["median_acquisitions"])
         )
         keep = {row["member"] for row in ranked[: cfg.schedule.keep_best]}
-        for path in (self.run_dir / "best").glob("*.pt"):
-            if path.stem not in keep:
-                path.unlink(missing_ok=True)
-        self.best = {member: row for member, row in self.best.items() if member in keep}
+        # best.json before the files it stops listing go: it never names a missing one.
         atomic_write_text(
             self.run_dir / "best" / "best.json",
             json.dumps(ranked[: cfg.schedule.keep_best], indent=2),
         )
+        for path in (self.run_dir / "best").glob("*.pt"):
+            if path.stem not in keep:
+                path.unlink(missing_ok=True)
+        self.best = {member: row for member, row in self.best.items() if member in keep}
         return rows
 
     def champion(self) -> dict[str, Any] | None:

@@ -23,7 +23,7 @@ from urllib.parse import quote
 import numpy as np
 import yaml
 
-from alignrl.checkpoints import atomic_write_text, load_checkpoint
+from alignrl.checkpoints import atomic_write_text, load_checkpoint, remove_partial_writes
 from alignrl.league.matchmaking import SNAPSHOT_MARK, TEAMS
 from alignrl.league.ratings import PayoffTable, Ratings
 from alignrl.metrics import LINEAGE_COLUMNS
@@ -37,6 +37,7 @@ from alignrl.plots import (
     save_png,
     write_figures,
 )
+from alignrl.yaml_io import read_yaml_file
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -444,7 +445,7 @@ class LeagueRun:
 
 def _read_yaml(path: Path) -> dict[str, Any]:
     try:
-        data = yaml.safe_load(path.read_text())
+        data = read_yaml_file(path)
     except yaml.YAMLError as error:
         raise ReportError(f"{path}: not valid YAML: {error}") from None
     if not isinstance(data, dict):
@@ -457,6 +458,8 @@ def _last_checkpoint(run_dir: Path) -> Checkpoint | None:
     if not latest.exists():
         return None
     state = load_checkpoint(run_dir / "checkpoints" / latest.read_text().strip() / "league.pt")
+    if int(state["iteration"]) == 0:
+        return None  # the start League.create checkpoints: nothing rated or played yet
     ratings, payoff = Ratings(), PayoffTable()
     ratings.load_state_dict(state["ratings"])
     payoff.load_state_dict(state["payoff"])
@@ -746,9 +749,11 @@ def write_league_report(run_dir: str | Path, leaderboard_rows: Sequence[Mapping[
     """Write report.md and report.html into `run_dir` and their figures into
     `run_dir`/report/; return report.md's path. `leaderboard_rows` are those of
     alignrl.league.loop.leaderboard. Every file is replaced atomically, the figures first and
-    report.md last, so that neither document ever links a figure not written yet."""
+    report.md last, so that neither document ever links a figure not written yet; temporaries
+    that a report killed midway left in report/ are removed."""
     run = read_league_run(Path(run_dir))
     out = run.run_dir / FIGURE_FOLDER
+    remove_partial_writes(out)
     built, skipped = _league_figures(run)
     for name, figure in built.items():
         save_png(figure, out / name)

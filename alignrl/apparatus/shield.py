@@ -1,23 +1,36 @@
-"""The safety shield: every write a policy makes to an instrument passes through it.
+"""The safety shield: every call alignrl makes to an instrument passes through it.
 
 `ShieldedApparatus` wraps an apparatus and implements the Apparatus protocol itself, so the
 alignment loop of the environments (alignrl/envs/core.py) runs over it unchanged and the
-policy sees exactly the history features it was trained on. Its rules, in order, before any
-write reaches the driver:
+policy sees exactly the history features it was trained on. `TrainingShield` is the same
+shield for work of many episodes: training and adaptation, evaluation sessions, baselines and
+recordings. `make_apparatus` (alignrl/apparatus/registry.py) wraps every driver loaded by
+import path in one, so no command can reach a real instrument around it. Its rules, in order,
+before any write reaches the driver:
 
-1. after an abort nothing is written (the one exception: `restore()`, at most once);
+1. after an abort nothing is written (the one exception: `restore()`, at most once, and never
+   after a driver call was abandoned or failed);
 2. the watchdog: past the time limit, or with all acquisitions spent, the alignment ends;
 3. a non-finite value or an unknown knob is refused;
 4. each knob is clamped into the tighter of the apparatus's interval and the site limits,
    then its change from the current setting to at most the knob's maximum step;
 5. a write that changes nothing is not sent; in a dry run, no write is sent.
 
-Reads and measurements are checked by rules 1 and 2. Every call to the driver, and every
-decision, is one record in the audit log (`AuditSink`), with the wall time (ISO 8601, UTC)
-and the monotonic clock of the watchdog, in seconds. Values are in instrument units (volts for
-lenses), edge widths in px.
+Every driver call is bounded in time (`BoundedDriver`): it runs on one worker thread of the
+shield's, and the caller waits at most the call limit (default DEFAULT_CALL_TIMEOUT_S) or
+what is left of the watchdog's time, whichever is less. A call that does not return is
+abandoned, the abort is audited, and nothing more is sent to that driver. A driver that lies
+is caught where it answers: a reading outside the knob's interval or not finite is a driver
+failure; an edge width that is not a positive finite number is an unmeasured image. Any
+exception a driver raises other than ApparatusError (a vendor SDK's RuntimeError, say) is a
+driver failure naming the call.
 
-Pure logic: the only I/O is through the wrapped apparatus and the audit sink.
+Every call to the driver, and every decision, is one record in the audit log (`AuditSink`),
+with the wall time (ISO 8601, UTC) and the monotonic clock of the watchdog, in seconds. Values
+are in instrument units (volts for lenses), edge widths in px.
+
+Pure logic but for the worker thread: the only I/O is through the wrapped apparatus and the
+audit sink (`JsonLinesAudit` writes a file).
 """
 
 from __future__ import annotations
@@ -26,23 +39,42 @@ import contextlib
 import math
 import time
 from collections.abc import Callable, Iterator, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import UTC, datetime
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 
+from alignrl.apparatus.audit import MEMORY_AUDIT_RECORDS, AuditSink, JsonLinesAudit, MemoryAudit
 from alignrl.apparatus.base import Apparatus, ApparatusError, MeasurementError
+from alignrl.apparatus.guard import (
+    DEFAULT_CALL_TIMEOUT_S,
+    Aborted,
+    BoundedDriver,
+    DriverFailure,
+    DriverTimeout,
+    RefusedWrite,
+    ShieldStop,
+    StartOutsideLimits,
+    WatchdogExpired,
+    checked_reading,
+    checked_width,
+)
 from alignrl.apparatus.measures import WOBBLE_KNOB, measure_directional, measure_wobble
 
 __all__ = [
+    "DEFAULT_CALL_TIMEOUT_S",
     "Aborted",
     "AuditSink",
+    "BoundedDriver",
     "DriverFailure",
+    "DriverTimeout",
+    "JsonLinesAudit",
     "KnobLimits",
     "MemoryAudit",
     "RefusedWrite",
     "ShieldConfigError",
+    "ShieldOptions",
     "ShieldStop",
     "ShieldedApparatus",
     "StartOutsideLimits",
@@ -52,6 +84,7 @@ __all__ = [
     "WriteDecision",
     "clamp_write",
     "resolve_limits",
+    "shield_apparatus",
 ]
 
 OPERATOR_ABORT = "operator abort (Ctrl-C or SIGTERM)"
@@ -62,31 +95,6 @@ OPERATOR_ABORT = "operator abort (Ctrl-C or SIGTERM)"
 
 class ShieldConfigError(ValueError):
     """Site limits or maximum steps that cannot be used; raised before anything is written."""
-
-
-class ShieldStop(Exception):
-    """The shield ends the alignment. Deliberately not an ApparatusError: the alignment loop
-    treats those as unmeasured images and goes on, while this must end it."""
-
-
-class WatchdogExpired(ShieldStop):
-    """The time limit passed or the acquisitions are spent."""
-
-
-class Aborted(ShieldStop):
-    """A call after the alignment was aborted: nothing reaches the driver any more."""
-
-
-class RefusedWrite(ShieldStop):
-    """A write the shield will not clamp into shape: a non-finite value or an unknown knob."""
-
-
-class StartOutsideLimits(ShieldStop):
-    """The column sits outside the site limits before the alignment started."""
-
-
-class DriverFailure(ShieldStop):
-    """The driver failed on a read or a write: the column's state is not known."""
 
 
 # --- limits -------------------------------------------------------------------------------
@@ -250,6 +258,12 @@ class Watchdog:
     def elapsed_s(self) -> float:
         return 0.0 if self.started is None else self.clock() - self.started
 
+    def remaining_s(self) -> float | None:
+        """Seconds left before the time limit (None: no limit, or not started)."""
+        if self.timeout_s is None or self.started is None:
+            return None
+        return max(0.0, self.timeout_s - self.elapsed_s())
+
     def expiry(self, acquisitions: int | None) -> str | None:
         """Why the alignment must end now, or None. `acquisitions`: images acquired so far,
         or None where they do not count (the final verification image)."""
@@ -262,25 +276,6 @@ class Watchdog:
         ):
             return f"watchdog: all {self.max_acquisitions} acquisitions are spent"
         return None
-
-
-# --- the audit log ------------------------------------------------------------------------
-
-
-class AuditSink(Protocol):
-    """Where audit records go (a JSON-lines file in alignrl.deploy.align)."""
-
-    def record(self, entry: dict[str, Any]) -> None: ...
-
-
-class MemoryAudit:
-    """Audit records kept in a list (tests, and callers that keep no file)."""
-
-    def __init__(self) -> None:
-        self.entries: list[dict[str, Any]] = []
-
-    def record(self, entry: dict[str, Any]) -> None:
-        self.entries.append(entry)
 
 
 # --- the shielded apparatus ---------------------------------------------------------------
@@ -304,8 +299,17 @@ class ShieldedApparatus:
         audit: AuditSink,
         watchdog: Watchdog | None = None,
         dry_run: bool = False,
+        call_timeout_s: float | None = DEFAULT_CALL_TIMEOUT_S,
     ) -> None:
-        self.inner = apparatus
+        if call_timeout_s is not None and not (
+            math.isfinite(call_timeout_s) and call_timeout_s > 0
+        ):
+            raise ShieldConfigError(
+                f"--call-timeout must be positive seconds, got {call_timeout_s}"
+            )
+        self.driver = apparatus  # the driver itself: only ever called through `inner`
+        self.call_timeout_s = call_timeout_s
+        self.inner: Any = BoundedDriver(apparatus, self._call_limit, self._driver_fault)
         self.knobs: Mapping[str, tuple[float, float]] = dict(apparatus.knobs)
         self.limits = dict(limits)
         self.audit = audit
@@ -319,8 +323,25 @@ class ShieldedApparatus:
         self.refused = 0  # writes not made, other than in a dry run
         self.abort_reason: str | None = None
         self.restored = False  # the start was written back after an abort
+        self.failed = False  # a driver call failed or was abandoned: no restore either
         self._restore_tried = False
         self._final = False  # inside final_measures()
+
+    def _call_limit(self) -> tuple[float | None, str | None]:
+        """How long the next driver call may take: the call limit, or what is left of the
+        watchdog's time where that is less (then also the watchdog's reason)."""
+        remaining = self.watchdog.remaining_s()
+        if remaining is not None and (
+            self.call_timeout_s is None or remaining < self.call_timeout_s
+        ):
+            return remaining, f"watchdog: the time limit of {self.watchdog.timeout_s:g} s passed"
+        return self.call_timeout_s, None
+
+    def _driver_fault(self, call: str, reason: str) -> None:
+        """A driver call was abandoned or raised what no driver may: audited, and the end."""
+        self.failed = True
+        self.log("driver-fault", call=call, sent=True, error=reason)
+        self.abort(reason)
 
     @property
     def aborted(self) -> bool:
@@ -382,13 +403,19 @@ class ShieldedApparatus:
     def read(self) -> dict[str, float]:
         self._stop_if_due("read", None)
         try:
-            values = {name: float(value) for name, value in self.inner.read().items()}
+            answer = self.inner.read()
         except KeyboardInterrupt:
             self.log("read", sent=True, error="interrupted by the operator")
             raise
         except ApparatusError as error:
             self.log("read", sent=True, error=str(error))
             raise DriverFailure(f"the driver failed to read the knobs: {error}") from None
+        values, lie = checked_reading(answer, self.knobs)
+        if lie is not None:
+            self.log("read", sent=True, error=lie)
+            self.failed = True
+            self.abort(lie)
+            raise DriverFailure(lie)
         self.log("read", sent=True, values=values)
         return values
 
@@ -468,7 +495,7 @@ class ShieldedApparatus:
 
     def _acquire(self, purpose: str) -> float:
         try:
-            width = float(self.inner.measure())
+            width = checked_width(self.inner.measure())
         except KeyboardInterrupt:
             self.log("measure", purpose=purpose, sent=True, error="interrupted by the operator")
             raise
@@ -573,6 +600,9 @@ class ShieldedApparatus:
         if self._restore_tried or self.start is None:
             return False
         self._restore_tried = True
+        if self.failed:
+            self.log("restore", sent=False, reason="a driver call failed or hung", value=self.start)
+            return False
         if self.dry_run or self.setting == self.start:
             why = "dry run: nothing was written" if self.dry_run else "the column is at its start"
             self.log("restore", sent=False, reason=why, value=self.start)
@@ -593,15 +623,16 @@ class ShieldedApparatus:
 
 
 class TrainingShield(ShieldedApparatus):
-    """The shield for training on an instrument (`alignrl adapt`): many episodes, not one
-    alignment.
+    """The shield for work of many episodes on an instrument: training and adaptation,
+    evaluation sessions, baselines, recordings.
 
     `reset(seed)` starts a new scenario on the instrument (a new specimen area, a new state
-    of the column) and reads where the column is. The first write after it is the
-    misalignment that starts the episode: clamped into the limits like every write, but
-    exempt from the maximum step, as a scenario's start is a jump by design. Every later
-    write is the aligner's and obeys every rule. No watchdog: the episode's step limit and
-    the run's budget end the work.
+    of the column) and reads where the column is. The writes after it, up to the episode's
+    first acquisition, set up the scenario's start (the misalignment, the knobs a stage does
+    not align): clamped into the limits like every write, but exempt from the maximum step,
+    as a scenario's start is a jump by design. Every later write is the aligner's and obeys
+    every rule. No watchdog: the episode's step limit and the run's budget end the work; each
+    driver call is still bounded by the call limit.
     """
 
     def __init__(
@@ -610,8 +641,9 @@ class TrainingShield(ShieldedApparatus):
         limits: Mapping[str, KnobLimits],
         audit: AuditSink,
         unit: str = "0",
+        call_timeout_s: float | None = DEFAULT_CALL_TIMEOUT_S,
     ) -> None:
-        super().__init__(apparatus, limits, audit)
+        super().__init__(apparatus, limits, audit, call_timeout_s=call_timeout_s)
         self.unit = unit  # which apparatus of the run: every record names it
         self._start_limits = {
             name: KnobLimits(knob.low, knob.high, knob.low_rule, knob.high_rule, None)
@@ -652,12 +684,49 @@ class TrainingShield(ShieldedApparatus):
         self._starting = True
 
     def write(self, values: Mapping[str, float]) -> None:
+        if self.setting is None and not self.aborted:
+            # Written to before any reset (a driver used as it stands): start from its reading.
+            self.start = self.read()
+            self.setting = dict(self.start)
         if not self._starting:
             super().write(values)
             return
-        self._starting = False
         aligner_limits, self.limits = self.limits, self._start_limits
         try:
             super().write(values)
         finally:
             self.limits = aligner_limits
+
+    def _count(self, event: str, images: int, count: bool = True, **fields: Any) -> str:
+        self._starting = False  # the episode's first acquisition: its start is set
+        return super()._count(event, images, count, **fields)
+
+
+# --- what every command wraps an apparatus in ---------------------------------------------
+
+
+@dataclass(frozen=True)
+class ShieldOptions:
+    """How a command shields the apparatus it opens: site limits and maximum steps (JSON
+    objects by knob, as `--limits` and `--max-step` take them), the limit on one driver
+    call, and where the audit records go (None: the newest MEMORY_AUDIT_RECORDS in memory).
+    `simulators`: shield a simulated apparatus too (an adaptation audits every call on
+    whatever it adapts to); drivers loaded by import path are always shielded."""
+
+    site_limits: Mapping[str, Any] = field(default_factory=dict)
+    max_step: Mapping[str, Any] = field(default_factory=dict)
+    call_timeout_s: float | None = DEFAULT_CALL_TIMEOUT_S
+    audit: AuditSink | None = None
+    simulators: bool = False
+    unit: str = "1"
+
+
+def shield_apparatus(apparatus: Apparatus, options: ShieldOptions | None = None) -> Apparatus:
+    """`apparatus` behind a TrainingShield with `options`' limits: ShieldConfigError for
+    limits that do not fit it, before anything is sent."""
+    options = options or ShieldOptions()
+    limits = resolve_limits(apparatus.knobs, options.site_limits, options.max_step)
+    audit = options.audit if options.audit is not None else MemoryAudit(MEMORY_AUDIT_RECORDS)
+    return TrainingShield(  # type: ignore[return-value]
+        apparatus, limits, audit, unit=options.unit, call_timeout_s=options.call_timeout_s
+    )
