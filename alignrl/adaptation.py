@@ -29,7 +29,7 @@ from alignrl.config import (
     LearnerConfig,
     parse_experiment,
 )
-from alignrl.deploy.export import PolicySource
+from alignrl.runs.sources import PolicySource
 
 __all__ = [
     "FocusPosterior",
@@ -64,7 +64,7 @@ def adaptation_config(
     hindsight_optimum: HindsightOptimum = "posterior",
 ) -> ExperimentConfig:
     """The run config of an adaptation: the source's learner, task and history (from
-    `alignrl.deploy.export.resolve_source`, which `export` and `align` use too) on
+    `alignrl.runs.sources.resolve_source`, which `export` and `align` use too) on
     `apparatus`. `spec_px`: an absolute success spec (edge width, px) for an apparatus that
     cannot tell its best edge width, as a real column cannot. `updates_per_step` (SAC): more
     gradient updates per acquisition than in pre-training. `critic_warmup_steps`: the first

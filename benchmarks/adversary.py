@@ -25,7 +25,8 @@ import yaml
 
 from alignrl.agents.agent import Agent
 from alignrl.config import parse_experiment
-from alignrl.league.loop import InProcessBackend, League
+from alignrl.league.backends import InProcessBackend
+from alignrl.league.loop import League
 from alignrl.training import Trainer
 
 

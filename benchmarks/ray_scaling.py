@@ -27,8 +27,8 @@ import ray
 
 from alignrl.agents.agent import Agent
 from alignrl.league.config import LeagueConfig, RayConfig, load_league
-from alignrl.league.loop import member_spec
 from alignrl.league.ray_backend import RayBackend
+from alignrl.league.warm_starts import member_spec
 
 LEAGUE = Path(__file__).resolve().parents[1] / "experiments" / "league-default.yaml"
 APPARATUS = {  # spec -> arguments

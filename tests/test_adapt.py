@@ -25,10 +25,10 @@ from alignrl.apparatus.synthetic import PRESET_DIR, load_sem_config
 from alignrl.checkpoints import load_checkpoint
 from alignrl.cli import main
 from alignrl.config import TaskOptions, parse_experiment
-from alignrl.deploy.export import resolve_source
 from alignrl.envs import AlignmentEnv
 from alignrl.envs.core import feature_layout
 from alignrl.envs.task import get_task
+from alignrl.runs.sources import resolve_source
 from alignrl.training import Trainer
 
 LENS = "fake_drivers:ParabolicLens"

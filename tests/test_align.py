@@ -330,7 +330,8 @@ def test_a_training_run_gives_its_best_checkpoint(tmp_path: Path) -> None:
 def test_a_shipped_champion_is_an_exported_policy(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, member_file: Path
 ) -> None:
-    from alignrl.deploy.export import export_policy, resolve_source
+    from alignrl.deploy.export import export_policy
+    from alignrl.runs.sources import resolve_source
 
     monkeypatch.setattr(policy_module, "CHAMPIONS_DIR", tmp_path / "champions")
     with pytest.raises(PolicySpecError, match="shipped champions: none"):

@@ -174,6 +174,7 @@ def test_evaluate_runs_several_trained_policies_in_sequence(
     tmp_path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
     import alignrl.cli as cli
+    import alignrl.cli.sessions as sessions
 
     loaded = []
 
@@ -186,7 +187,7 @@ def test_evaluate_runs_several_trained_policies_in_sequence(
 
         return PolicyController(task.name, act, task, history=4)
 
-    monkeypatch.setattr(cli, "_trained_controller", controller)
+    monkeypatch.setattr(sessions, "_trained_controller", controller)
     runs = [tmp_path / name for name in STAGES]
     for run in runs:
         run.mkdir()

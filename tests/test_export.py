@@ -19,18 +19,14 @@ from alignrl import __version__
 from alignrl.agents.agent import Agent, MemberSpec
 from alignrl.cli import main
 from alignrl.deploy.card import CARD_KEYS
-from alignrl.deploy.export import (
-    PARITY_TOLERANCE,
-    ExportError,
-    PolicyGraph,
-    export_policy,
-    load_exported,
-    random_histories,
-    resolve_source,
-)
+from alignrl.deploy.export import export_policy
+from alignrl.deploy.graph import PolicyGraph, random_histories
+from alignrl.deploy.loading import load_exported
+from alignrl.deploy.parity import PARITY_TOLERANCE
 from alignrl.envs.alignment import aligner_spaces
 from alignrl.league.config import load_league
 from alignrl.league.loop import League
+from alignrl.runs.sources import ExportError, resolve_source
 
 HISTORY = 8  # the default run's history rows
 OBSERVATION, ACTION = aligner_spaces(1, HISTORY)

@@ -19,7 +19,8 @@ from test_align import tiny_member
 from test_shield import RecordingDriver
 
 from alignrl.checkpoints import load_checkpoint, save_checkpoint
-from alignrl.deploy.export import export_policy, resolve_source
+from alignrl.deploy.export import export_policy
+from alignrl.runs.sources import resolve_source
 
 DRIVER = "test_shield:RecordingDriver"
 ACTOR_HEAD = "learner.actor.head.0.weight"  # a tensor of every tiny SAC member

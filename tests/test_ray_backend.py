@@ -22,8 +22,9 @@ from alignrl.agents.agent import Agent
 from alignrl.config import ConfigError
 from alignrl.envs import make_apparatus_copies
 from alignrl.envs.core import AlignmentEpisodes
+from alignrl.league.backends import InProcessBackend
 from alignrl.league.config import load_league
-from alignrl.league.loop import InProcessBackend, League
+from alignrl.league.loop import League
 from alignrl.league.matches import (
     WorkerFailedError,
     learn_from_matches,

@@ -1,4 +1,5 @@
 """Deployment: a trained aligner as a self-contained policy file with its model card
-(`export`, `card`), run on an instrument through the safety shield (`align`)."""
+(`export`: the job; `graph`, `formats`, `parity`, `card` its parts; `loading` runs the file),
+run on an instrument through the safety shield (`align`)."""
 
-__all__ = ["card", "export"]
+__all__ = ["align", "card", "export", "formats", "graph", "loading", "parity", "policy"]

@@ -26,21 +26,24 @@ import torch
 
 from alignrl import __version__
 from alignrl.agents.agent import MemberSpec
-from alignrl.deploy.export import (
-    CARD_FORMAT,
-    EXPORT_FORMATS,
-    ONNX_OPSET,
-    ExportError,
-    Parity,
-    PolicyGraph,
-    PolicySource,
-    graph_signature,
-)
+from alignrl.deploy.formats import EXPORT_FORMATS, ONNX_OPSET
+from alignrl.deploy.graph import PolicyGraph, graph_signature
+from alignrl.deploy.parity import Parity
 from alignrl.envs.core import feature_layout
 from alignrl.envs.task import Task
+from alignrl.runs.sources import ExportError, PolicySource
 from alignrl.training import EVALUATION_SEED
 
-__all__ = ["CARD_KEYS", "build_card", "check_card", "read_rows", "render_model_card"]
+__all__ = [
+    "CARD_FORMAT",
+    "CARD_KEYS",
+    "build_card",
+    "check_card",
+    "read_rows",
+    "render_model_card",
+]
+
+CARD_FORMAT = "alignrl-policy-card-1"  # card.json's "format": which keys it has and means
 
 # The top-level keys of card.json, all always present (null where they do not apply);
 # cards written before policy_sha256 existed (the shipped champions) lack it.

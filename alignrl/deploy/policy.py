@@ -9,7 +9,7 @@
   (safetensors: it runs on alignrl's own dependencies).
 
 Runs and checkpoint files are resolved as `alignrl export` resolves them
-(`alignrl.deploy.export.resolve_source`), so a run aligns with the same policy, task and
+(`alignrl.runs.sources.resolve_source`), so a run aligns with the same policy, task and
 history whether it is exported first or not. Whatever the source, the result acts the same:
 `act(history)` maps one history (H, F) of the environments' features (alignrl/envs/core.py)
 to one action in [-1, 1]^(k+1).
@@ -47,7 +47,7 @@ class DeployablePolicy:
 
 
 def _exported(folder: Path, source: str) -> DeployablePolicy:
-    from alignrl.deploy.export import load_exported  # torch / onnxruntime only when needed
+    from alignrl.deploy.loading import load_exported  # torch / onnxruntime only when needed
 
     exported = load_exported(folder)
     member = exported.card.get("member") or {}
@@ -75,7 +75,7 @@ def _champion(name: str) -> DeployablePolicy:
 
 
 def _trained(path: Path) -> DeployablePolicy:
-    from alignrl.deploy.export import resolve_source
+    from alignrl.runs.sources import resolve_source
 
     source = resolve_source(path)
     agent = source.agent

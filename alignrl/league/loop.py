@@ -30,22 +30,21 @@ snapshot leaving the pool is deleted only then), so a run killed at any moment r
 resumed run cuts every file back to that checkpoint (metrics rows, snapshots frozen after it,
 TensorBoard events) and, being deterministic given it, writes them again as they were.
 
-Matches run through the backend `backend:` names: `InProcessBackend` here, or the Ray
-backend (alignrl.league.ray_backend, docs/scaling.md), which sends the two members' weights
-to workers where the microscopes are and learns from the trajectories they return. League
-sees only the MatchResult either gives back.
+Matches run through the backend `backend:` names (alignrl.league.backends: in this process,
+or on Ray workers where the microscopes are, alignrl.league.ray_backend and docs/scaling.md);
+League sees only the MatchResult either gives back. Members' shapes and warm starts from
+trained aligners are in alignrl.league.warm_starts, the population-based training rule in
+alignrl.league.pbt; this module holds the loop and the run directory.
 """
 
 from __future__ import annotations
 
 import json
-import math
 import shutil
 import time
 from collections.abc import Callable
-from copy import deepcopy
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 import torch
@@ -59,21 +58,15 @@ from alignrl.checkpoints import (
     remove_partial_writes,
     save_checkpoint,
 )
-from alignrl.config import ConfigError, LearnerConfig, dump_experiment
-from alignrl.envs import Curriculum, make_apparatus_copies
-from alignrl.envs.alignment import aligner_spaces
-from alignrl.envs.core import AlignmentEpisodes
-from alignrl.league.config import LeagueConfig, MemberConfig, Roster, parse_league
-from alignrl.league.matches import (
-    AlignerSteps,
-    Chooser,
-    MatchResult,
-    UniformStarts,
-    WorkerFailedError,
-    play_round,
-)
+from alignrl.config import dump_experiment
+from alignrl.envs import Curriculum
+from alignrl.league.backends import Backend, backend_class
+from alignrl.league.config import LeagueConfig, Roster, parse_league
+from alignrl.league.matches import MatchResult, UniformStarts, WorkerFailedError
 from alignrl.league.matchmaking import Matchmaker, MatchmakingConfig, OpponentPool
+from alignrl.league.pbt import choose_replacements, copy_id, copy_member, learning_rate
 from alignrl.league.ratings import EloConfig, PayoffTable, Ratings
+from alignrl.league.warm_starts import member_spec, start_from, warm_starts
 from alignrl.metrics import (
     EPISODE_COLUMNS,
     LEAGUE_EVALUATION_COLUMNS,
@@ -85,268 +78,23 @@ from alignrl.metrics import (
 from alignrl.training import evaluate_policy
 from alignrl.yaml_io import read_yaml_file
 
-__all__ = [
-    "BACKENDS",
-    "Backend",
-    "InProcessBackend",
-    "League",
-    "MatchResult",
-    "WorkerFailedError",
-    "backend_class",
-    "leaderboard",
-    "member_spec",
-]
+# WorkerFailedError (alignrl.league.matches) is named here for the CLI, which catches it.
+__all__ = ["League", "WorkerFailedError", "leaderboard"]
 
 STATE_FORMAT = "alignrl-league-1"
 
 
-def member_spec(member: MemberConfig, team: str, config: LeagueConfig) -> MemberSpec:
-    """Shapes per team: an aligner reads the history; a misaligner reads one row
-    [1, aligned settings (k), complexity] (the leading 1 marks the row valid for the
-    sequence encoders) and answers with a start in the window per knob."""
-    task = config.resolved_task()
-    knobs = len(task.knobs)
-    if team == "aligner":
-        observation_space, action_space = aligner_spaces(knobs, config.history, task.extra_features)
-        shape, actions = observation_space.shape, action_space.shape[0]
-    else:
-        shape, actions = (1, knobs + 2), knobs
-    return MemberSpec(
-        id=member.id,
-        team=team,
-        algorithm=member.learner.algorithm,
-        observation_shape=shape,
-        action_dim=actions,
-        secret_dim=knobs,
-        hyperparameters=member.learner.hyperparameters(),
-    )
-
-
-# Learner settings that shape a member's networks: a warm-started aligner keeps its source's.
-NETWORK_KEYS = ("algorithm", "encoder", "encoder_kwargs", "hidden", "secret_critics",
-                "shared_critic_encoder")  # fmt: skip
-
-
-def warm_starts(
-    config: LeagueConfig, aligners: Roster
-) -> tuple[Roster, dict[str, tuple[Agent, bool]]]:
-    """The aligner roster with each `init_from` member's learner resolved, and the trained
-    aligners those members start from (with whether their replay comes along). A
-    warm-started member takes its source's learner settings; the roster's own `learner:`
-    keys override the rest (a lower learning_rate for fine-tuning, say), and a key that
-    shapes the networks must agree with the source's. Every check is made here, before the
-    run directory is written."""
-    from alignrl.deploy.export import ExportError, resolve_source
-
-    task = config.resolved_task()
-    members, sources = [], {}
-    for member in aligners.members:
-        if member.init_from is None:
-            members.append(member)
-            continue
-        where = f"aligner {member.id!r}: init_from {member.init_from}"
-        try:
-            source = resolve_source(member.init_from)
-        except (ExportError, CheckpointError, OSError, ValueError) as error:
-            raise ConfigError(f"{where}: {error}") from None
-        if tuple(source.task.knobs) != tuple(task.knobs):
-            raise ConfigError(
-                f"{where}: trained on task {source.task.name!r} (knobs "
-                f"{', '.join(source.task.knobs)}), but this league plays {task.name!r} (knobs "
-                f"{', '.join(task.knobs)})"
-            )
-        spec = source.agent.spec
-        inherited = LearnerConfig(algorithm=spec.algorithm, **spec.hyperparameters)
-        given = sorted(member.learner.model_fields_set)
-        clash = [
-            key
-            for key in NETWORK_KEYS
-            if key in given and getattr(member.learner, key) != getattr(inherited, key)
-        ]
-        if clash:
-            theirs = ", ".join(f"{key}={getattr(inherited, key)!r}" for key in clash)
-            raise ConfigError(
-                f"{where}: its networks were built with {theirs}; leave these out of the "
-                f"member's learner: block or give the same values"
-            )
-        learner = inherited.model_copy(update={key: getattr(member.learner, key) for key in given})
-        if member.init_replay and (
-            spec.algorithm != "sac"
-            or getattr(source.agent, "replay", None) is None
-            or source.agent.replay.size == 0
-        ):
-            raise ConfigError(
-                f"{where}: init_replay needs a SAC checkpoint that holds its replay (a "
-                f"training run's checkpoints/last.pt); this one has none"
-            )
-        if member.init_replay and learner.buffer_size != inherited.buffer_size:
-            raise ConfigError(
-                f"{where}: init_replay keeps the source's replay of capacity "
-                f"{inherited.buffer_size}; leave buffer_size out or give the same"
-            )
-        resolved = MemberConfig(
-            id=member.id,
-            learner=learner,
-            init_from=member.init_from,
-            init_replay=member.init_replay,
-        )
-        wanted = member_spec(resolved, "aligner", config)
-        if (wanted.observation_shape, wanted.action_dim, wanted.secret_dim) != (
-            spec.observation_shape,
-            spec.action_dim,
-            spec.secret_dim,
-        ):
-            raise ConfigError(
-                f"{where}: it reads {spec.observation_shape[0]} history rows of "
-                f"{spec.observation_shape[1]} features, this league's aligners "
-                f"{wanted.observation_shape[0]} of {wanted.observation_shape[1]} (history: "
-                f"{config.history})"
-            )
-        members.append(resolved)
-        sources[member.id] = (source.agent, member.init_replay)
-    return aligners.model_copy(update={"members": members}), sources
-
-
-class Backend(Protocol):
-    """Where matches are played: in this process, or on Ray workers where the microscopes
-    are (docs/scaling.md). League sees only this and the MatchResult it returns."""
-
-    @property
-    def complexity(self) -> float: ...
-
-    def set_complexity(self, level: float) -> None: ...
-
-    def play(
-        self,
-        aligner: Agent,
-        misaligner: Agent,
-        matches: int,
-        rng: np.random.Generator,
-        learning: set[str],
-        on_episode: Callable[[bool], None] | None = None,
-        deterministic: bool = False,
-    ) -> MatchResult: ...
-
-    def close(self) -> None: ...
-
-
-class InProcessBackend:
-    """Plays matches on `envs` apparatus in this process, in rounds: every slot starts a
-    match, the aligner steps the unfinished ones until all are done; learning members store
-    and learn after every step."""
-
-    def __init__(self, config: LeagueConfig) -> None:
-        apparatus = make_apparatus_copies(config.apparatus, config.apparatus_args, config.envs)
-        self.task = config.resolved_task()
-        self.episodes = AlignmentEpisodes(apparatus, self.task, config.history)
-        self.episodes.set_complexity(config.complexity)
-
-    @property
-    def complexity(self) -> float:
-        return self.episodes.complexity
-
-    def set_complexity(self, level: float) -> None:
-        self.episodes.set_complexity(level)
-
-    def play(
-        self,
-        aligner: Agent,
-        misaligner: Agent,
-        matches: int,
-        rng: np.random.Generator,
-        learning: set[str],
-        on_episode: Callable[[bool], None] | None = None,
-        deterministic: bool = False,
-    ) -> MatchResult:
-        """`matches` matches; members whose id is in `learning` store and learn, the others
-        act with their stochastic policy (their mean action if `deterministic`: how they are
-        judged) and change nothing."""
-        episodes, result = self.episodes, MatchResult()
-        result.updates = {member.id: [] for member in (aligner, misaligner)}
-
-        def chooser(agent: Agent) -> Chooser:
-            if agent.id in learning:
-                return lambda inputs, slots: (agent.explore(inputs, rng), None)
-            return lambda inputs, slots: (agent.act(inputs, deterministic=deterministic), None)
-
-        def learn_step(step: AlignerSteps) -> None:
-            if aligner.id in learning:
-                aligner.observe(
-                    step.observation,
-                    step.secret,
-                    step.action,
-                    step.reward,
-                    step.next_observation,
-                    step.next_secret,
-                    step.done,
-                    slots=step.slots,
-                )
-                result.updates[aligner.id] += aligner.learn(rng, new_steps=len(step.slots))
-
-        remaining = matches
-        while remaining > 0:
-            count = min(episodes.n, remaining)
-            remaining -= count
-            seeds = [int(s) for s in rng.integers(0, 2**31 - 1, count)]
-            played = play_round(episodes, seeds, chooser(misaligner), chooser(aligner), learn_step)
-            # The curriculum's complexity is read when a round begins: reporting each match
-            # at the end of its round changes nothing.
-            for slot in played.finish_order:
-                payoff = played.returns[slot] - played.scores[slot]
-                result.add(
-                    played.successes[slot],
-                    played.acquisitions[slot],
-                    played.returns[slot],
-                    payoff,
-                )
-                if on_episode:
-                    on_episode(bool(played.successes[slot]))
-            if misaligner.id in learning:
-                # One-step episodes: the start is the action, the reward its score minus the
-                # aligner's return (zero-sum), and nothing follows.
-                none = np.zeros((count, misaligner.spec.secret_dim), np.float32)
-                misaligner.observe(
-                    played.rows,
-                    none,
-                    played.starts,
-                    played.scores - played.returns,
-                    played.rows,
-                    none,
-                    np.ones(count, bool),
-                    np.arange(count),
-                )
-                result.updates[misaligner.id] += misaligner.learn(rng, new_steps=count)
-        return result
-
-    def close(self) -> None:
-        """Nothing to release: the apparatus live in this process."""
-
-
-def _ray_backend() -> type[Backend]:
-    try:
-        from alignrl.league.ray_backend import RayBackend
-    except ImportError as error:
-        raise ConfigError(
-            f"backend: ray needs the ray package ({error}): pip install 'alignrl[ray]'"
-        ) from None
-    return RayBackend
-
-
-# One entry per `backend:` value; each gives the backend class (the Ray one imported only
-# when it is chosen).
-BACKENDS: dict[str, Callable[[], type[Backend]]] = {
-    "inprocess": lambda: InProcessBackend,
-    "ray": _ray_backend,
-}
-
-
-def backend_class(name: str) -> type[Backend]:
-    """The backend a league's `backend:` names (ConfigError where it cannot run here)."""
-    return BACKENDS[name]()
-
-
 class League:
-    """Both teams, their ratings and opponent pool, and the run directory."""
+    """Both teams, their ratings and opponent pool, and the run directory.
+
+    A league improves aligners by making them play misaligners that learn to find the
+    starts they fail from, in a zero-sum game. Each `step` pairs a learner with an opponent
+    from the other team (PFSP, uniform or latest; snapshots included), plays and rates
+    their matches and lets the active members learn; on a schedule `run` freezes snapshots,
+    lets the weakest copy the strongest (`exploit_and_explore`), judges the top aligners on
+    held-out scenarios (`evaluate`) and checkpoints. All randomness comes from one numpy
+    generator and torch's stream, both checkpointed, so a resumed league plays on as if it
+    had never stopped."""
 
     def __init__(
         self, config: LeagueConfig, aligners: Roster, misaligners: Roster, run_dir: Path
@@ -356,7 +104,7 @@ class League:
         torch.set_num_threads(config.threads)
         torch.manual_seed(config.seed)
         self.rng = np.random.default_rng(config.seed)
-        self.backend = backend_class(config.backend)(config)
+        self.backend: Backend = backend_class(config.backend)(config)
         self.members: dict[str, Agent] = {}
         self.ratings = Ratings(EloConfig(config.ratings.initial, config.ratings.k_factor))
         self.payoff = PayoffTable()
@@ -468,12 +216,7 @@ class League:
             )
         league = cls(config, aligners, misaligners, run_dir)
         for member_id, (source, replay) in sources.items():
-            # Weights, critics, optimizers, entropy coefficient and steps seen (its random
-            # warm-up is behind it); its replay only with init_replay, else the league fills
-            # a new one.
-            agent = league.members[member_id]
-            agent.load_state_dict(source.state_dict(replay=replay))
-            agent.set_learning_rate(float(agent.spec.hyperparameters["learning_rate"]))
+            start_from(league.members[member_id], source, replay)
         for member_id, agent in league.members.items():  # the starting point
             agent.save(run_dir / "initial" / f"{member_id}.pt")
         # Iteration 0 checkpointed (warm starts included), and config.yaml last: a run killed
@@ -719,49 +462,32 @@ class League:
 
     def exploit_and_explore(self) -> list[dict[str, Any]]:
         """Per team, the weakest members by rating are replaced by copies of the strongest
-        (weights, optimizer state, hyperparameters), with a perturbed learning rate."""
-        changes = []
+        (weights, optimizer state, hyperparameters), with a perturbed learning rate
+        (alignrl.league.pbt)."""
+        pbt, changes = self.config.pbt, []
         for team in ("aligner", "misaligner"):
             ranking = self.ratings.ranking(self.pool.active(team))
-            count = min(
-                max(1, math.floor(len(ranking) * self.config.pbt.fraction)), len(ranking) // 2
-            )
-            for position in range(count):
-                (source_id, strong), (weak_id, weak) = ranking[position], ranking[-1 - position]
-                if strong - weak < self.config.pbt.min_gap:
-                    continue  # not clearly weaker: a copy would only lose diversity
-                source = self.members[source_id]
-                factor = float(self.rng.choice(self.config.pbt.perturb))
-                hyper = dict(source.spec.hyperparameters)
-                learning_rate = float(hyper.get("learning_rate", 3e-4)) * factor
-                hyper["learning_rate"] = learning_rate
-                base = source_id.split("-pbt")[0]
-                new_id = f"{base}-pbt{self.iteration}.{position}"
-                spec = MemberSpec(
-                    **{
-                        **source.spec.to_dict(),
-                        "id": new_id,
-                        "hyperparameters": hyper,
-                        "parent": source_id,
-                    }
+            rates = {member: learning_rate(self.members[member].spec) for member, _ in ranking}
+            for replacement in choose_replacements(
+                ranking, rates, pbt.fraction, pbt.min_gap, pbt.perturb, self.rng
+            ):
+                new_id = copy_id(replacement.parent, self.iteration, replacement.position)
+                copy = copy_member(
+                    self.members[replacement.parent],
+                    new_id,
+                    replacement.learning_rate,
+                    self.config.envs,
+                    self.config.device,
                 )
-                copy = Agent(spec, self.config.envs, self.config.device)
-                # A deep copy: Optimizer.load_state_dict keeps the tensors it is given, and a
-                # copy sharing its source's Adam moments would move them as it learns (and
-                # a resumed league, loading each from its own file, would not).
-                state = deepcopy(source.state_dict(replay=True))
-                state["spec"] = spec.to_dict()
-                copy.load_state_dict(state)
-                copy.set_learning_rate(learning_rate)
-                del self.members[weak_id]
-                self.pool.remove_member(weak_id)
-                self._add_member(copy, self.ratings.rating(source_id))
+                del self.members[replacement.replaced]
+                self.pool.remove_member(replacement.replaced)
+                self._add_member(copy, self.ratings.rating(replacement.parent))
                 change = {
                     "iteration": self.iteration,
                     "member": new_id,
-                    "parent": source_id,
-                    "replaced": weak_id,
-                    "learning_rate": f"{learning_rate:.3g}",
+                    "parent": replacement.parent,
+                    "replaced": replacement.replaced,
+                    "learning_rate": f"{replacement.learning_rate:.3g}",
                 }
                 self.lineage_log.write([change])
                 changes.append(change)

@@ -283,7 +283,7 @@ class RayBackend:
         deterministic: bool = False,
     ) -> MatchResult:
         """`matches` matches on the workers, then learning here: the same contract as
-        InProcessBackend.play."""
+        alignrl.league.backends.InProcessBackend.play."""
         self._start()
         seeds = [int(seed) for seed in rng.integers(0, 2**31 - 1, matches)]
         policies = ray.put(

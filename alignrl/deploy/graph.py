@@ -1,0 +1,185 @@
+"""The deployable policy of one aligner as a graph, and what running it takes.
+
+`PolicyGraph` is exactly the deterministic policy of `Agent.act(deterministic=True)`:
+
+    history    float32 (batch, H, F)  the env's history (alignrl/envs/core.py), as it is
+      -> history encoder -> mean of the policy head -> tanh -> clip to [-1, 1]
+    action     float32 (batch, k + 1) k knob actions, then the stop component (stop if > 0)
+    knob_step  float32 (batch, k)     action[:, :k] x max_step: the knob change asked for,
+                                      in the apparatus's units (volts for a lens)
+
+The learners apply no normalisation of their own: the env already scales every feature of
+the history (knobs to [-1, 1], quality as log(width / reference)), so there is nothing to fold
+in but the action's squashing, clipping and scaling. A GTrXL encoder with a Transformer-XL
+memory (memory_length > 0) gets it as explicit tensors: inputs `memory_in_<i>` (one per block,
+(batch, M, d_model)) and `memory_valid_in` (batch, M), float32 1/0, and the same as outputs
+`memory_out_<i>`, `memory_valid_out`; any other member's whole memory is its history window.
+"""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from alignrl.agents.agent import Agent, MemberSpec
+from alignrl.agents.networks import GTrXLEncoder, Memory
+from alignrl.agents.sac import SAC
+from alignrl.envs.core import feature_layout, observation_bounds
+from alignrl.runs.sources import ExportError
+
+__all__ = [
+    "PolicyGraph",
+    "PolicyInterface",
+    "Runner",
+    "graph_signature",
+    "random_histories",
+]
+
+FULLY_PADDED_SHARE = 0.01  # share of parity histories with no valid row (a zero observation)
+
+
+class PolicyGraph(nn.Module):
+    """The deployable policy of one aligner: history [+ memory] -> action, knob_step
+    [+ memory]. A copy of the policy network alone (no critics, no optimizer); the member
+    itself is left untouched."""
+
+    def __init__(self, agent: Agent, max_step: Sequence[float]) -> None:
+        super().__init__()
+        learner = agent.learner
+        policy = learner.actor if isinstance(learner, SAC) else learner.policy
+        self.encoder = copy.deepcopy(policy.encoder)
+        self.head = copy.deepcopy(policy.head)
+        # SAC's head gives [mean, log_std]; PPO's gives the mean (its std is a parameter).
+        self.action_dim = agent.spec.action_dim
+        self.history, self.features = agent.spec.observation_shape
+        self.knobs = len(max_step)
+        if self.knobs != self.action_dim - 1:
+            raise ExportError(
+                f"member {agent.id!r} acts on {self.action_dim - 1} knob(s); "
+                f"{self.knobs} max step(s) given"
+            )
+        self.register_buffer("max_step", torch.tensor(list(max_step), dtype=torch.float32))
+        self.memory_length = getattr(self.encoder, "memory_length", 0)
+        self.memory_layers = self.encoder.layers if isinstance(self.encoder, GTrXLEncoder) else 0
+        # Parameters keep requires_grad, as the member's own: with it off, PyTorch's CPU
+        # kernels take other paths whose float32 rounding differs (1e-6 on a trained GTrXL).
+        self.eval()
+
+    @property
+    def input_names(self) -> list[str]:
+        if not self.memory_length:
+            return ["history"]
+        layers = [f"memory_in_{i}" for i in range(self.memory_layers)]
+        return ["history", *layers, "memory_valid_in"]
+
+    @property
+    def output_names(self) -> list[str]:
+        if not self.memory_length:
+            return ["action", "knob_step"]
+        layers = [f"memory_out_{i}" for i in range(self.memory_layers)]
+        return ["action", "knob_step", *layers, "memory_valid_out"]
+
+    def signature(self) -> dict[str, list[dict[str, Any]]]:
+        """Names, dtypes and shapes of the inputs and outputs ("batch": any size)."""
+        width = getattr(self.encoder, "d_model", 0)
+        return graph_signature(
+            self.history, self.features, self.knobs, self.memory_length, self.memory_layers, width
+        )
+
+    def empty_memory(self, batch: int) -> dict[str, np.ndarray]:
+        """Memory inputs of the first step of an alignment: every slot empty."""
+        if not self.memory_length:
+            return {}
+        width = self.encoder.d_model
+        memory = {
+            f"memory_in_{i}": np.zeros((batch, self.memory_length, width), np.float32)
+            for i in range(self.memory_layers)
+        }
+        memory["memory_valid_in"] = np.zeros((batch, self.memory_length), np.float32)
+        return memory
+
+    def forward(self, history: Tensor, *memory: Tensor) -> tuple[Tensor, ...]:
+        past = None
+        if self.memory_length:
+            *layers, valid = memory
+            past = Memory(list(layers), valid > 0.5)
+        encoded, updated = self.encoder(history, past)  #                                 (B, D)
+        mean = self.head(encoded)[:, : self.action_dim]  #                                  (B, k+1)
+        # Agent.act(deterministic=True) is tanh(mean) for SAC and PPO alike; the clip only
+        # pins the contract (float32 tanh can round to exactly 1, never beyond).
+        action = torch.tanh(mean).clamp(-1.0, 1.0)  #                                   (B, k+1)
+        knob_step = action[:, : self.knobs] * self.max_step  # as AlignmentEpisodes.step (B, k)
+        if updated is None:
+            return action, knob_step
+        return (action, knob_step, *updated.layers, updated.valid.to(action.dtype))
+
+
+def graph_signature(
+    history: int, features: int, knobs: int, memory_length: int, memory_layers: int, d_model: int
+) -> dict[str, list[dict[str, Any]]]:
+    """The inputs and outputs of a policy graph: per tensor its name, dtype and shape
+    ("batch": any size), as card.json lists them."""
+    memory_shape: list[Any] = ["batch", memory_length]
+    shapes = {
+        "history": ["batch", history, features],
+        "action": ["batch", knobs + 1],
+        "knob_step": ["batch", knobs],
+        "memory_valid_in": memory_shape,
+        "memory_valid_out": memory_shape,
+    }
+    inputs, outputs = ["history"], ["action", "knob_step"]
+    if memory_length:
+        inputs += [*(f"memory_in_{i}" for i in range(memory_layers)), "memory_valid_in"]
+        outputs += [*(f"memory_out_{i}" for i in range(memory_layers)), "memory_valid_out"]
+    return {
+        side: [
+            {"name": name, "dtype": "float32", "shape": shapes.get(name, [*memory_shape, d_model])}
+            for name in names
+        ]
+        for side, names in (("inputs", inputs), ("outputs", outputs))
+    }
+
+
+def random_histories(
+    count: int, history: int, features: int, rng: np.random.Generator, knobs: int = 1
+) -> np.ndarray:
+    """Histories such as the env produces: (count, history, features) float32, each with 1 to
+    `history` valid rows at the end and zero padding in front, feature values drawn within
+    their bounds (alignrl/envs/core.py); features beyond a row of `knobs` knobs are the
+    task's extras. About 1 in 100 is all padding."""
+    extras = features - 5 - 2 * knobs
+    if knobs < 1 or extras < 0:
+        raise ValueError(f"a history row of {features} features does not fit {knobs} knob(s)")
+    low, high = observation_bounds(knobs, extras)
+    layout = feature_layout(knobs, extras)
+    rows = rng.uniform(low, high, (count, history, features)).astype(np.float32)
+    rows[..., layout["valid"]] = 1.0
+    rows[..., layout["measured"]] = rng.integers(0, 2, (count, history, 1))
+    valid = rng.integers(1, history + 1, count)
+    valid[rng.random(count) < FULLY_PADDED_SHARE] = 0
+    padding = np.arange(history)[None, :] < (history - valid)[:, None]  #         (count, history)
+    rows[padding] = 0.0
+    return rows
+
+
+# A policy file, opened: named float32 inputs, batch first -> every named output.
+Runner = Callable[[dict[str, np.ndarray]], dict[str, np.ndarray]]
+
+
+@dataclass(frozen=True)
+class PolicyInterface:
+    """What running a policy file takes besides the file: the names of its inputs and
+    outputs, each knob's max_step, and the member's spec, which only a safetensors file
+    needs (it holds weights, not a network). From the PolicyGraph when exporting, from
+    card.json when loading."""
+
+    input_names: list[str]
+    output_names: list[str]
+    max_step: list[float]
+    spec: MemberSpec | None = None

@@ -1,0 +1,125 @@
+"""The parity check of an export: does the written policy file, loaded back, give the member's
+own actions? `check_parity` compares it with `Agent.act(deterministic=True)` on random
+histories such as the env produces (and, for a memory policy, on random memory too), in
+action units and, for knob_step, in the apparatus's units.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from alignrl.agents.agent import Agent
+from alignrl.deploy.graph import PolicyGraph, Runner, random_histories
+
+__all__ = ["PARITY_HISTORIES", "PARITY_TOLERANCE", "Parity", "check_parity"]
+
+PARITY_HISTORIES = 1000  # random histories the written file is checked on
+PARITY_TOLERANCE = 1e-5  # largest |exported - PyTorch| allowed, in action units
+
+
+@dataclass(frozen=True)
+class Parity:
+    """How closely the written file reproduces the PyTorch policy on random histories.
+
+    max_abs_difference: |exported action - Agent.act(deterministic=True)|, action units;
+    knob_step_max_abs_difference: |exported knob_step - that action x max_step|, instrument
+    units; memory_max_abs_difference: with random memory inputs, |exported - PyTorch graph|
+    over the action and memory outputs (None for a policy without memory).
+    """
+
+    histories: int
+    max_abs_difference: float
+    knob_step_max_abs_difference: float
+    memory_max_abs_difference: float | None
+    tolerance: float
+    knob_step_tolerance: float
+    runtime: str
+    reference: str = "Agent.act(deterministic=True)"
+
+    @property
+    def passed(self) -> bool:
+        return (
+            self.max_abs_difference <= self.tolerance
+            and self.knob_step_max_abs_difference <= self.knob_step_tolerance
+            and (self.memory_max_abs_difference or 0.0) <= self.tolerance
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "histories": self.histories,
+            "max_abs_difference": self.max_abs_difference,
+            "knob_step_max_abs_difference": self.knob_step_max_abs_difference,
+            "memory_max_abs_difference": self.memory_max_abs_difference,
+            "tolerance": self.tolerance,
+            "knob_step_tolerance": self.knob_step_tolerance,
+            "runtime": self.runtime,
+            "reference": self.reference,
+            "passed": self.passed,
+        }
+
+
+def _max_difference(left: np.ndarray, right: np.ndarray) -> float:
+    if left.shape != right.shape:
+        return float("inf")
+    difference = np.abs(left.astype(np.float64) - right.astype(np.float64))
+    return float(np.nanmax(difference)) if np.all(np.isfinite(difference)) else float("inf")
+
+
+def _random_memory(graph: PolicyGraph, count: int, rng: np.random.Generator) -> dict[str, Any]:
+    """Memory inputs as a run of steps leaves them: valid slots at the end, zeros before."""
+    memory = graph.empty_memory(count)
+    filled = rng.integers(0, graph.memory_length + 1, count)
+    valid = np.arange(graph.memory_length)[None, :] >= (graph.memory_length - filled)[:, None]
+    for name in memory:
+        if name.startswith("memory_in_"):
+            values = rng.normal(0.0, 1.0, memory[name].shape).astype(np.float32)
+            memory[name] = np.where(valid[..., None], values, 0.0).astype(np.float32)
+    memory["memory_valid_in"] = valid.astype(np.float32)
+    return memory
+
+
+def check_parity(
+    agent: Agent,
+    graph: PolicyGraph,
+    run: Runner,
+    runtime: str,
+    histories: int = PARITY_HISTORIES,
+    seed: int = 0,
+    tolerance: float = PARITY_TOLERANCE,
+) -> Parity:
+    """Compare an exported graph (`run`) with the member on `histories` random histories
+    (random_histories), empty memory; with memory, also with random memory inputs."""
+    rng = np.random.default_rng(seed)
+    inputs = random_histories(histories, graph.history, graph.features, rng, graph.knobs)
+    expected = agent.act(inputs, deterministic=True).astype(np.float64)  #   (histories, k+1)
+    outputs = run({"history": inputs, **graph.empty_memory(histories)})
+    max_step = graph.max_step.numpy().astype(np.float64)
+    action_difference = _max_difference(outputs["action"], expected)
+    knob_difference = _max_difference(outputs["knob_step"], expected[:, : graph.knobs] * max_step)
+    memory_difference = None
+    if graph.memory_length:
+        memory = _random_memory(graph, histories, rng)
+        exported = run({"history": inputs, **memory})
+        with torch.no_grad():
+            eager = graph(
+                torch.from_numpy(inputs),
+                *(torch.from_numpy(memory[n]) for n in graph.input_names[1:]),
+            )
+        memory_difference = max(
+            _max_difference(exported[name], value.numpy())
+            for name, value in zip(graph.output_names, eager, strict=True)
+            if name != "knob_step"
+        )
+    return Parity(
+        histories=histories,
+        max_abs_difference=action_difference,
+        knob_step_max_abs_difference=knob_difference,
+        memory_max_abs_difference=memory_difference,
+        tolerance=tolerance,
+        knob_step_tolerance=tolerance * max(1.0, float(max_step.max())),
+        runtime=runtime,
+    )

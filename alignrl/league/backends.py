@@ -1,0 +1,159 @@
+"""Where a league's matches are played: the `Backend` contract and the registry of
+`backend:` values. `InProcessBackend` steps `envs` apparatus in this process; the Ray backend
+(alignrl.league.ray_backend, docs/scaling.md) plays on workers where the microscopes are and
+is imported only when a league names it. League sees only the MatchResult either returns.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Protocol
+
+import numpy as np
+
+from alignrl.agents.agent import Agent
+from alignrl.config import ConfigError
+from alignrl.envs import make_apparatus_copies
+from alignrl.envs.core import AlignmentEpisodes
+from alignrl.league.config import LeagueConfig
+from alignrl.league.matches import AlignerSteps, Chooser, MatchResult, play_round
+
+__all__ = ["BACKENDS", "Backend", "InProcessBackend", "backend_class"]
+
+
+class Backend(Protocol):
+    """Where matches are played: in this process, or on Ray workers where the microscopes
+    are (docs/scaling.md). League sees only this and the MatchResult it returns."""
+
+    @property
+    def complexity(self) -> float: ...
+
+    def set_complexity(self, level: float) -> None: ...
+
+    def play(
+        self,
+        aligner: Agent,
+        misaligner: Agent,
+        matches: int,
+        rng: np.random.Generator,
+        learning: set[str],
+        on_episode: Callable[[bool], None] | None = None,
+        deterministic: bool = False,
+    ) -> MatchResult: ...
+
+    def close(self) -> None: ...
+
+
+class InProcessBackend:
+    """Plays matches on `envs` apparatus in this process, in rounds: every slot starts a
+    match, the aligner steps the unfinished ones until all are done; learning members store
+    and learn after every step."""
+
+    def __init__(self, config: LeagueConfig) -> None:
+        apparatus = make_apparatus_copies(config.apparatus, config.apparatus_args, config.envs)
+        self.task = config.resolved_task()
+        self.episodes = AlignmentEpisodes(apparatus, self.task, config.history)
+        self.episodes.set_complexity(config.complexity)
+
+    @property
+    def complexity(self) -> float:
+        return self.episodes.complexity
+
+    def set_complexity(self, level: float) -> None:
+        self.episodes.set_complexity(level)
+
+    def play(
+        self,
+        aligner: Agent,
+        misaligner: Agent,
+        matches: int,
+        rng: np.random.Generator,
+        learning: set[str],
+        on_episode: Callable[[bool], None] | None = None,
+        deterministic: bool = False,
+    ) -> MatchResult:
+        """`matches` matches; members whose id is in `learning` store and learn, the others
+        act with their stochastic policy (their mean action if `deterministic`: how they are
+        judged) and change nothing."""
+        episodes, result = self.episodes, MatchResult()
+        result.updates = {member.id: [] for member in (aligner, misaligner)}
+
+        def chooser(agent: Agent) -> Chooser:
+            if agent.id in learning:
+                return lambda inputs, slots: (agent.explore(inputs, rng), None)
+            return lambda inputs, slots: (agent.act(inputs, deterministic=deterministic), None)
+
+        def learn_step(step: AlignerSteps) -> None:
+            if aligner.id in learning:
+                aligner.observe(
+                    step.observation,
+                    step.secret,
+                    step.action,
+                    step.reward,
+                    step.next_observation,
+                    step.next_secret,
+                    step.done,
+                    slots=step.slots,
+                )
+                result.updates[aligner.id] += aligner.learn(rng, new_steps=len(step.slots))
+
+        remaining = matches
+        while remaining > 0:
+            count = min(episodes.n, remaining)
+            remaining -= count
+            seeds = [int(s) for s in rng.integers(0, 2**31 - 1, count)]
+            played = play_round(episodes, seeds, chooser(misaligner), chooser(aligner), learn_step)
+            # The curriculum's complexity is read when a round begins: reporting each match
+            # at the end of its round changes nothing.
+            for slot in played.finish_order:
+                payoff = played.returns[slot] - played.scores[slot]
+                result.add(
+                    played.successes[slot],
+                    played.acquisitions[slot],
+                    played.returns[slot],
+                    payoff,
+                )
+                if on_episode:
+                    on_episode(bool(played.successes[slot]))
+            if misaligner.id in learning:
+                # One-step episodes: the start is the action, the reward its score minus the
+                # aligner's return (zero-sum), and nothing follows.
+                none = np.zeros((count, misaligner.spec.secret_dim), np.float32)
+                misaligner.observe(
+                    played.rows,
+                    none,
+                    played.starts,
+                    played.scores - played.returns,
+                    played.rows,
+                    none,
+                    np.ones(count, bool),
+                    np.arange(count),
+                )
+                result.updates[misaligner.id] += misaligner.learn(rng, new_steps=count)
+        return result
+
+    def close(self) -> None:
+        """Nothing to release: the apparatus live in this process."""
+
+
+def _ray_backend() -> type[Backend]:
+    try:
+        from alignrl.league.ray_backend import RayBackend
+    except ImportError as error:
+        raise ConfigError(
+            f"backend: ray needs the ray package ({error}): pip install 'alignrl[ray]'"
+        ) from None
+    return RayBackend
+
+
+# One entry per `backend:` value; each gives the backend class (the Ray one imported only
+# when it is chosen).
+BACKENDS: dict[str, Callable[[], type[Backend]]] = {
+    "inprocess": lambda: InProcessBackend,
+    "ray": _ray_backend,
+}
+
+
+def backend_class(name: str) -> type[Backend]:
+    """The backend a league's `backend:` names (ConfigError where it cannot run here)."""
+    return BACKENDS[name]()

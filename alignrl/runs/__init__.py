@@ -1,0 +1,5 @@
+"""Run directories: what a run holds and how to read it. `sources` names the trained aligner a
+run, a member file or a training checkpoint stands for (`resolve_source`), as `export`,
+`align`, `adapt` and league warm starts read it."""
+
+__all__ = ["sources"]
