@@ -36,7 +36,6 @@ __all__ = [
     "HindsightSecrets",
     "adaptation_config",
     "adaptation_shield",
-    "start_adaptation",
 ]
 
 
@@ -112,32 +111,6 @@ def adaptation_config(
         },
     }
     return parse_experiment(data, "adaptation")
-
-
-def start_adaptation(config: ExperimentConfig, source: PolicySource, runs_root: str | Path):
-    """A new adaptation run: the Trainer with the source's weights, evaluated zero-shot and
-    checkpointed at once, so that a run killed before its first scheduled checkpoint resumes
-    from the source."""
-    from alignrl.training import Trainer
-
-    if config.adaptation is None:
-        raise ValueError(f"{config.name}: not an adaptation config (no `adaptation:` section)")
-    trainer = Trainer.create(config, runs_root)
-    try:
-        trainer.agent.load_state_dict(source.agent.state_dict(replay=False))
-        # The source's optimizer state carries its own step size; the run's config says
-        # which one adaptation uses (by default the source's, copied into the config).
-        trainer.agent.set_learning_rate(config.learner.learning_rate)
-        # The zero-shot evaluation, at 0 env steps: on record in metrics/evaluations.csv,
-        # and the source is best.pt until an adapted aligner does strictly better, so the
-        # best an adaptation gives back is never worse than what it started from on that
-        # session.
-        trainer.evaluate_and_keep_best()
-        trainer.checkpoint()
-    except BaseException:  # an instrument that failed, Ctrl-C, a full disk: no run yet
-        trainer.unstart()
-        raise
-    return trainer
 
 
 def adaptation_shield(config: AdaptationConfig, audit_path: Path) -> ShieldOptions:

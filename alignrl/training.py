@@ -33,7 +33,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
-from alignrl.agents.agent import Agent, MemberSpec
+from alignrl.agents.agent import Agent
 from alignrl.apparatus.registry import make_apparatus
 from alignrl.apparatus.shield import JsonLinesAudit, ShieldOptions
 from alignrl.checkpoints import (
@@ -45,16 +45,17 @@ from alignrl.checkpoints import (
 )
 from alignrl.config import ExperimentConfig, dump_experiment, parse_experiment
 from alignrl.envs import Curriculum, VectorAlignmentEnv, make_apparatus_copies
-from alignrl.envs.alignment import aligner_spaces
 from alignrl.envs.task import Task
 from alignrl.evaluation.controllers import PolicyController
 from alignrl.evaluation.session import SessionResult, run_session
 from alignrl.metrics import EPISODE_COLUMNS, EVALUATION_COLUMNS, CsvLog
+from alignrl.runs.training_runs import member_spec
 
 if TYPE_CHECKING:
     from alignrl.adaptation import HindsightSecrets
+    from alignrl.runs.sources import PolicySource
 
-__all__ = ["EvaluationSummary", "Trainer", "evaluate_policy", "load_policy", "member_spec"]
+__all__ = ["EvaluationSummary", "Trainer", "evaluate_policy", "start_adaptation"]
 
 CHECKPOINT_FORMAT = "alignrl-train-2"  # -1: a bare SAC state (policies still load)
 EVALUATION_SEED = 1_000_000  # evaluation scenarios never overlap training seeds
@@ -89,23 +90,6 @@ class EvaluationSummary:
     scenarios: int
     median_acquisitions: float
     p90_acquisitions: float
-
-
-def member_spec(config: ExperimentConfig, member_id: str | None = None) -> MemberSpec:
-    """The aligner an experiment trains. Its shapes follow from the task and the history
-    alone, so no apparatus needs to be opened to build or load it."""
-    task = config.resolved_task()
-    knobs = len(task.knobs)
-    observation_space, action_space = aligner_spaces(knobs, config.history, task.extra_features)
-    return MemberSpec(
-        id=member_id or config.name,
-        team="aligner",
-        algorithm=config.learner.algorithm,
-        observation_shape=observation_space.shape,
-        action_dim=action_space.shape[0],
-        secret_dim=knobs,
-        hyperparameters=config.learner.hyperparameters(),
-    )
 
 
 class Trainer:
@@ -468,27 +452,27 @@ class Trainer:
         return result
 
 
-def load_policy(path: str | Path, device: str = "cpu") -> tuple[Agent, ExperimentConfig]:
-    """A trained aligner from a run directory (its best.pt) or a checkpoint file."""
-    from alignrl.yaml_io import parse_yaml
-
-    path = Path(path)
-    checkpoint = path / "checkpoints" / "best.pt" if path.is_dir() else path
-    state = load_checkpoint(checkpoint, device)
-    if state.get("format") == "alignrl-member-1":  # a league member (runs/<league>/best/...)
-        agent = Agent.load(checkpoint, device=device)
-        if agent.spec.team != "aligner":
-            raise ValueError(f"{checkpoint} holds a {agent.spec.team}, not an aligner")
-        return agent, parse_experiment(
-            {"name": agent.id, "history": agent.spec.observation_shape[0]}, str(checkpoint)
-        )
-    source = f"{checkpoint} (config)"
-    config = parse_experiment(parse_yaml(state["config"], source), source)
-    spec = member_spec(config)
-    agent = Agent(spec, device=device)
-    saved = state["agent"]
-    if saved.get("format") is None and "actor" in saved:  # alignrl-train-1: a bare SAC state
-        saved = {"format": "alignrl-member-1", "spec": spec.to_dict(), "learner": saved,
-                 "steps_seen": 0, "update_debt": 0.0}  # fmt: skip
-    agent.load_state_dict(saved)
-    return agent, config
+def start_adaptation(
+    config: ExperimentConfig, source: PolicySource, runs_root: str | Path
+) -> Trainer:
+    """A new adaptation run: the Trainer with the source's weights, evaluated zero-shot and
+    checkpointed at once, so that a run killed before its first scheduled checkpoint resumes
+    from the source."""
+    if config.adaptation is None:
+        raise ValueError(f"{config.name}: not an adaptation config (no `adaptation:` section)")
+    trainer = Trainer.create(config, runs_root)
+    try:
+        trainer.agent.load_state_dict(source.agent.state_dict(replay=False))
+        # The source's optimizer state carries its own step size; the run's config says
+        # which one adaptation uses (by default the source's, copied into the config).
+        trainer.agent.set_learning_rate(config.learner.learning_rate)
+        # The zero-shot evaluation, at 0 env steps: on record in metrics/evaluations.csv,
+        # and the source is best.pt until an adapted aligner does strictly better, so the
+        # best an adaptation gives back is never worse than what it started from on that
+        # session.
+        trainer.evaluate_and_keep_best()
+        trainer.checkpoint()
+    except BaseException:  # an instrument that failed, Ctrl-C, a full disk: no run yet
+        trainer.unstart()
+        raise
+    return trainer

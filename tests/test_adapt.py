@@ -17,7 +17,7 @@ import pytest
 import torch
 import yaml
 
-from alignrl.adaptation import HindsightSecrets, adaptation_config, start_adaptation
+from alignrl.adaptation import HindsightSecrets, adaptation_config
 from alignrl.agents.agent import Agent
 from alignrl.apparatus import MeasurementError, make_apparatus
 from alignrl.apparatus.shield import TrainingShield
@@ -29,7 +29,7 @@ from alignrl.envs import AlignmentEnv
 from alignrl.envs.core import feature_layout
 from alignrl.envs.task import get_task
 from alignrl.runs.sources import resolve_source
-from alignrl.training import Trainer
+from alignrl.training import Trainer, start_adaptation
 
 LENS = "fake_drivers:ParabolicLens"
 SPEC_PX = 2.563 * 1.15  # 1.15 x the lens's best edge width (sigma0 = 1 px)

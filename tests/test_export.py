@@ -433,7 +433,7 @@ def test_export_of_a_training_run(tmp_path: Path, capsys: pytest.CaptureFixture[
     ]
     assert card["evaluations"]["note"] and "max_step_fraction" in card["evaluations"]["note"]
     assert card["training"]["env_steps"] in {16, 32}
-    from alignrl.training import load_policy
+    from alignrl.runs.training_runs import load_policy
 
     agent, _ = load_policy(runs / "tiny")
     batch = histories(100)

@@ -45,8 +45,8 @@ def cmd_train(args: argparse.Namespace) -> int:
         if config.adaptation is not None:
             # An adaptation written as a YAML (e.g. a copy of a run's config.yaml with other
             # settings): it starts from its source, as `alignrl adapt` does, never from scratch.
-            from alignrl.adaptation import start_adaptation
             from alignrl.runs.sources import ExportError, resolve_source
+            from alignrl.training import start_adaptation
 
             try:
                 source = resolve_source(config.adaptation.source)
@@ -123,8 +123,9 @@ def cmd_adapt(args: argparse.Namespace) -> int:
         if trainer.config.adaptation is None:
             raise CommandError(f"{args.resume} is a training run, not an adaptation: use train")
         return _train_to_the_end(trainer, args, "alignrl adapt --resume")
-    from alignrl.adaptation import adaptation_config, start_adaptation
+    from alignrl.adaptation import adaptation_config
     from alignrl.runs.sources import ExportError, resolve_source
+    from alignrl.training import start_adaptation
 
     if not (args.source and args.apparatus and args.steps):
         raise CommandError("give --from RUN_OR_POLICY, --apparatus SPEC and --steps N")

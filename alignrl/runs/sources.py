@@ -150,7 +150,7 @@ def _league_source(run_dir: Path, member: str | None) -> PolicySource:
 
 def _training_source(run_dir: Path | None, checkpoint: Path, chosen_as: str) -> PolicySource:
     from alignrl.checkpoints import CheckpointError, load_checkpoint
-    from alignrl.training import load_policy
+    from alignrl.runs.training_runs import load_policy
 
     try:
         agent, config = load_policy(checkpoint)
