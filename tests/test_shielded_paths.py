@@ -330,7 +330,6 @@ def test_align_exits_within_its_limit_when_a_measurement_never_returns(
     assert "measure() did not return within 2 s" in done.stdout + done.stderr
     assert "Traceback" not in done.stderr
     assert elapsed < 60, elapsed  # the import of torch included; a hang would never end
-    assert np.isfinite(elapsed)
 
 
 # --- a fuzz over driver misbehaviour ----------------------------------------------------

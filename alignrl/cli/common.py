@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from alignrl.apparatus.shield import DEFAULT_CALL_TIMEOUT_S
+from alignrl.apparatus.shield import DEFAULT_CALL_TIMEOUT_S, ShieldStop
 
 EXIT_USAGE = 2  # bad input: a clear message, nothing written
 EXIT_SHIELD_STOP = 3  # the shield ended the work: watchdog, refused write, abort (as align)
@@ -86,6 +86,15 @@ def _renamed(config: Any, name: str) -> Any:
     from alignrl.config import parse_config
 
     return parse_config(type(config), {**config.model_dump(), "name": name}, "--name")
+
+
+def _checkpoint_kept(error: ShieldStop, run_dir: Any, resume: str) -> ShieldStop:
+    """A shield stop of a run (training, adaptation, league) as the same kind of stop, told
+    what the run keeps and how to go on; main() says which kind it was."""
+    return type(error)(
+        f"{error}; the last checkpoint in {run_dir} is kept: continue with "
+        f"`{resume} {run_dir}` once the instrument answers"
+    )
 
 
 def _emit(payload: dict[str, Any], as_json: bool, lines: Sequence[str]) -> None:

@@ -11,7 +11,13 @@ from pathlib import Path
 from typing import Any
 
 from alignrl.apparatus.shield import ShieldStop
-from alignrl.cli.common import EXIT_INTERRUPTED, CommandError, _emit, _renamed
+from alignrl.cli.common import (
+    EXIT_INTERRUPTED,
+    CommandError,
+    _checkpoint_kept,
+    _emit,
+    _renamed,
+)
 
 
 def _leaderboard_lines(rows: list[dict[str, Any]]) -> list[str]:
@@ -76,11 +82,8 @@ def _run_league(league: Any, args: argparse.Namespace) -> int:
         raise CommandError(
             f"league stopped: {error}; the last checkpoint in {league.run_dir} is intact"
         ) from None
-    except ShieldStop as error:  # main() says which kind; here, what the run keeps
-        raise type(error)(
-            f"{error}; the last checkpoint in {league.run_dir} is kept: continue with "
-            f"`alignrl league resume {league.run_dir}` once the instrument answers"
-        ) from None
+    except ShieldStop as error:
+        raise _checkpoint_kept(error, league.run_dir, "alignrl league resume") from None
     finally:
         league.close()  # a Ray backend's workers
     rows = leaderboard(league)

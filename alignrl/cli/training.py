@@ -16,6 +16,7 @@ from alignrl.cli.common import (
     CommandError,
     _add_apparatus_options,
     _add_shield_options,
+    _checkpoint_kept,
     _emit,
     _json_object,
     _renamed,
@@ -86,11 +87,8 @@ def _train_to_the_end(trainer: Any, args: argparse.Namespace, resume: str) -> in
         raise CommandError(
             f"training stopped: {error}; the last checkpoint in {run_dir} is intact"
         ) from None
-    except ShieldStop as error:  # main() says which kind; here, what the run keeps
-        raise type(error)(
-            f"{error}; the last checkpoint in {run_dir} is kept: continue with "
-            f"`{resume} {run_dir}` once the instrument answers"
-        ) from None
+    except ShieldStop as error:
+        raise _checkpoint_kept(error, run_dir, resume) from None
     payload = {
         "run": str(run_dir),
         "env_steps": trainer.env_steps,
