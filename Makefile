@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: install run test test-slow lint format bench scenarios clean
+.PHONY: install run test test-fast docs-check lint format bench scenarios clean
 
 $(STAMP): pyproject.toml
 	test -d $(VENV) || $(PYTHON) -m venv $(VENV)
@@ -34,15 +34,23 @@ run: $(STAMP)
 		--apparatus-args '{"noise": 0.02, "split": "test"}' --scenarios 50
 	$(BIN)/alignrl league run experiments/league-make-run.yaml --runs-dir $(RUN_DIR)
 
+# The whole suite, slow tests included, on two workers; a test file stays on one worker
+# (--dist loadfile), so a file's module fixtures are built once.
+PYTEST := $(BIN)/pytest -n 2 --dist loadfile
 test: $(STAMP)
 	$(BIN)/ruff check alignrl tests benchmarks docs/examples docs/gen_configs.py
 	$(BIN)/ruff format --check alignrl tests benchmarks docs/examples docs/gen_configs.py
-	$(BIN)/pytest -m "not slow"
+	$(PYTEST)
 
-# The exhaustive variants that `make test` samples (a kill at every file write of a league and
-# of a trainer, tests/test_crash_windows.py): minutes, so not on every commit.
-test-slow: $(STAMP)
-	$(BIN)/pytest -m slow
+# Everything but the tests marked slow (over about 15 s each: the exhaustive crash windows, the
+# docs commands that train a league), for the edit-test loop.
+test-fast: $(STAMP)
+	$(PYTEST) -m "not slow"
+
+# Every command and example the README and docs/ show, run and compared with what they show.
+docs-check: $(STAMP)
+	$(PYTEST) tests/test_docs_readme.py tests/test_docs_manual.py tests/test_docs_shown.py \
+		tests/test_configs_doc.py
 
 lint: $(STAMP)
 	$(BIN)/ruff check alignrl tests benchmarks docs/examples docs/gen_configs.py

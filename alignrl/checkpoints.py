@@ -1,33 +1,42 @@
-"""Atomic, safe checkpoint files for runs (runs/<name>/checkpoints/).
+"""Atomic, durable files for runs and exports, and safe checkpoint files.
 
-A write goes to a temporary file in the same folder, is flushed and fsynced, then renamed over
-the target: a run killed at any moment leaves either the old file or the new one, never half
-of one (and perhaps a temporary `.<name>.<random>.partial`, which `remove_partial_writes`
-clears). A write that fails on the disk (full, read-only) is an OSError naming the target.
-Loading uses `torch.load(weights_only=True)`: tensors, numbers, strings and
-containers only, never arbitrary pickled objects.
+Every file alignrl keeps is written here. A write goes to a temporary file in the same folder,
+is flushed and fsynced, then renamed over the target: a run killed at any moment leaves either
+the old file or the new one, never half of one (and perhaps a temporary
+`.<name>.<random>.partial`, which `remove_partial_writes` clears). A folder written as a whole
+(an exported policy) is staged beside its target and put in place with renames
+(`staging_folder`, `publish_folder`). A write that fails on the disk (full, read-only) is an
+OSError naming the target. Loading uses `torch.load(weights_only=True)`: tensors, numbers,
+strings and containers only, never arbitrary pickled objects. Torch is imported only by the
+checkpoint functions, so that torch-free modules (metrics, reports) can write files too.
 """
 
 from __future__ import annotations
 
 import os
 import re
+import shutil
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import numpy as np
-import torch
+if TYPE_CHECKING:
+    import torch
 
 __all__ = [
     "CheckpointError",
     "atomic_write",
     "atomic_write_text",
+    "current_umask",
+    "fsync_directory",
+    "fsync_file",
     "load_checkpoint",
     "naming_path",
+    "publish_folder",
     "remove_partial_writes",
     "save_checkpoint",
+    "staging_folder",
 ]
 
 PARTIAL_SUFFIX = ".partial"
@@ -40,7 +49,8 @@ class CheckpointError(ValueError):
     """A checkpoint that cannot be read: missing, truncated, or not ours."""
 
 
-def _fsync_directory(folder: Path) -> None:
+def fsync_directory(folder: Path) -> None:
+    """Make a rename or a new file in `folder` durable (where the platform allows it)."""
     try:
         descriptor = os.open(folder, os.O_RDONLY)
     except OSError:
@@ -51,8 +61,15 @@ def _fsync_directory(folder: Path) -> None:
         os.close(descriptor)
 
 
-def _umask() -> int:
-    mask = os.umask(0)
+def fsync_file(path: Path) -> None:
+    """Make a file that a library wrote by name (torch.onnx.export, safetensors) durable."""
+    with path.open("rb") as handle:
+        os.fsync(handle.fileno())
+
+
+def current_umask() -> int:
+    """The umask new files and folders are made with (mkdir and open honour it)."""
+    mask = os.umask(0)  # reading the umask means setting it: put it straight back
     os.umask(mask)
     return mask
 
@@ -92,9 +109,9 @@ def atomic_write(path: Path, write: Any) -> None:
             write(handle)
             handle.flush()
             os.fsync(handle.fileno())
-        os.chmod(handle.name, 0o666 & ~_umask())  # as open() would make it, not 0600
+        os.chmod(handle.name, 0o666 & ~current_umask())  # as open() would make it, not 0600
         os.replace(handle.name, path)
-        _fsync_directory(path.parent)
+        fsync_directory(path.parent)
     except BaseException as error:
         Path(handle.name).unlink(missing_ok=True)
         disk = naming_path(error, path) if isinstance(error, Exception) else None
@@ -117,8 +134,34 @@ def atomic_write_text(path: str | Path, text: str) -> None:
     atomic_write(Path(path), lambda handle: handle.write(text.encode("utf-8")))
 
 
+def staging_folder(out: Path) -> Path:
+    """A new empty folder beside `out` to write a folder's files into before
+    `publish_folder` puts it in place; a kill leaves it as `.<name>.tmp-<random>`."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    return Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.tmp-"))
+
+
+def publish_folder(staging: Path, out: Path) -> None:
+    """Put the folder `staging` in place of `out` with renames: a reader sees the old folder
+    or the new one, never a half-written one. `out` may be missing, empty or full."""
+    staging.chmod(0o777 & ~current_umask())  # mkdtemp makes 0700; mkdir would not
+    if out.is_dir() and any(out.iterdir()):
+        aside = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.old-"))
+        os.replace(out, aside / out.name)
+        os.replace(staging, out)
+        shutil.rmtree(aside)
+    else:
+        if out.is_dir():
+            out.rmdir()
+        os.replace(staging, out)
+    fsync_directory(out.parent)
+
+
 def to_tensors(value: Any) -> Any:
     """numpy arrays -> tensors, recursively, so that weights_only loading accepts them."""
+    import numpy as np
+    import torch
+
     if isinstance(value, np.ndarray):
         return torch.from_numpy(np.ascontiguousarray(value))
     if isinstance(value, dict):
@@ -129,10 +172,14 @@ def to_tensors(value: Any) -> Any:
 
 
 def save_checkpoint(path: str | Path, state: dict[str, Any]) -> None:
+    import torch
+
     atomic_write(Path(path), lambda handle: torch.save(to_tensors(state), handle))
 
 
 def load_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> dict[str, Any]:
+    import torch
+
     path = Path(path)
     if not path.exists():
         raise CheckpointError(f"checkpoint {path} does not exist")

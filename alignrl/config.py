@@ -10,7 +10,7 @@ from __future__ import annotations
 import numbers
 import re
 from pathlib import Path
-from typing import Annotated, Any, Literal, TypeVar, get_args
+from typing import Annotated, Any, Literal, TypeVar
 
 import yaml
 from pydantic import (
@@ -24,7 +24,11 @@ from pydantic import (
     model_validator,
 )
 
+from alignrl.agents.learners import LEARNERS, learner_defaults
 from alignrl.apparatus.shield import DEFAULT_CALL_TIMEOUT_S
+from alignrl.envs.hindsight import HINDSIGHT_OPTIMA, HindsightOptimum  # noqa: F401 (re-exported)
+from alignrl.overlays import Layers, OverlayError
+from alignrl.overlays import resolve as resolve_overlays
 from alignrl.yaml_io import YAMLInputError, read_yaml_file
 
 __all__ = [
@@ -66,7 +70,6 @@ SEED_LIMIT = 2**63  # seeds are stored as int64 (numpy, scenario files)
 MAX_HIDDEN_WIDTH = 8192  # units of one hidden layer: a 8192 x 8192 layer is 256 MB already
 MAX_HIDDEN_LAYERS = 16
 MAX_BUFFER_SIZE = 10_000_000  # replay transitions: a few GB at a history of 8
-DEFAULT_BUFFER_SIZE = 200_000  # the SAC learner's replay capacity (alignrl.agents.agent)
 MAX_UPDATES_PER_STEP = 16  # (SAC) gradient updates per env step
 HiddenWidth = Annotated[Count, Field(ge=1, le=MAX_HIDDEN_WIDTH)]
 
@@ -106,56 +109,103 @@ def check_device_available(device: str) -> None:
         raise ValueError(f"this machine has {count} CUDA device(s), cuda:0 to cuda:{count - 1}")
 
 
-SAC_ONLY = ("tau", "initial_alpha", "updates_per_step", "buffer_size", "learning_starts",
-            "random_steps", "shared_critic_encoder")  # fmt: skip
-PPO_ONLY = ("gae_lambda", "clip_range", "entropy_coef", "value_coef", "epochs", "rollout_steps",
-            "initial_log_std")  # fmt: skip
+# The learners' names, settings and defaults come from their registry
+# (alignrl/agents/learners.py): a key set for a learner that has no such setting is an error,
+# and a key left out takes the default of the learner's own config dataclass.
+
+
+def _shared_default(name: str) -> Any:
+    """The default of a key that several learners have, read from their configs: they must
+    agree on it (one key of the file, one default)."""
+    found = {learner: learner_defaults(learner)[name] for learner in LEARNERS
+             if name in learner_defaults(learner)}  # fmt: skip
+    if not found or len(set(map(repr, found.values()))) > 1:
+        raise TypeError(
+            f"learner key {name}: the learners' defaults disagree or are missing: {found}"
+        )
+    return next(iter(found.values()))
+
+
+def _plain(value: Any) -> str:
+    """A default as a description quotes it: 1.0 as 1, False as false."""
+    if isinstance(value, bool):
+        return str(value).lower()
+    if isinstance(value, float) and value.is_integer():
+        return str(int(value))
+    return str(value)
+
+
+def _own_setting(name: str, meaning: str, **bounds: Any) -> Any:
+    """A key of some learners alone: null (the default) takes the learner's own default,
+    which the description quotes ("(SAC) target follow rate, 0.005")."""
+    owners = [LEARNERS[learner] for learner in LEARNERS if name in learner_defaults(learner)]
+    default = _shared_default(name)
+    tags = "/".join(owner.title for owner in owners)
+    return Field(None, description=f"({tags}) {meaning}, {_plain(default)}", **bounds)
+
+
+# The learners alignrl ships; one registered later (a plugin, a test) is accepted by name too.
+LearnerName = Literal[tuple(LEARNERS)]  # type: ignore[valid-type]
 
 
 class LearnerConfig(_Strict):
     """One member's learner. Fields marked (SAC) or (PPO) belong to that algorithm alone;
     left unset (null) they take the learner's default (docs/learners.md)."""
 
-    algorithm: Literal["sac", "ppo"] = Field("sac", description="the learning algorithm")
-    encoder: Literal["mlp", "gru", "gtrxl"] = Field("mlp", description="history encoder")
+    algorithm: LearnerName = Field("sac", description="the learning algorithm")
+    encoder: Literal["mlp", "gru", "gtrxl"] = Field(
+        _shared_default("encoder"), description="history encoder"
+    )
     encoder_kwargs: dict[str, Any] = Field(
         default_factory=dict, description="encoder settings, e.g. {d_model: 32} for gtrxl"
     )
     hidden: tuple[HiddenWidth, ...] = Field(
-        (256, 256),
+        _shared_default("hidden"),
         max_length=MAX_HIDDEN_LAYERS,
         description="hidden widths of the heads (critics join action and secret here)",
     )
-    learning_rate: float = Field(3e-4, gt=0, lt=1, description="Adam step size")
-    gamma: float = Field(0.99, gt=0, le=1, description="discount per step")
+    learning_rate: float = Field(
+        _shared_default("learning_rate"), gt=0, lt=1, description="Adam step size"
+    )
+    gamma: float = Field(_shared_default("gamma"), gt=0, le=1, description="discount per step")
     batch_size: Count = Field(
-        256, ge=1, le=MAX_BUFFER_SIZE, description="transitions per gradient step (PPO: minibatch)"
+        _shared_default("batch_size"),
+        ge=1,
+        le=MAX_BUFFER_SIZE,
+        description="transitions per gradient step (PPO: minibatch)",
     )
-    secret_critics: bool = Field(True, description="critics see optimum - setting")
-    tau: float | None = Field(None, gt=0, le=1, description="(SAC) target follow rate, 0.005")
-    initial_alpha: float | None = Field(None, gt=0, description="(SAC) initial entropy coef, 0.2")
-    updates_per_step: float | None = Field(
-        None, gt=0, le=MAX_UPDATES_PER_STEP, description="(SAC) gradient updates per env step, 1"
+    secret_critics: bool = Field(
+        _shared_default("secret_critics"), description="critics see optimum - setting"
     )
-    buffer_size: Count | None = Field(
-        None, ge=1000, le=MAX_BUFFER_SIZE, description="(SAC) replay capacity, 200000"
+    tau: float | None = _own_setting("tau", "target follow rate", gt=0, le=1)
+    initial_alpha: float | None = _own_setting("initial_alpha", "initial entropy coef", gt=0)
+    updates_per_step: float | None = _own_setting(
+        "updates_per_step", "gradient updates per env step", gt=0, le=MAX_UPDATES_PER_STEP
     )
-    learning_starts: Count | None = Field(
-        None, ge=0, description="(SAC) steps before updates, 1000"
+    buffer_size: Count | None = _own_setting(
+        "buffer_size", "replay capacity", ge=1000, le=MAX_BUFFER_SIZE
     )
-    random_steps: Count | None = Field(None, ge=0, description="(SAC) uniform random steps, 2000")
-    shared_critic_encoder: bool | None = Field(
-        None, description="(SAC) Q1, Q2 and V read one history encoder, false"
+    learning_starts: Count | None = _own_setting("learning_starts", "steps before updates", ge=0)
+    random_steps: Count | None = _own_setting("random_steps", "uniform random steps", ge=0)
+    shared_critic_encoder: bool | None = _own_setting(
+        "shared_critic_encoder", "Q1, Q2 and V read one history encoder"
     )
-    gae_lambda: float | None = Field(None, ge=0, le=1, description="(PPO) GAE lambda, 0.95")
-    clip_range: float | None = Field(None, gt=0, lt=1, description="(PPO) ratio clip, 0.2")
-    entropy_coef: float | None = Field(None, ge=0, description="(PPO) entropy bonus, 0")
-    value_coef: float | None = Field(None, gt=0, description="(PPO) value loss weight, 0.5")
-    epochs: Count | None = Field(None, ge=1, le=100, description="(PPO) passes per rollout, 10")
-    rollout_steps: Count | None = Field(None, ge=1, description="(PPO) steps per env slot, 64")
-    initial_log_std: float | None = Field(
-        None, ge=-5, le=1, description="(PPO) initial policy log-std, -0.5"
+    gae_lambda: float | None = _own_setting("gae_lambda", "GAE lambda", ge=0, le=1)
+    clip_range: float | None = _own_setting("clip_range", "ratio clip", gt=0, lt=1)
+    entropy_coef: float | None = _own_setting("entropy_coef", "entropy bonus", ge=0)
+    value_coef: float | None = _own_setting("value_coef", "value loss weight", gt=0)
+    epochs: Count | None = _own_setting("epochs", "passes per rollout", ge=1, le=100)
+    rollout_steps: Count | None = _own_setting("rollout_steps", "steps per env slot", ge=1)
+    initial_log_std: float | None = _own_setting(
+        "initial_log_std", "initial policy log-std", ge=-5, le=1
     )
+
+    @field_validator("algorithm", mode="wrap")
+    @classmethod
+    def _a_registered_learner(cls, value: Any, handler: Any) -> Any:
+        if isinstance(value, str) and value in LEARNERS:
+            return value  # also a learner registered after this model was built
+        return handler(value)  # pydantic's own message, naming the choices
 
     @field_validator("hidden")
     @classmethod
@@ -166,29 +216,52 @@ class LearnerConfig(_Strict):
 
     @model_validator(mode="after")
     def _fields_of_the_algorithm(self) -> LearnerConfig:
-        foreign = PPO_ONLY if self.algorithm == "sac" else SAC_ONLY
-        wrong = [name for name in foreign if getattr(self, name) is not None]
+        own = learner_defaults(self.algorithm)
+        fields = {
+            name: info for name, info in type(self).model_fields.items() if name != "algorithm"
+        }
+        # A key the learner does not have must keep its default (null for a learner's own key).
+        wrong = [
+            name
+            for name, info in fields.items()
+            if name not in own
+            and getattr(self, name) != info.get_default(call_default_factory=True)
+        ]
         if wrong:
             raise ValueError(
                 f"{', '.join(wrong)} {'does' if len(wrong) == 1 else 'do'} not apply to "
                 f"algorithm {self.algorithm}"
             )
-        capacity = self.buffer_size or DEFAULT_BUFFER_SIZE
-        if self.algorithm == "sac" and self.batch_size > capacity:
+        # A learner registered after this model was built must still agree with its defaults.
+        disagree = [
+            f"{name}={own[name]!r}"
+            for name, info in fields.items()
+            if name in own and info.default is not None
+            and repr(own[name]) != repr(info.get_default(call_default_factory=True))
+        ]  # fmt: skip
+        if disagree:
             raise ValueError(
-                f"batch_size {self.batch_size} exceeds the replay capacity (buffer_size "
-                f"{capacity}): no batch could ever be drawn"
+                f"learner {self.algorithm} defaults {', '.join(disagree)}, which this config "
+                "defaults otherwise; a key has one default: change the learner's config"
             )
+        if "buffer_size" in own:  # a learner with a replay: a batch must fit in it
+            capacity = self.buffer_size or own["buffer_size"]
+            if self.batch_size > capacity:
+                raise ValueError(
+                    f"batch_size {self.batch_size} exceeds the replay capacity (buffer_size "
+                    f"{capacity}): no batch could ever be drawn"
+                )
         return self
 
     def hyperparameters(self) -> dict[str, Any]:
-        """The settings a member of this algorithm takes (alignrl.agents.MemberSpec)."""
-        own = SAC_ONLY if self.algorithm == "sac" else PPO_ONLY
-        shared = ("encoder", "encoder_kwargs", "hidden", "learning_rate", "gamma", "batch_size",
-                  "secret_critics")  # fmt: skip
-        values = {name: getattr(self, name) for name in (*shared, *own)}
-        values["hidden"] = list(values["hidden"])
-        values["encoder_kwargs"] = dict(values["encoder_kwargs"])
+        """The settings a member of this algorithm takes (alignrl.agents.MemberSpec); those
+        left null take the learner's own default there."""
+        own = learner_defaults(self.algorithm)
+        values = {name: getattr(self, name) for name in type(self).model_fields if name in own}
+        if "hidden" in values:
+            values["hidden"] = list(values["hidden"])
+        if "encoder_kwargs" in values:
+            values["encoder_kwargs"] = dict(values["encoder_kwargs"])
         return {name: value for name, value in values.items() if value is not None}
 
 
@@ -328,11 +401,6 @@ class RunConfig(_Strict):
         return self
 
 
-# What stands in for an episode's optimum in hindsight (alignrl.adaptation.HindsightSecrets).
-HindsightOptimum = Literal["posterior", "sharpest"]
-HINDSIGHT_OPTIMA: tuple[str, ...] = get_args(HindsightOptimum)
-
-
 class AdaptationConfig(_Strict):
     """Where an adaptation run (`alignrl adapt`) came from, and the safety shield every one of
     its writes passes on the new apparatus (alignrl/apparatus/shield.py)."""
@@ -443,16 +511,25 @@ def read_yaml(path: Path, what: str) -> Any:
     return data
 
 
+def read_layered(path: Path, what: str) -> Layers:
+    """An experiment YAML with its chain of `base:` files merged in (alignrl/overlays.py),
+    each file read as `read_yaml` reads it. A file without `base:` is read as it is; messages
+    about an overlay name it and its bases (`Layers.source`)."""
+    try:
+        return resolve_overlays(path, lambda file: read_yaml(file, what))
+    except OverlayError as error:
+        raise ConfigError(str(error)) from None
+
+
 def parse_experiment(data: Any, source: str = "config") -> ExperimentConfig:
     return parse_config(ExperimentConfig, data, source)
 
 
 def load_experiment(path: str | Path) -> ExperimentConfig:
-    """Read an experiment YAML strictly (unknown keys are errors) to run it on this machine
-    (its device must be one this machine has)."""
-    path = Path(path)
-    data = read_yaml(path, "experiment config")
-    return parse_config(ExperimentConfig, data, str(path), check_device=True)
+    """Read an experiment YAML strictly (unknown keys are errors), its `base:` chain merged
+    in, to run it on this machine (its device must be one this machine has)."""
+    layers = read_layered(Path(path), "experiment config")
+    return parse_config(ExperimentConfig, layers.data, layers.source, check_device=True)
 
 
 def dump_experiment(config: ExperimentConfig) -> str:

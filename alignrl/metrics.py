@@ -8,6 +8,8 @@ import io
 from pathlib import Path
 from typing import Any
 
+from alignrl.checkpoints import atomic_write_text
+
 __all__ = [
     "EPISODE_COLUMNS",
     "EVALUATION_COLUMNS",
@@ -93,8 +95,6 @@ def truncate_csv(path: Path, key: str, count: int) -> None:
     kept = [row for row in rows if len(row) == len(header) and int(row[column]) <= count]
     if len(kept) == len(rows) and text.endswith("\n"):
         return
-    from alignrl.checkpoints import atomic_write_text  # (torch loads only when needed)
-
     atomic_write_text(path, _csv_text([header, *kept]))
 
 
@@ -105,8 +105,6 @@ class CsvLog:
     def __init__(self, path: Path, fields: list[str], key: str = "env_steps") -> None:
         self.path, self.fields, self.key = path, fields, key
         if not path.exists() or path.stat().st_size == 0:  # (empty: killed as it was made)
-            from alignrl.checkpoints import atomic_write_text
-
             atomic_write_text(path, _csv_text([fields]))
 
     def truncate_after(self, count: int) -> None:

@@ -47,6 +47,7 @@ __all__ = [
     "read_metrics_csv",
     "read_metrics_folder",
     "read_run_metrics",
+    "read_yaml_mapping",
     "rolling_mean",
     "save_png",
     "training_figures",
@@ -468,20 +469,18 @@ def training_figures(run_dir: Path, out_dir: Path) -> TrainingFigures:
     return write_figures(read_run_metrics(Path(run_dir)), Path(out_dir))
 
 
-def _read_config(run_dir: Path) -> dict[str, Any]:
-    """config.yaml as plain data: only shown, so an older or newer config still reports."""
-    import yaml
+def read_yaml_mapping(path: Path) -> dict[str, Any]:
+    """A run's YAML file (config.yaml, a league's rosters) as plain data, for a report: only
+    shown, so an older or newer config still reports. Not a mapping is a ReportError."""
+    from alignrl.yaml_io import YAMLInputError, read_yaml_file
 
-    from alignrl.yaml_io import read_yaml_file
-
-    path = run_dir / "config.yaml"
     try:
-        config = read_yaml_file(path)
-    except yaml.YAMLError as error:
-        raise ReportError(f"{path}: not valid YAML: {error}") from None
-    if not isinstance(config, dict):
-        raise ReportError(f"{path}: expected a mapping of settings at the top level")
-    return config
+        data = read_yaml_file(path)
+    except YAMLInputError as error:  # names the file and what is wrong
+        raise ReportError(str(error)) from None
+    if not isinstance(data, dict):
+        raise ReportError(f"{path}: expected a mapping at the top level")
+    return data
 
 
 def _evaluation_cells(row: pd.Series) -> dict[str, str]:
@@ -580,7 +579,7 @@ def write_run_report(run_dir: Path, out_dir: Path | None = None) -> RunReport:
     out_dir = run_dir / "report" if out_dir is None else Path(out_dir)
     remove_partial_writes(out_dir, recursive=False)
     metrics = read_run_metrics(run_dir)
-    config = _read_config(run_dir)
+    config = read_yaml_mapping(run_dir / "config.yaml")
     figures = write_figures(metrics, out_dir)
     markdown = out_dir / "report.md"
     atomic_write_text(markdown, _markdown(run_dir, config, metrics, figures))

@@ -8,6 +8,7 @@ of gradient updates per env step), adjust the curriculum, evaluate on held-out s
 every so often, and checkpoint. A run lives in runs/<name>/:
 
     config.yaml               the resolved experiment
+    knobs.json                the knobs' intervals and steps, for export (alignrl.runs.state)
     checkpoints/last.pt       everything needed to continue (atomic writes)
     checkpoints/best.pt       the learner of the best evaluation so far
     metrics/updates.csv       losses, entropy, alpha (seed figs. 6.1.2-6.1.7)
@@ -43,12 +44,22 @@ from alignrl.checkpoints import (
     remove_partial_writes,
     save_checkpoint,
 )
-from alignrl.config import ExperimentConfig, dump_experiment, parse_experiment
+from alignrl.config import ExperimentConfig, dump_experiment
 from alignrl.envs import Curriculum, VectorAlignmentEnv, make_apparatus_copies
 from alignrl.envs.task import Task
 from alignrl.evaluation.controllers import PolicyController
 from alignrl.evaluation.session import SessionResult, run_session
 from alignrl.metrics import EPISODE_COLUMNS, EVALUATION_COLUMNS, CsvLog
+from alignrl.runs.state import (
+    CONFIG_FILE,
+    KNOBS_FILE,
+    TensorBoardLog,
+    knob_limits,
+    read_training_config,
+    record_knobs,
+    restore_rng,
+    rng_state,
+)
 from alignrl.runs.training_runs import member_spec
 
 if TYPE_CHECKING:
@@ -111,21 +122,11 @@ class Trainer:
         apparatus = make_apparatus_copies(
             config.apparatus, config.apparatus_args, config.envs, self.shield
         )
-        self.curriculum = (
-            Curriculum(
-                level=config.curriculum.level,
-                minimum=min(config.curriculum.level, config.curriculum.step),
-                step=config.curriculum.step,
-                window=config.curriculum.window,
-                raise_at=config.curriculum.raise_at,
-                lower_at=config.curriculum.lower_at,
-            )
-            if config.curriculum.enabled
-            else None
-        )
+        self.curriculum = Curriculum.from_config(config.curriculum)
         level = self.curriculum.level if self.curriculum else config.complexity
         self.task = config.resolved_task()
         self.env = VectorAlignmentEnv(apparatus, self.task, config.history, complexity=level)
+        self.knob_limits = knob_limits(self.task, apparatus[0].knobs)  # what export scales by
         self.agent = Agent(member_spec(config), config.envs, config.device)
         if self.agent.spec.observation_shape != self.env.single_observation_space.shape:
             raise ValueError(
@@ -144,32 +145,28 @@ class Trainer:
         )
         self.episode_log = CsvLog(metrics / "episodes.csv", list(EPISODE_COLUMNS))
         self.evaluation_log = CsvLog(metrics / "evaluations.csv", list(EVALUATION_COLUMNS))
-        self._tensorboard = None
-        self._purge_step: int | None = None  # resumed: TensorBoard drops events from here on
+        self.tensorboard = TensorBoardLog(self.run_dir / "tensorboard")
 
     # --- run directory ------------------------------------------------------------------
 
     @classmethod
     def create(cls, config: ExperimentConfig, runs_root: str | Path = "runs") -> Trainer:
         run_dir = Path(runs_root) / config.name
-        if (run_dir / "checkpoints" / "last.pt").exists() or (run_dir / "config.yaml").exists():
+        if (run_dir / "checkpoints" / "last.pt").exists() or (run_dir / CONFIG_FILE).exists():
             raise FileExistsError(
                 f"{run_dir} already holds a run: continue it with `alignrl train --resume "
                 f"{run_dir}` or choose another --name"
             )
         trainer = cls(config, run_dir)  # bad apparatus or shield settings fail before any file
-        atomic_write_text(run_dir / "config.yaml", dump_experiment(config))
+        # config.yaml last: a start killed before it is no run, and starts afresh.
+        record_knobs(run_dir, config.apparatus, trainer.knob_limits)
+        atomic_write_text(run_dir / CONFIG_FILE, dump_experiment(config))
         return trainer
 
     @classmethod
     def resume(cls, run_dir: str | Path) -> Trainer:
-        from alignrl.yaml_io import read_yaml_file
-
         run_dir = Path(run_dir)
-        config_path = run_dir / "config.yaml"
-        if not config_path.exists():
-            raise FileNotFoundError(f"{run_dir} is not a run directory (no config.yaml)")
-        config = parse_experiment(read_yaml_file(config_path), str(config_path))
+        config = read_training_config(run_dir)
         trainer = cls(config, run_dir)
         last = run_dir / "checkpoints" / "last.pt"
         if last.exists():
@@ -203,8 +200,7 @@ class Trainer:
             "best_successes": self.best_successes,
             "starts": self.starts,
             "evaluation": asdict(self.last_evaluation) if self.last_evaluation else {},
-            "numpy_rng": self.rng.bit_generator.state,
-            "torch_rng": torch.get_rng_state(),
+            **rng_state(self.rng),
             "curriculum": self.curriculum.state_dict() if self.curriculum else {},
             "config": dump_experiment(self.config),
         }
@@ -219,8 +215,7 @@ class Trainer:
         self.best_successes, self.starts = int(state["best_successes"]), int(state["starts"])
         if state.get("evaluation"):  # (older checkpoints have none)
             self.last_evaluation = EvaluationSummary(**state["evaluation"])
-        self.rng.bit_generator.state = state["numpy_rng"]
-        torch.set_rng_state(state["torch_rng"])
+        restore_rng(self.rng, state)
         if self.curriculum and state["curriculum"]:
             self.curriculum.load_state_dict(state["curriculum"])
             self.env.set_complexity(self.curriculum.level)
@@ -232,7 +227,7 @@ class Trainer:
             remove_partial_writes(self.run_dir / folder)
         for log in (self.update_log, self.episode_log, self.evaluation_log):
             log.truncate_after(self.env_steps)
-        self._purge_step = self.env_steps + 1
+        self.tensorboard.resume_after(self.env_steps)
 
     def unstart(self) -> None:
         """Undo a start that failed before the run's first checkpoint (an adaptation whose
@@ -241,27 +236,17 @@ class Trainer:
         kept (appended to by the next start)."""
         if (self.run_dir / "checkpoints" / "last.pt").exists():
             raise ValueError(f"{self.run_dir} has a checkpoint: resume it instead")
-        if self._tensorboard is not None:
-            self._tensorboard.close()
+        self.tensorboard.close()
         for name in ("metrics", "tensorboard", "checkpoints"):
             shutil.rmtree(self.run_dir / name, ignore_errors=True)
-        (self.run_dir / "config.yaml").unlink(missing_ok=True)
+        (self.run_dir / CONFIG_FILE).unlink(missing_ok=True)
+        (self.run_dir / KNOBS_FILE).unlink(missing_ok=True)
 
     def checkpoint(self) -> None:
-        if self._tensorboard is not None:
-            self._tensorboard.flush()  # the events up to this checkpoint are on disk
+        self.tensorboard.flush()  # the events up to this checkpoint are on disk
         save_checkpoint(self.run_dir / "checkpoints" / "last.pt", self._state())
 
     # --- the loop -----------------------------------------------------------------------
-
-    def _tensorboard_writer(self):
-        if self._tensorboard is None:
-            from torch.utils.tensorboard import SummaryWriter
-
-            self._tensorboard = SummaryWriter(
-                str(self.run_dir / "tensorboard"), purge_step=self._purge_step
-            )
-        return self._tensorboard
 
     def evaluate(self) -> SessionResult:
         cfg = self.config
@@ -293,9 +278,8 @@ class Trainer:
         self.evaluation_log.write(
             [{"env_steps": self.env_steps, **summary, "seconds": round(result.seconds, 2)}]
         )
-        board = self._tensorboard_writer()
-        board.add_scalar("evaluation/successes", result.successes, self.env_steps)
-        board.add_scalar(
+        self.tensorboard.add_scalar("evaluation/successes", result.successes, self.env_steps)
+        self.tensorboard.add_scalar(
             "evaluation/median_acquisitions", result.median_acquisitions, self.env_steps
         )
         if result.successes > self.best_successes:
@@ -320,7 +304,7 @@ class Trainer:
         adaptation, learner = self.config.adaptation, self.config.learner
         blind = ~self.env.episodes.secrets_known()
         wanted = adaptation is not None and adaptation.hindsight_secrets
-        if wanted and learner.algorithm == "sac" and learner.secret_critics and blind.any():
+        if wanted and self.agent.learner.keeps_replay and learner.secret_critics and blind.any():
             return HindsightSecrets(blind, adaptation.hindsight_optimum, seed=self.config.seed)
         return None
 
@@ -411,7 +395,7 @@ class Trainer:
             for number, metrics in enumerate(learned, start=first):
                 # SAC logs every UPDATE_LOG_EVERY-th gradient step (counted from the start of
                 # the learner, an adaptation's source included); PPO each rollout's update.
-                if self.agent.spec.algorithm == "ppo" or number % UPDATE_LOG_EVERY == 0:
+                if self.agent.learner.logs_every_update or number % UPDATE_LOG_EVERY == 0:
                     update_rows.append(
                         {
                             "env_steps": self.env_steps,
@@ -421,10 +405,9 @@ class Trainer:
                     )
             if update_rows:
                 self.update_log.write(update_rows)
-                board = self._tensorboard_writer()
                 for row in update_rows:
                     for key in self.agent.metric_names:
-                        board.add_scalar(f"learner/{key}", row[key], row["env_steps"])
+                        self.tensorboard.add_scalar(f"learner/{key}", row[key], row["env_steps"])
                 update_rows = []
             if recent:
                 bar.set_postfix(
@@ -447,8 +430,7 @@ class Trainer:
                     log(f"checkpoint at {self.env_steps} env steps")
                 next_checkpoint += budget.checkpoint_every
         bar.close()
-        if self._tensorboard is not None:
-            self._tensorboard.flush()
+        self.tensorboard.flush()
         return result
 
 

@@ -56,7 +56,7 @@ __all__ = [
     "update_speed",
 ]
 
-DEFAULT_CONFIG = "experiments/focus-sac-mlp-bonus-utd2.yaml"
+DEFAULT_CONFIG = "benchmarks/configs/focus-sac-mlp-bonus-utd2.yaml"
 BATCH_SIZE = 256
 WIDTH = 256  # units per hidden layer, both sides
 # SB3's net_arch [256, 256] is two hidden layers between the flat history and each output.

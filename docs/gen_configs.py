@@ -37,12 +37,14 @@ MARKER = (
 SECTIONS: tuple[tuple[str, str, type[BaseModel]], ...] = (
     (
         "Training experiment",
-        "Read by `alignrl train FILE`: experiments/focus-\\*.yaml, experiments/make-run.yaml.",
+        "Read by `alignrl train FILE`: the files of experiments/ and benchmarks/configs/ "
+        "that name no rosters (experiments/README.md says which is which).",
         ExperimentConfig,
     ),
     (
         "League experiment",
-        "Read by `alignrl league run FILE`: experiments/league-\\*.yaml.",
+        "Read by `alignrl league run FILE`: the files of experiments/ and benchmarks/configs/ "
+        "that name rosters (`aligners`, `misaligners`), themselves or in their base.",
         LeagueConfig,
     ),
     (

@@ -17,7 +17,7 @@ import pytest
 import torch
 import yaml
 
-from alignrl.adaptation import HindsightSecrets, adaptation_config
+from alignrl.adaptation import adaptation_config
 from alignrl.agents.agent import Agent
 from alignrl.apparatus import MeasurementError, make_apparatus
 from alignrl.apparatus.shield import TrainingShield
@@ -27,6 +27,7 @@ from alignrl.cli import main
 from alignrl.config import TaskOptions, parse_experiment
 from alignrl.envs import AlignmentEnv
 from alignrl.envs.core import feature_layout
+from alignrl.envs.hindsight import HindsightSecrets
 from alignrl.envs.task import get_task
 from alignrl.runs.sources import resolve_source
 from alignrl.training import Trainer, start_adaptation
@@ -462,3 +463,15 @@ def test_train_given_an_adaptation_config_starts_from_its_source(
     assert rows[0]["env_steps"] == "0"  # the source, judged before any adaptation step
     adapted = load_checkpoint(tmp_path / "runs" / "from-yaml" / "checkpoints" / "last.pt")
     assert adapted["agent"]["steps_seen"] == source.agent.steps_seen + 40
+
+
+def test_hindsight_secrets_have_a_room_of_their_own() -> None:
+    # Below training and adaptation (numpy only), and named for their old importers; the
+    # config's adaptation section takes the same stand-ins.
+    import alignrl.adaptation as adaptation
+    import alignrl.config as config
+    import alignrl.envs.hindsight as hindsight
+
+    assert adaptation.HindsightSecrets is hindsight.HindsightSecrets
+    assert adaptation.FocusPosterior is hindsight.FocusPosterior
+    assert config.HINDSIGHT_OPTIMA == hindsight.HINDSIGHT_OPTIMA == ("posterior", "sharpest")

@@ -12,6 +12,7 @@ import pytest
 from test_shield import RecordingDriver, constant, scripted, setting_seen
 
 import alignrl.deploy.policy as policy_module
+import alignrl.runs.sources as sources
 from alignrl.agents.agent import Agent, MemberSpec
 from alignrl.apparatus import ApparatusError
 from alignrl.cli import main
@@ -334,7 +335,7 @@ def test_a_shipped_champion_is_an_exported_policy(
     from alignrl.deploy.export import export_policy
     from alignrl.runs.sources import resolve_source
 
-    monkeypatch.setattr(policy_module, "CHAMPIONS_DIR", tmp_path / "champions")
+    monkeypatch.setattr(sources, "CHAMPIONS", tmp_path / "champions")
     with pytest.raises(PolicySpecError, match="shipped champions: none"):
         load_deployable("champion:tiny")
     export_policy(
@@ -357,7 +358,7 @@ def test_align_a_safetensors_champion_end_to_end(
     member_file: Path,
 ) -> None:
     champions = tmp_path / "champions"
-    monkeypatch.setattr(policy_module, "CHAMPIONS_DIR", champions)
+    monkeypatch.setattr(sources, "CHAMPIONS", champions)
     out = champions / "tiny"
     assert main(["export", str(member_file), "--format", "safetensors", "--out", str(out)]) == 0
     capsys.readouterr()

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import warnings
 
 import numpy as np
 import pytest
@@ -22,13 +21,8 @@ from alignrl.evaluation.controllers import PolicyController, SequenceController
 from alignrl.evaluation.session import run_session
 
 STAGES = ("column-focus-aperture", "column-focus-stigmation")
-
-
-@pytest.fixture(autouse=True)
-def _quiet_api_warnings():
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", UserWarning)
-        yield
+# The API checkers' advisory UserWarnings are not what these tests judge.
+pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
 
 
 @pytest.mark.parametrize("name", STAGES)

@@ -10,7 +10,6 @@ events back.
 
 from __future__ import annotations
 
-import csv
 import errno
 import json
 import os
@@ -25,8 +24,7 @@ from typing import Any
 
 import pytest
 import torch
-import yaml
-from test_league import SMALL_PPO, SMALL_SAC
+from conftest import SMALL_PPO, SMALL_SAC, narrowed, read_csv, write_experiment, write_league_files
 
 import alignrl.checkpoints as checkpoints
 from alignrl.checkpoints import load_checkpoint
@@ -153,8 +151,7 @@ def contents(run: Path) -> dict[str, Any]:
         if path.suffix == ".pt":
             found[relative] = load_checkpoint(path)
         elif path.suffix == ".csv":
-            with path.open(newline="") as handle:
-                rows = list(csv.DictReader(handle))
+            rows = read_csv(path)
             found[relative] = [{k: v for k, v in row.items() if k != "seconds"} for row in rows]
         else:
             found[relative] = path.read_text()
@@ -171,8 +168,7 @@ def assert_same_run(resumed: dict[str, Any], reference: dict[str, Any], kill: st
 def assert_rows_once(run: Path, kill: str) -> None:
     """No metrics row twice: iterations 1, 2, ... and per CSV strictly increasing keys."""
     for path in run.rglob("*.csv"):
-        with path.open(newline="") as handle:
-            rows = list(csv.DictReader(handle))
+        rows = read_csv(path)
         if path.name == "iterations.csv":
             assert [int(r["iteration"]) for r in rows] == list(range(1, len(rows) + 1)), kill
         if path.name == "episodes.csv":
@@ -202,24 +198,19 @@ LEAGUE_SCHEDULE = {
 
 
 def league_config(tmp_path: Path) -> Path:
-    small_ppo = {**SMALL_PPO, "encoder_kwargs": {"hidden": [8]}, "hidden": [8]}
-    small_sac = {**SMALL_SAC, "encoder_kwargs": {"hidden": [8]}, "hidden": [8]}
-    for team, prefix in (("aligner", "a"), ("misaligner", "m")):
-        members = [{"id": f"{prefix}-sac", "learner": small_sac},
-                   {"id": f"{prefix}-ppo", "learner": small_ppo}]  # fmt: skip
-        (tmp_path / f"{team}s.yaml").write_text(yaml.safe_dump({"team": team, "members": members}))
+    small_sac, small_ppo = narrowed(SMALL_SAC, 8), narrowed(SMALL_PPO, 8)
+    aligners, misaligners = (
+        [{"id": f"{team}-sac", "learner": small_sac}, {"id": f"{team}-ppo", "learner": small_ppo}]
+        for team in ("a", "m")
+    )
     settings = {
         "name": "crash",
         "envs": 2,
-        "aligners": str(tmp_path / "aligners.yaml"),
-        "misaligners": str(tmp_path / "misaligners.yaml"),
         "schedule": LEAGUE_SCHEDULE,
         "matchmaking": {"max_snapshots": 1},
         "pbt": {"min_gap": 0.0},
     }
-    path = tmp_path / "league.yaml"
-    path.write_text(yaml.safe_dump(settings))
-    return path
+    return write_league_files(tmp_path, aligners, misaligners, settings)
 
 
 def league_to_the_end(config_path: Path, runs: Path) -> Path:
@@ -311,7 +302,7 @@ def test_a_full_disk_at_a_checkpoint_keeps_the_previous_one_and_says_where(
 TINY_TRAIN = {
     "name": "crash",
     "envs": 2,
-    "learner": {**SMALL_SAC, "encoder_kwargs": {"hidden": [8]}, "hidden": [8]},
+    "learner": narrowed(SMALL_SAC, 8),
     "budget": {"env_steps": 60, "eval_every": 40, "eval_scenarios": 2, "checkpoint_every": 20},
 }
 
@@ -389,8 +380,7 @@ def trainer_kills(tmp_path: Path, writes: Writes, select: Any) -> int:
 def test_a_finished_run_resumed_twice_writes_nothing(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    config = tmp_path / "crash.yaml"
-    config.write_text(yaml.safe_dump(TINY_TRAIN))
+    config = write_experiment(tmp_path, TINY_TRAIN)
     runs = tmp_path / "runs"
     assert main(["train", str(config), "--runs-dir", str(runs), "--quiet", "--json"]) == 0
     finished = json.loads(capsys.readouterr().out)
@@ -405,15 +395,14 @@ def test_a_finished_run_resumed_twice_writes_nothing(
             k: v for k, v in finished.items() if k != "seconds"
         }
     assert {path: path.stat().st_mtime_ns for path in run.rglob("*") if path.is_file()} == files
-    with (run / "metrics" / "evaluations.csv").open(newline="") as handle:
-        assert [row["env_steps"] for row in csv.DictReader(handle)] == ["40", "60"]
+    evaluations = read_csv(run / "metrics" / "evaluations.csv")
+    assert [row["env_steps"] for row in evaluations] == ["40", "60"]
 
 
 def test_a_full_disk_in_training_is_one_line_naming_the_file(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    config = tmp_path / "crash.yaml"
-    config.write_text(yaml.safe_dump(TINY_TRAIN))
+    config = write_experiment(tmp_path, TINY_TRAIN)
     runs = tmp_path / "runs"
     fsync = os.fsync
     checkpoints_written = []
@@ -441,8 +430,7 @@ def test_a_full_disk_in_training_is_one_line_naming_the_file(
 
 def test_sigterm_stops_training_as_ctrl_c_does_and_it_resumes(tmp_path: Path) -> None:
     settings = {**TINY_TRAIN, "budget": {**TINY_TRAIN["budget"], "env_steps": 20000}}
-    config = tmp_path / "crash.yaml"
-    config.write_text(yaml.safe_dump(settings))
+    config = write_experiment(tmp_path, settings)
     runs = tmp_path / "runs"
     command = [sys.executable, "-m", "alignrl.cli", "train"]
     process = subprocess.Popen(

@@ -14,6 +14,7 @@ from typing import Any
 
 import pytest
 import torch
+from conftest import create_league, one_sac_each, write_league_files
 from hostile import assert_refused, assert_unchanged, run_cli, tree_state
 from test_align import tiny_member
 from test_shield import RecordingDriver
@@ -357,26 +358,12 @@ def test_a_truncated_checkpoint_is_refused(
 @pytest.fixture(scope="module")
 def league_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A league run's folder after its first checkpoint (nothing played)."""
-    import yaml
-
-    from alignrl.league.config import load_league
-    from alignrl.league.loop import League
-
     folder = tmp_path_factory.mktemp("league")
     small = {"encoder_kwargs": {"hidden": [16]}, "hidden": [16], "batch_size": 16}
-    for team in ("aligner", "misaligner"):
-        roster = {"team": team, "members": [{"id": f"{team[0]}-sac", "learner": small}]}
-        (folder / f"{team}s.yaml").write_text(yaml.safe_dump(roster))
-    settings = {
-        "name": "tiny",
-        "envs": 2,
-        "aligners": str(folder / "aligners.yaml"),
-        "misaligners": str(folder / "misaligners.yaml"),
-        "schedule": {"iterations": 1, "matches": 2, "eval_scenarios": 1, "checkpoint_every": 1},
-    }
-    (folder / "league.yaml").write_text(yaml.safe_dump(settings))
-    config, aligners, misaligners = load_league(folder / "league.yaml")
-    league = League.create(config, aligners, misaligners, folder / "runs")
+    schedule = {"iterations": 1, "matches": 2, "eval_scenarios": 1, "checkpoint_every": 1}
+    settings = {"name": "tiny", "envs": 2, "schedule": schedule}
+    path = write_league_files(folder, **one_sac_each(small), settings=settings)
+    league = create_league(path, folder / "runs")
     league.checkpoint()
     league.close()
     return folder / "runs" / "tiny"

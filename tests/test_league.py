@@ -3,7 +3,6 @@ configs fail clearly, and the leaderboard reads a run."""
 
 from __future__ import annotations
 
-import csv
 import json
 import os
 import signal
@@ -16,100 +15,16 @@ import numpy as np
 import pytest
 import torch
 import yaml
+from conftest import SMALL_SAC, create_league, quiet_schedule, read_csv, write_league, write_yaml
 
 from alignrl.cli import main
 from alignrl.config import ConfigError
 from alignrl.league.config import load_league
 from alignrl.league.loop import League, leaderboard
 
-SMALL_SAC = {
-    "encoder_kwargs": {"hidden": [16]},
-    "hidden": [16],
-    "batch_size": 16,
-    "learning_starts": 16,
-    "random_steps": 32,
-    "buffer_size": 2000,
-}
-SMALL_PPO = {
-    "algorithm": "ppo",
-    "encoder": "mlp",
-    "encoder_kwargs": {"hidden": [16]},
-    "hidden": [16],
-    "batch_size": 16,
-    "rollout_steps": 4,
-    "epochs": 2,
-}
-
-
-def write_league(tmp_path: Path, **changes: object) -> Path:
-    (tmp_path / "aligners.yaml").write_text(
-        yaml.safe_dump(
-            {
-                "team": "aligner",
-                "members": [
-                    {"id": "a-sac", "learner": SMALL_SAC},
-                    {
-                        "id": "a-ppo",
-                        "learner": {**SMALL_PPO, "encoder": "gru", "encoder_kwargs": {"hidden": 8}},
-                    },
-                ],
-            }
-        )
-    )
-    (tmp_path / "misaligners.yaml").write_text(
-        yaml.safe_dump(
-            {
-                "team": "misaligner",
-                "members": [
-                    {"id": "m-sac", "learner": SMALL_SAC},
-                    {"id": "m-ppo", "learner": SMALL_PPO},
-                ],
-            }
-        )
-    )
-    settings = {
-        "name": "tiny",
-        "envs": 4,
-        "aligners": str(tmp_path / "aligners.yaml"),
-        "misaligners": str(tmp_path / "misaligners.yaml"),
-        "schedule": {
-            "iterations": 8,
-            "matches": 8,
-            "snapshot_every": 3,
-            "pbt_every": 4,
-            "evaluate_every": 4,
-            "eval_scenarios": 4,
-            "checkpoint_every": 2,
-        },
-        "pbt": {"min_gap": 0.0},
-        **changes,
-    }
-    path = tmp_path / "league.yaml"
-    path.write_text(yaml.safe_dump(settings))
-    return path
-
-
-def read_csv(path: Path) -> list[dict[str, str]]:
-    with path.open(newline="") as handle:
-        return list(csv.DictReader(handle))
-
-
-def quiet_schedule(**changes: object) -> dict:
-    """A short schedule without snapshots or evaluations to speak of; `changes` on top."""
-    return {
-        "iterations": 6,
-        "matches": 8,
-        "snapshot_every": 100,
-        "evaluate_every": 100,
-        "eval_scenarios": 2,
-        "checkpoint_every": 3,
-        **changes,
-    }
-
 
 def tiny_league(tmp_path: Path, **changes: object) -> League:
-    config, aligners, misaligners = load_league(write_league(tmp_path, **changes))
-    return League.create(config, aligners, misaligners, tmp_path / "runs")
+    return create_league(write_league(tmp_path, **changes), tmp_path / "runs")
 
 
 def test_matches_are_zero_sum_and_both_sides_store_their_experience(tmp_path: Path) -> None:
@@ -286,22 +201,14 @@ def test_shipped_leagues_and_rosters_load(path: Path) -> None:
 def test_roster_errors_name_the_roster_file(tmp_path: Path) -> None:
     path = write_league(tmp_path)
     roster = tmp_path / "aligners.yaml"
-    roster.write_text(
-        yaml.safe_dump(
-            {
-                "team": "aligner",
-                "members": [{"id": "x", "learner": SMALL_SAC}, {"id": "x", "learner": SMALL_SAC}],
-            }
-        )
-    )
+    twice = [{"id": "x", "learner": SMALL_SAC}, {"id": "x", "learner": SMALL_SAC}]
+    write_yaml(roster, {"team": "aligner", "members": twice})
     with pytest.raises(ConfigError, match=r"aligners.yaml: .*repeated: x"):
         load_league(path)
-    roster.write_text(yaml.safe_dump({"team": "misaligner", "members": [{"id": "x"}]}))
+    write_yaml(roster, {"team": "misaligner", "members": [{"id": "x"}]})
     with pytest.raises(ConfigError, match="used as the aligner roster"):
         load_league(path)
-    roster.write_text(
-        yaml.safe_dump({"team": "aligner", "members": [{"id": "x", "learner": {"epochs": 3}}]})
-    )
+    write_yaml(roster, {"team": "aligner", "members": [{"id": "x", "learner": {"epochs": 3}}]})
     with pytest.raises(
         ConfigError, match=r"members.0.learner: .*epochs does not apply to algorithm sac"
     ):

@@ -16,11 +16,10 @@ from urllib.parse import unquote
 import numpy as np
 import pandas as pd
 import pytest
-from test_league import write_league
+from conftest import create_league, write_league
 from test_report import PNG_MAGIC, snapshot
 
 from alignrl.cli import main
-from alignrl.league.config import load_league
 from alignrl.league.loop import League, leaderboard
 from alignrl.league.ratings import PayoffTable, Ratings
 from alignrl.league.report import member_teams, payoff_grid, write_league_report
@@ -39,8 +38,7 @@ LEAGUE_FIGURES = ("ratings.png", "payoff.png", "curriculum.png", "evaluations.pn
 
 
 def new_league(root: Path) -> League:
-    config, aligners, misaligners = load_league(write_league(root, schedule=SCHEDULE))
-    return League.create(config, aligners, misaligners, root / "runs")
+    return create_league(write_league(root, schedule=SCHEDULE), root / "runs")
 
 
 def links(run: Path) -> tuple[list[str], list[str]]:

@@ -10,26 +10,24 @@ import numpy as np
 import pytest
 import torch
 import yaml
+from conftest import SMALL_SAC, create_league, quiet_schedule, write_league, write_yaml
 
 from alignrl.cli import main
 from alignrl.config import ConfigError
 from alignrl.league.config import load_league
 from alignrl.league.loop import League
-from tests.test_league import SMALL_SAC, quiet_schedule, write_league
 
 
 def _source(tmp_path: Path) -> Path:
     """A member file of a tiny league that has played and learned a little."""
     (tmp_path / "source").mkdir()
-    config, aligners, misaligners = load_league(
-        write_league(
-            tmp_path / "source",
-            name="source",
-            pbt={"enabled": False},
-            schedule=quiet_schedule(iterations=4, checkpoint_every=4),
-        )
+    path = write_league(
+        tmp_path / "source",
+        name="source",
+        pbt={"enabled": False},
+        schedule=quiet_schedule(iterations=4, checkpoint_every=4),
     )
-    league = League.create(config, aligners, misaligners, tmp_path / "source" / "runs")
+    league = create_league(path, tmp_path / "source" / "runs")
     league.run(progress=False)
     member = league.members["a-sac"]
     assert member.updates > 0  # it learned: its weights are not the fresh ones
@@ -44,7 +42,7 @@ def _warm_league(tmp_path: Path, member: dict, name: str = "warm", **changes: ob
     folder.mkdir()
     path = write_league(folder, name=name, **changes)
     roster = {"team": "aligner", "members": [member, {"id": "fresh", "learner": SMALL_SAC}]}
-    (folder / "aligners.yaml").write_text(yaml.safe_dump(roster))
+    write_yaml(folder / "aligners.yaml", roster)
     return path
 
 
@@ -64,13 +62,8 @@ def test_a_warm_started_aligner_acts_as_its_source_and_fine_tunes_at_its_own_rat
     from alignrl.agents.agent import Agent
 
     trained = Agent.load(source)
-    config, aligners, misaligners = load_league(
-        _warm_league(
-            tmp_path,
-            {"id": "tuned", "init_from": str(source), "learner": {"learning_rate": 1.0e-4}},
-        )
-    )
-    league = League.create(config, aligners, misaligners, tmp_path / "runs")
+    entry = {"id": "tuned", "init_from": str(source), "learner": {"learning_rate": 1.0e-4}}
+    league = create_league(_warm_league(tmp_path, entry), tmp_path / "runs")
     tuned, fresh = league.members["tuned"], league.members["fresh"]
     observations = (
         np.random.default_rng(3)
@@ -108,10 +101,8 @@ def test_a_warm_started_league_plays_learns_and_resumes_without_its_source(
 ) -> None:
     copy = tmp_path / "copy.pt"
     copy.write_bytes(source.read_bytes())
-    config, aligners, misaligners = load_league(
-        _warm_league(tmp_path, {"id": "tuned", "init_from": str(copy)}, pbt={"enabled": False})
-    )
-    league = League.create(config, aligners, misaligners, tmp_path / "runs")
+    entry = {"id": "tuned", "init_from": str(copy)}
+    league = create_league(_warm_league(tmp_path, entry, pbt={"enabled": False}), tmp_path / "runs")
     before = league.members["tuned"].updates
     league.run(progress=False)
     assert league.members["tuned"].updates > before
@@ -165,7 +156,7 @@ def test_a_source_of_another_task_or_history_is_refused(
 ) -> None:
     path = _warm_league(tmp_path, {"id": "tuned", "init_from": str(source)})
     settings = {**yaml.safe_load(path.read_text()), **changes}
-    path.write_text(yaml.safe_dump(settings))
+    write_yaml(path, settings)
     config, aligners, misaligners = load_league(path)
     with pytest.raises(ConfigError, match=message):
         League.create(config, aligners, misaligners, tmp_path / "runs")
@@ -178,7 +169,7 @@ def test_misaligners_cannot_be_warm_started(tmp_path: Path, source: Path) -> Non
         "team": "misaligner",
         "members": [{"id": "m", "init_from": str(source), "learner": SMALL_SAC}],
     }
-    (tmp_path / "misaligners.yaml").write_text(yaml.safe_dump(roster))
+    write_yaml(tmp_path / "misaligners.yaml", roster)
     with pytest.raises(ConfigError, match="misaligners m start fresh"):
         load_league(path)
 
@@ -202,8 +193,7 @@ def test_a_cpu_trained_aligner_warm_starts_a_league_on_cuda(tmp_path: Path, sour
             uniform_starts=0.5,
         ),
     )
-    config, aligners, misaligners = load_league(path)
-    league = League.create(config, aligners, misaligners, tmp_path / "runs")
+    league = create_league(path, tmp_path / "runs")
     tuned = league.members["tuned"]
     assert all(p.device.type == "cuda" for p in tuned.learner.actor.parameters())
     observations = (
@@ -241,8 +231,7 @@ def test_init_replay_brings_the_sources_experience_along(tmp_path: Path, source:
     trainer.run(progress=False)
     last = tmp_path / "trained-runs" / "trained" / "checkpoints" / "last.pt"
     entry = {"id": "tuned", "init_from": str(last), "init_replay": True}
-    config, aligners, misaligners = load_league(_warm_league(tmp_path, entry, "kept"))
-    league = League.create(config, aligners, misaligners, tmp_path / "runs")
+    league = create_league(_warm_league(tmp_path, entry, "kept"), tmp_path / "runs")
     tuned, size = league.members["tuned"], trainer.agent.replay.size
     assert size >= 80 and tuned.replay.size == size
     np.testing.assert_array_equal(tuned.replay.action[:size], trainer.agent.replay.action[:size])

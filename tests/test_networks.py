@@ -173,6 +173,44 @@ def test_memory_is_used_and_pushed() -> None:
         torch.testing.assert_close(new[:, :-1], old[:, 1:], atol=0, rtol=0)
 
 
+def test_a_streamed_memory_carries_what_has_left_the_window() -> None:
+    """The exported graph's Transformer-XL memory (docs/deploy.md) is what lets a policy read
+    beyond its window. Two episodes that differ in their first step alone, streamed one step
+    per call: once that step has left the window, the graph tells them apart only where its
+    memory is fed back from call to call, not where every call starts empty (as the
+    learners call their encoders)."""
+    from alignrl.agents.agent import Agent, MemberSpec
+    from alignrl.deploy.graph import PolicyGraph
+
+    torch.manual_seed(0)
+    options = {"d_model": 8, "heads": 2, "layers": 2, "memory_length": 4}
+    hyperparameters = {"encoder": "gtrxl", "encoder_kwargs": options, "hidden": [8]}
+    spec = MemberSpec("streamer", "aligner", "sac", (HISTORY, FEATURES), 2, 1, hyperparameters)
+    graph = PolicyGraph(Agent(spec), [1.0])
+    steps = HISTORY + 3
+    first = histories([HISTORY], seed=3)[0]
+    episode = torch.cat([first, histories([steps - HISTORY], seed=4)[0, HISTORY - steps :]])
+    other = episode.clone()
+    other[0, 1:] = -other[0, 1:]  # the first step only
+    episodes = torch.stack([episode, other])  #                                   (2, steps, F)
+    empty = [torch.from_numpy(value) for value in graph.empty_memory(2).values()]
+    memory = empty
+    with torch.no_grad():
+        for step in range(steps):
+            window = torch.zeros(2, HISTORY, FEATURES)  #                 right-aligned, padded
+            recent = episodes[:, max(0, step - HISTORY + 1) : step + 1]
+            window[:, HISTORY - recent.shape[1] :] = recent
+            streamed, _, *memory = graph(window, *memory)
+            alone, _ = graph(window, *empty)[:2]
+            if step == 0:  # nothing in memory yet: the same as an empty one
+                torch.testing.assert_close(streamed, alone, rtol=0, atol=1e-6)
+            if step >= HISTORY:  # the first step has left: both windows are the same
+                assert torch.equal(window[0], window[1])
+                torch.testing.assert_close(alone[0], alone[1], rtol=0, atol=1e-6)
+                assert (streamed[0] - streamed[1]).abs().max() > 1e-4
+    assert memory[-1].sum(dim=1).tolist() == [4.0, 4.0]  # every slot now holds a real step
+
+
 def test_memory_zeros_and_detach() -> None:
     memory = Memory.zeros(batch=3, layers=2, memory_length=5, d_model=8)
     assert [layer.shape for layer in memory.layers] == [(3, 5, 8)] * 2

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import dataclasses
 
 import numpy as np
 import pytest
@@ -12,7 +13,8 @@ from alignrl.agents.ppo import PPO, PPOConfig, Rollout, RolloutBuffer, generaliz
 from alignrl.agents.sac import NonFiniteError
 
 SHAPE = (8, 7)
-SMALL = PPOConfig(encoder_kwargs={"hidden": 16}, hidden=(32,), batch_size=32, epochs=2)
+SMALL = PPOConfig(encoder="gru", encoder_kwargs={"hidden": 16}, hidden=(32,), batch_size=32,
+                  epochs=2)  # fmt: skip
 
 
 def learner(seed: int = 0, config: PPOConfig = SMALL) -> PPO:
@@ -91,7 +93,7 @@ def test_the_value_network_reads_the_secret_and_the_policy_cannot() -> None:
     # The policy's GRU takes the history rows alone: its input width is the row width.
     assert ppo.policy.encoder.cell.input_size == SHAPE[1]
     assert ppo.policy.head[0].in_features == ppo.policy.encoder.output_dim
-    blind = learner(config=PPOConfig(encoder_kwargs={"hidden": 16}, secret_critics=False))
+    blind = learner(config=dataclasses.replace(SMALL, secret_critics=False))
     assert blind.value.head[0].in_features == ppo.value.head[0].in_features - 1
 
 

@@ -18,15 +18,22 @@ import cv2
 import numpy as np
 import pytest
 
-from alignrl.apparatus import MeasurementError, NoEdgesError, edge_width
-from alignrl.apparatus.quality import (
+from alignrl.apparatus import (
+    MeasurementError,
+    NoEdgesError,
+    directional,
+    edge_width,
+    quality,
+    wobble,
+)
+from alignrl.apparatus.directional import (
     ORIENTATION_BINS_DEG,
-    TEN_NINETY_PER_SIGMA,
     DirectionalWidths,
     astigmatism_from_widths,
     directional_widths,
-    wobble_shift,
 )
+from alignrl.apparatus.edge_profiles import TEN_NINETY_PER_SIGMA
+from alignrl.apparatus.wobble import wobble_shift
 
 K = TEN_NINETY_PER_SIGMA
 SUBSTRATE, PARTICLE = 0.25, 0.9
@@ -361,3 +368,13 @@ def test_one_segment_measured_across_a_neighbour_does_not_widen_its_bin(
     ratios = np.array([directional_widths(sem.acquire()).widths_px / best for _ in range(12)])
     assert ratios.max() < 1.2, ratios.round(2)
     assert ratios.min() > 1.0, ratios.round(2)
+
+
+def test_the_image_measures_stay_importable_from_quality() -> None:
+    """alignrl.apparatus.quality is the front door of the image measures (design.md)."""
+    assert quality.directional_widths is directional.directional_widths
+    assert quality.astigmatism_from_widths is directional.astigmatism_from_widths
+    assert quality.DirectionalWidths is directional.DirectionalWidths
+    assert quality.ORIENTATION_BINS_DEG is directional.ORIENTATION_BINS_DEG
+    assert quality.wobble_shift is wobble.wobble_shift
+    assert quality.TEN_NINETY_PER_SIGMA == TEN_NINETY_PER_SIGMA

@@ -22,6 +22,7 @@ from alignrl.agents.agent import Agent
 from alignrl.config import ConfigError
 from alignrl.envs import make_apparatus_copies
 from alignrl.envs.core import AlignmentEpisodes
+from alignrl.envs.duel import DuelBatch
 from alignrl.league.backends import InProcessBackend
 from alignrl.league.config import load_league
 from alignrl.league.loop import League
@@ -122,7 +123,8 @@ def test_learning_members_learn_centrally_what_the_workers_played(league: League
     for first, count in zip((0, 6), split_matches(12, [4, 4]), strict=True):  # 6 each
         units = make_apparatus_copies(config.apparatus, config.apparatus_args, 4)
         episodes = AlignmentEpisodes(units, config.resolved_task(), config.history)
-        played += record_matches(episodes, seeds[first : first + count], *twins, (True, True))
+        duel = DuelBatch(episodes)
+        played += record_matches(duel, seeds[first : first + count], *twins, (True, True))
     torch.manual_seed(0)
     local = learn_from_matches(played, *twins, learning, rng)
 

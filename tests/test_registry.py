@@ -1,7 +1,9 @@
-"""Apparatus specs: presets, csv:, sem:, and a user's driver by import path."""
+"""Apparatus specs: presets, csv:, sem:, and a user's driver by import path; and the
+capabilities (alignrl/apparatus/base.py) each kind of apparatus offers, shielded or not."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -9,15 +11,28 @@ import pytest
 
 from alignrl.apparatus import (
     Apparatus,
+    BatchedQueries,
+    KnowsBestQuality,
+    KnowsOptimum,
+    MeasuresDirectional,
+    MeasuresWobble,
+    ReportsApplied,
     ScenarioSimulator,
     SimulatedApparatus,
     SyntheticSEM,
+    answers_batched,
+    knows_best_quality,
+    knows_optimum,
     make_apparatus,
+    offers_directional,
+    offers_wobble,
     preset_names,
+    reports_applied,
 )
 from alignrl.apparatus.recorder import sweep, sweep_plan
+from alignrl.apparatus.registry import build_apparatus
 from alignrl.apparatus.scenarios import ScenarioWriter
-from alignrl.apparatus.shield import TrainingShield
+from alignrl.apparatus.shield import ShieldOptions, TrainingShield, shield_apparatus
 
 
 def test_presets_are_listed_and_built() -> None:
@@ -124,3 +139,91 @@ def test_simulator_arguments_are_checked(tmp_path: Path, args: dict, fragment: s
     _tiny_recording(path)
     with pytest.raises(ValueError, match=fragment):
         make_apparatus(f"csv:{path}", args)
+
+
+# --- capabilities -------------------------------------------------------------------------
+
+CAPABILITIES: dict[str, tuple[type, Callable[[object], bool]]] = {
+    "optimum": (KnowsOptimum, knows_optimum),
+    "best_quality": (KnowsBestQuality, knows_best_quality),
+    "batched": (BatchedQueries, lambda unit: answers_batched([unit])),
+    "applied": (ReportsApplied, reports_applied),
+    "directional": (MeasuresDirectional, offers_directional),
+    "wobble": (MeasuresWobble, offers_wobble),
+}
+SHIELD_SIMULATORS = ShieldOptions(simulators=True)
+
+
+@pytest.mark.parametrize(
+    ("open_it", "expected"),
+    [
+        pytest.param(
+            lambda: make_apparatus("csv:default"),
+            {"optimum", "best_quality", "batched"},
+            id="scenario simulator",
+        ),
+        pytest.param(
+            lambda: make_apparatus("synthetic", {"analytic": True}),
+            {"optimum", "best_quality", "directional", "wobble"},
+            id="synthetic SEM",
+        ),
+        pytest.param(
+            lambda: build_apparatus("fake_drivers:BlindLens"), set(), id="driver, no optimum"
+        ),
+        pytest.param(
+            lambda: build_apparatus("fake_drivers:ParabolicLens"), {"optimum"}, id="driver"
+        ),
+        # Behind the shield: the secret passes where the apparatus has it, writes report what
+        # they applied, the multi-knob measures go through the shield's own methods, and a
+        # batched query (around the shield's checks) is never offered.
+        pytest.param(
+            lambda: make_apparatus("fake_drivers:BlindLens"),
+            {"applied", "directional", "wobble"},
+            id="shielded driver, no optimum",
+        ),
+        pytest.param(
+            lambda: make_apparatus("fake_drivers:ParabolicLens"),
+            {"optimum", "applied", "directional", "wobble"},
+            id="shielded driver",
+        ),
+        pytest.param(
+            lambda: make_apparatus("csv:default", shield=SHIELD_SIMULATORS),
+            {"optimum", "best_quality", "applied", "directional", "wobble"},
+            id="shielded scenario simulator",
+        ),
+        pytest.param(
+            lambda: make_apparatus("synthetic", {"analytic": True}, shield=SHIELD_SIMULATORS),
+            {"optimum", "best_quality", "applied", "directional", "wobble"},
+            id="shielded synthetic SEM",
+        ),
+    ],
+)
+def test_each_capability_is_recognised(open_it: Callable[[], Apparatus], expected: set) -> None:
+    unit = open_it()
+    by_helper = {name for name, (_, helper) in CAPABILITIES.items() if helper(unit)}
+    by_protocol = {
+        name for name, (protocol, _) in CAPABILITIES.items() if isinstance(unit, protocol)
+    }
+    assert by_helper == expected
+    assert by_protocol == expected  # the protocols and the helpers agree on every kind
+    assert isinstance(unit, SimulatedApparatus) == ({"optimum", "best_quality"} <= expected)
+
+
+def test_a_capability_set_to_none_is_switched_off() -> None:
+    sem = SyntheticSEM()
+    sem.best_quality = None  # type: ignore[assignment,method-assign]
+    assert knows_optimum(sem) and not knows_best_quality(sem)
+    shielded = shield_apparatus(sem)
+    assert knows_optimum(shielded) and not knows_best_quality(shielded)
+    assert not hasattr(shielded, "best_quality")  # the shield passes on only what there is
+
+
+def test_the_shield_passes_the_secret_on_through_its_bounded_calls() -> None:
+    lens = make_apparatus("fake_drivers:ParabolicLens")
+    assert isinstance(lens, TrainingShield)
+    lens.reset(4)
+    assert lens.optimum() == lens.driver.optimum()
+    assert lens.inner.abandoned is None and lens.inner._worker is not None  # on its thread
+    replay = make_apparatus("csv:default", {"split": "test"}, shield=SHIELD_SIMULATORS)
+    assert replay.indices is replay.driver.indices  # the rows evaluation sessions walk
+    assert not hasattr(lens, "indices")

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-import yaml
+from conftest import one_sac_each, write_experiment, write_league_files
 from fake_drivers import HostileLens
 from hostile import Outcome, assert_refused, run_cli
 from test_align import tiny_member
@@ -62,7 +62,6 @@ def _args(**driver: Any) -> list[str]:
 
 
 def _train_config(root: Path, driver: dict[str, Any]) -> Path:
-    path = root / "on-driver.yaml"
     settings = {
         "name": "on-driver",
         "seed": 1,
@@ -73,25 +72,16 @@ def _train_config(root: Path, driver: dict[str, Any]) -> Path:
         "learner": SMALL,
         "budget": {"env_steps": 48, "eval_every": 48, "eval_scenarios": 2},
     }
-    path.write_text(yaml.safe_dump(settings))
-    return path
+    return write_experiment(root, settings)
 
 
 def _league_config(root: Path, driver: dict[str, Any]) -> Path:
-    rosters = {}
-    for team in ("aligner", "misaligner"):
-        rosters[team] = root / f"{team}s.yaml"
-        roster = {"team": team, "members": [{"id": f"{team[0]}-sac", "learner": SMALL}]}
-        rosters[team].write_text(yaml.safe_dump(roster))
-    path = root / "league-on-driver.yaml"
     settings = {
         "name": "league-on-driver",
         "envs": 2,
         "apparatus": DRIVER,
         "apparatus_args": driver,
         "task_options": {"success_absolute_px": 3.0},
-        "aligners": str(rosters["aligner"]),
-        "misaligners": str(rosters["misaligner"]),
         "schedule": {
             "iterations": 2,
             "matches": 2,
@@ -101,8 +91,9 @@ def _league_config(root: Path, driver: dict[str, Any]) -> Path:
             "checkpoint_every": 2,
         },
     }
-    path.write_text(yaml.safe_dump(settings))
-    return path
+    return write_league_files(
+        root, **one_sac_each(SMALL), settings=settings, file="league-on-driver.yaml"
+    )
 
 
 def _command(verb: str, root: Path, member: Path, driver: dict[str, Any]) -> list[str]:

@@ -11,12 +11,16 @@ import numpy as np
 import pytest
 
 from alignrl.apparatus.base import Apparatus, NoEdgesError, SimulatedApparatus
+from alignrl.apparatus.registry import make_apparatus, make_apparatus_copies
 from alignrl.apparatus.scenarios import ScenarioFormatError, ScenarioRecord, ScenarioWriter
+from alignrl.apparatus.shield import ShieldOptions
 from alignrl.apparatus.simulator import (
     DEFAULT_SCENARIOS,
     ScenarioSimulator,
     split_indices,
 )
+from alignrl.envs.core import AlignmentEpisodes
+from alignrl.envs.task import get_task
 
 KNOB = "defocus"
 
@@ -343,6 +347,35 @@ def test_query_matches_measure_and_reference_interpolation(tmp_path: Path) -> No
             assert batched[k] == pytest.approx(single, rel=1e-12, abs=1e-12)
             assert single == pytest.approx(np.interp(volt, span_v, span_w), rel=1e-9)
     assert 100 < outside < n - 100  # both kinds well represented
+
+
+def test_the_engine_batches_exactly_the_replays_of_one_recording(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """AlignmentEpisodes takes one numpy query (BatchedQueries) where every unit replays the
+    same parsed recording unshielded, and measures one by one everywhere else."""
+    focus = get_task("focus")
+
+    def batched(units: list) -> bool:
+        return AlignmentEpisodes(units, focus, history=2)._batched
+
+    replays = make_apparatus_copies("csv:default", {"noise": 0.02}, 3)
+    assert batched(replays) and batched(replays[:1])
+    assert not batched([make_apparatus("csv:default"), make_apparatus("csv:default")])
+    assert not batched(make_apparatus_copies("csv:default", {}, 2, ShieldOptions(simulators=True)))
+    assert not batched([replays[0], make_apparatus("synthetic", {"analytic": True})])
+    assert not batched(make_apparatus_copies("synthetic", {"analytic": True}, 2))
+
+    # And the batched path is what runs: no simulator is asked one by one.
+    def one_by_one(self: ScenarioSimulator) -> float:
+        raise AssertionError("measured one by one on the batched path")
+
+    monkeypatch.setattr(ScenarioSimulator, "measure", one_by_one)
+    episodes = AlignmentEpisodes(replays, focus, history=2)
+    episodes.begin(np.arange(3), [1, 2, 3])
+    episodes.misalign(np.arange(3), np.zeros((3, 1)))
+    episodes.step(np.arange(3), np.array([[0.5, -1.0], [-0.5, -1.0], [0.1, -1.0]]))
+    assert np.all(episodes.acquisitions == 2)
 
 
 def test_query_broadcasts_and_returns_recorded_values(simple: ScenarioSimulator) -> None:

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from alignrl.apparatus import ApparatusError, SEMConfig, SyntheticSEM, make_apparatus
-from alignrl.apparatus.synthetic import PRESET_DIR, load_sem_config
+from alignrl.apparatus.sem_config import PRESET_DIR, load_sem_config
 
 QUIET = {"drift_v_per_acquisition": 0.0, "hysteresis_v": 0.0}
 

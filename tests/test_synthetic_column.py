@@ -9,16 +9,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from alignrl.apparatus import ApparatusError, NoEdgesError, SEMConfig, SyntheticSEM, make_apparatus
-from alignrl.apparatus.quality import TEN_NINETY_PER_SIGMA, directional_widths
-from alignrl.apparatus.synthetic import (
-    KNOB_NAMES,
-    PRESET_DIR,
-    AnalyticModel,
-    edge_widths_px,
-    load_sem_config,
-    mean_edge_width_px,
+from alignrl.apparatus import (
+    ApparatusError,
+    NoEdgesError,
+    SEMConfig,
+    SyntheticSEM,
+    make_apparatus,
+    synthetic,
 )
+from alignrl.apparatus.directional import directional_widths
+from alignrl.apparatus.probe import edge_widths_px, mean_edge_width_px
+from alignrl.apparatus.quality import TEN_NINETY_PER_SIGMA
+from alignrl.apparatus.sem_config import PRESET_DIR, AnalyticModel, load_sem_config
+from alignrl.apparatus.synthetic import KNOB_NAMES
 from benchmarks.analytic_agreement import agreement, compare, misaligned_states
 
 QUIET = {"drift_v_per_acquisition": 0.0, "hysteresis_v": 0.0}
@@ -430,3 +433,12 @@ def test_a_nominal_reset_leaves_the_stigmators_and_aperture_at_zero() -> None:
         ("stigmator_x", "stigmator_y", "aperture_x", "aperture_y"), 0.0
     )
     assert aligned.read()["stigmator_x"] == aligned.optimum()["stigmator_x"] != 0.0
+
+
+def test_the_instrument_parameters_stay_importable_from_synthetic() -> None:
+    """benchmarks/ and driver examples import these from alignrl.apparatus.synthetic."""
+    assert synthetic.SEMConfig is SEMConfig and synthetic.AnalyticModel is AnalyticModel
+    assert synthetic.load_sem_config is load_sem_config and synthetic.PRESET_DIR == PRESET_DIR
+    assert synthetic.edge_widths_px is edge_widths_px
+    assert synthetic.mean_edge_width_px is mean_edge_width_px
+    assert callable(synthetic.directional_edge_widths_px)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import csv
 import json
 import os
 import signal
@@ -14,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from conftest import read_csv, write_experiment
 
 from alignrl.checkpoints import load_checkpoint
 from alignrl.cli import main
@@ -35,21 +35,10 @@ TINY = {
 }
 
 
-def write_config(tmp_path: Path, settings: dict) -> Path:
-    path = tmp_path / f"{settings['name']}.yaml"
-    path.write_text(yaml.safe_dump(settings))
-    return path
-
-
-def read_csv(path: Path) -> list[dict[str, str]]:
-    with path.open(newline="") as handle:
-        return list(csv.DictReader(handle))
-
-
 def test_a_run_directory_holds_config_checkpoints_and_metrics(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    config = write_config(tmp_path, TINY)
+    config = write_experiment(tmp_path, TINY)
     runs = tmp_path / "runs"
     assert main(["train", str(config), "--runs-dir", str(runs), "--quiet", "--json"]) == 0
     report = json.loads(capsys.readouterr().out)
@@ -74,7 +63,7 @@ def test_a_run_directory_holds_config_checkpoints_and_metrics(
 def test_a_trained_run_evaluates_through_the_session_command(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    config = write_config(tmp_path, {**TINY, "budget": {**TINY["budget"], "env_steps": 100}})
+    config = write_experiment(tmp_path, {**TINY, "budget": {**TINY["budget"], "env_steps": 100}})
     runs = tmp_path / "runs"
     assert main(["train", str(config), "--runs-dir", str(runs), "--quiet"]) == 0
     capsys.readouterr()
@@ -96,7 +85,7 @@ def _command(runs: Path) -> list[str]:
 
 def test_kill_minus_nine_then_resume_loses_nothing(tmp_path: Path) -> None:
     settings = {**TINY, "budget": {**TINY["budget"], "env_steps": 600}}
-    config = write_config(tmp_path, settings)
+    config = write_experiment(tmp_path, settings)
     runs = tmp_path / "runs"
     run = runs / "tiny"
     process = subprocess.Popen(
@@ -184,7 +173,7 @@ def _near_focus_successes(trainer: Trainer, scenarios: int) -> int:
 def test_a_corrupt_checkpoint_stops_resume_with_a_clear_error(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    config = write_config(tmp_path, {**TINY, "budget": {**TINY["budget"], "env_steps": 50}})
+    config = write_experiment(tmp_path, {**TINY, "budget": {**TINY["budget"], "env_steps": 50}})
     runs = tmp_path / "runs"
     assert main(["train", str(config), "--runs-dir", str(runs), "--quiet"]) == 0
     last = runs / "tiny" / "checkpoints" / "last.pt"

@@ -11,6 +11,9 @@ loads without unpickling (tensors, numbers, strings, lists and dicts only).
     agent.observe(observation, secret, action, reward, next_observation, next_secret, done)
     for metrics in agent.learn(rng): ...
 
+What is particular to a learner (SAC, PPO, ...) lives with the learner and is found by the
+spec's algorithm in `alignrl.agents.learners.LEARNERS`; the Agent delegates to it.
+
 Where the acting happens elsewhere (a Ray worker at a microscope), `policy_state` is what
 acting needs, `from_policy_state` builds the acting copy there, `explore_rows` draws each
 row's randomness from its own generator, and `observe(..., pre_tanh=...)` stores what came
@@ -21,7 +24,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -29,12 +32,20 @@ from typing import Any
 import numpy as np
 import torch
 
-from alignrl.agents.ppo import PPO, PPOConfig, RolloutBuffer
-from alignrl.agents.replay import Batch, ReplayBuffer
-from alignrl.agents.sac import SAC, SACConfig
+from alignrl.agents.learners import LEARNERS, Learner, learner_class, learner_defaults
+from alignrl.agents.records import (
+    check_learner_state,
+    check_record,
+    check_tensors,
+    finite_problem,
+    is_integer,
+    is_number,
+    tensor_problem,
+)
 
 __all__ = [
-    "ALGORITHMS",
+    "MEMBER_FORMAT",
+    "POLICY_FORMAT",
     "TEAMS",
     "Agent",
     "MemberSpec",
@@ -45,35 +56,19 @@ __all__ = [
 ]
 
 TEAMS = ("aligner", "misaligner")
-ALGORITHMS = ("sac", "ppo")
 MEMBER_FORMAT = "alignrl-member-1"
 POLICY_FORMAT = "alignrl-policy-1"  # the acting network alone (Agent.policy_state)
-
-# How a SAC member gathers experience and how often it learns (not part of SACConfig, which
-# is one gradient step): uniform random actions first, then updates per env step.
-SAC_SCHEDULE = {
-    "updates_per_step": 1.0,
-    "buffer_size": 200_000,
-    "learning_starts": 1000,
-    "random_steps": 2000,
-}
-UPDATE_METRICS = {
-    "sac": ("policy_loss", "q1_loss", "q2_loss", "v_loss", "entropy", "alpha"),
-    "ppo": ("policy_loss", "value_loss", "entropy", "approx_kl", "clip_fraction"),
-}
-
-
-def _learner_fields(algorithm: str) -> set[str]:
-    config = SACConfig if algorithm == "sac" else PPOConfig
-    return {f.name for f in dataclasses.fields(config)}
+OPTIONAL_FIELDS = ("hyperparameters", "parent")
+STATE_KEYS = ("format", "spec", "learner", "steps_seen", "update_debt")  # + "replay"
 
 
 @dataclass(frozen=True)
 class MemberSpec:
     """Who a member is: identity, team, learner, shapes and hyperparameters.
 
-    `hyperparameters` holds the learner's settings (SACConfig or PPOConfig fields, encoder
-    included) and, for SAC, its schedule (SAC_SCHEDULE); anything else is an error.
+    `hyperparameters` holds the learner's settings (the fields of its config dataclass,
+    encoder included) and its schedule (SAC: updates_per_step, buffer_size, ...); anything
+    else is an error. A setting left out takes the learner's default.
     """
 
     id: str
@@ -91,13 +86,11 @@ class MemberSpec:
             raise ValueError("a member needs a non-empty id")
         if self.team not in TEAMS:
             raise ValueError(f"{where}: team {self.team!r} is not one of {', '.join(TEAMS)}")
-        if self.algorithm not in ALGORITHMS:
+        if self.algorithm not in LEARNERS:
             raise ValueError(
-                f"{where}: algorithm {self.algorithm!r} is not one of {', '.join(ALGORITHMS)}"
+                f"{where}: algorithm {self.algorithm!r} is not one of {', '.join(LEARNERS)}"
             )
-        known = _learner_fields(self.algorithm) | (
-            set(SAC_SCHEDULE) if self.algorithm == "sac" else set()
-        )
+        known = set(learner_defaults(self.algorithm))
         unknown = sorted(set(self.hyperparameters) - known)
         if unknown:
             raise ValueError(
@@ -107,8 +100,12 @@ class MemberSpec:
         object.__setattr__(self, "observation_shape", tuple(int(n) for n in self.observation_shape))
 
     @property
+    def learner_type(self) -> type[Learner]:
+        return learner_class(self.algorithm)
+
+    @property
     def encoder(self) -> str:
-        default = SACConfig.encoder if self.algorithm == "sac" else PPOConfig.encoder
+        default = learner_defaults(self.algorithm).get("encoder", "none")
         return str(self.hyperparameters.get("encoder", default))
 
     @property
@@ -118,19 +115,21 @@ class MemberSpec:
         inner = ", ".join(f"{key}={value}" for key, value in sorted(options.items()))
         return f"{self.encoder}({inner})" if inner else self.encoder
 
-    def learner_config(self) -> SACConfig | PPOConfig:
-        fields = _learner_fields(self.algorithm)
+    def learner_config(self) -> Any:
+        """The learner's config dataclass with this member's settings."""
+        config_type = self.learner_type.config_type
+        fields = {f.name for f in dataclasses.fields(config_type)}
         chosen = {k: v for k, v in self.hyperparameters.items() if k in fields}
         if "hidden" in chosen:
             chosen["hidden"] = tuple(chosen["hidden"])
-        return (SACConfig if self.algorithm == "sac" else PPOConfig)(**chosen)
+        return config_type(**chosen)
 
     def schedule(self) -> dict[str, float]:
-        """The SAC schedule (SAC_SCHEDULE with this member's values); empty for PPO."""
-        if self.algorithm != "sac":
-            return {}
+        """The learner's schedule (how it gathers experience) with this member's values;
+        empty for a learner without one (PPO)."""
         own = self.hyperparameters
-        return {key: own.get(key, default) for key, default in SAC_SCHEDULE.items()}
+        defaults = self.learner_type.schedule_defaults
+        return {key: own.get(key, default) for key, default in defaults.items()}
 
     def to_dict(self) -> dict[str, Any]:
         """Plain data: strings, numbers, lists and dicts (safe to store and to print)."""
@@ -151,228 +150,48 @@ class MemberSpec:
         missing = [name for name in names if name not in data and name not in OPTIONAL_FIELDS]
         if missing:
             raise ValueError(f"member record has no field {', '.join(missing)}")
-        _check_record(data)
+        check_record(data)
         return cls(**data)
 
 
-# --- what a saved member may hold -------------------------------------------------------
-
-OPTIONAL_FIELDS = ("hyperparameters", "parent")
-STATE_KEYS = ("format", "spec", "learner", "steps_seen", "update_debt")  # + "replay"
-MAX_SIZE = 1 << 16  # rows, features, actions or hidden units: beyond it a record is not ours
-
-
-def _is_integer(value: Any) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool)
-
-
-def _is_number(value: Any) -> bool:
-    return isinstance(value, int | float) and not isinstance(value, bool)
-
-
-def _check_record(data: dict[str, Any]) -> None:
-    """The types of a member record's fields (MemberSpec.from_dict); ValueError naming the
-    first field that is wrong."""
-
-    def size(value: Any, low: int) -> bool:
-        return _is_integer(value) and low <= value <= MAX_SIZE
-
-    for name in ("id", "team", "algorithm"):
-        if not isinstance(data[name], str):
-            raise ValueError(f"member record field {name} is {data[name]!r}, not a string")
-    shape = data["observation_shape"]
-    if not (isinstance(shape, list | tuple) and len(shape) == 2 and all(size(n, 1) for n in shape)):
-        raise ValueError(
-            f"member record field observation_shape is {shape!r}: it must be [history rows, "
-            f"features], two whole numbers from 1 to {MAX_SIZE}"
-        )
-    if not size(data["action_dim"], 1):
-        raise ValueError(
-            f"member record field action_dim is {data['action_dim']!r}: it must be a whole "
-            f"number from 1 to {MAX_SIZE}"
-        )
-    if not size(data["secret_dim"], 0):
-        raise ValueError(
-            f"member record field secret_dim is {data['secret_dim']!r}, not a whole number >= 0"
-        )
-    hyperparameters = data.get("hyperparameters", {})
-    if not isinstance(hyperparameters, dict) or not all(map(_is_name, hyperparameters)):
-        raise ValueError("member record field hyperparameters is not a mapping of names")
-    hidden = hyperparameters.get("hidden", [1])
-    if not (isinstance(hidden, list | tuple) and all(size(n, 1) for n in hidden)):
-        raise ValueError(
-            f"member record field hyperparameters.hidden is {hidden!r}: it must be a list of "
-            f"layer widths, whole numbers from 1 to {MAX_SIZE}"
-        )
-    for name, value in hyperparameters.items():
-        if _is_number(value) and not math.isfinite(value):
-            raise ValueError(f"member record field hyperparameters.{name} is {value}")
-    parent = data.get("parent")
-    if parent is not None and not isinstance(parent, str):
-        raise ValueError(f"member record field parent is {parent!r}, not a string or null")
-
-
-def _is_name(key: Any) -> bool:
-    return isinstance(key, str)
-
-
-def _shape(shape: Sequence[int]) -> str:
-    return "(" + ", ".join(str(n) for n in shape) + ("," if len(shape) == 1 else "") + ")"
-
-
-def tensor_problem(name: str, held: Any, wanted: torch.Tensor) -> str | None:
-    """What is wrong with the saved `held` where the network has `wanted`, in words naming
-    the tensor; None where it fits (same shape and dtype, every value finite)."""
-    if not isinstance(held, torch.Tensor):
-        return (
-            f"{name} is a {type(held).__name__}, where the spec needs a tensor of shape "
-            f"{_shape(wanted.shape)}"
-        )
-    if held.shape != wanted.shape:
-        return f"{name} has shape {_shape(held.shape)}, the spec needs {_shape(wanted.shape)}"
-    if held.dtype != wanted.dtype:
-        dtypes = (str(held.dtype), str(wanted.dtype))
-        found, needed = (text.removeprefix("torch.") for text in dtypes)
-        return f"{name} is {found}, the spec needs {needed}"
-    return finite_problem(name, held)
-
-
-def finite_problem(name: str, tensor: torch.Tensor) -> str | None:
-    """A tensor holding NaN or infinity, in words; None where every value is finite. A
-    network with such a weight answers NaN: it is refused when loaded, never run."""
-    if not (tensor.is_floating_point() or tensor.is_complex()):
-        return None
-    bad = int((~torch.isfinite(tensor)).sum())
-    if not bad:
-        return None
-    return f"{name} contains non-finite values ({bad} of {tensor.numel()} are NaN or infinite)"
-
-
-def check_tensors(held: Any, wanted: Mapping[str, torch.Tensor], where: str) -> None:
-    """The saved tensors `held` are exactly a network's `wanted` ones (names, shapes,
-    dtypes, finite values); else ValueError naming the first that is not."""
-    if not isinstance(held, dict):
-        raise ValueError(f"{where} is a {type(held).__name__}, where the spec needs tensors")
-    for name, tensor in wanted.items():
-        if name not in held:
-            raise ValueError(
-                f"{where}.{name} is missing: the spec needs a tensor of shape "
-                f"{_shape(tensor.shape)}"
-            )
-        problem = tensor_problem(f"{where}.{name}", held[name], tensor)
-        if problem:
-            raise ValueError(problem)
-    unexpected = sorted(set(map(str, held)) - set(wanted))
-    if unexpected:
-        raise ValueError(f"{where}.{unexpected[0]} is not a tensor of the spec's network")
-
-
-def _check_optimizer(held: Any, optimizer: torch.optim.Optimizer, where: str) -> None:
-    """A saved optimizer state fits `optimizer`: as many parameters per group, and each
-    parameter's running statistics shaped as the parameter and finite."""
-    if not isinstance(held, dict) or set(held) != {"state", "param_groups"}:
-        raise ValueError(f"{where} is not an optimizer state (keys state and param_groups)")
-    groups = held["param_groups"]
-    if not isinstance(groups, list) or len(groups) != len(optimizer.param_groups):
-        count = len(groups) if isinstance(groups, list) else type(groups).__name__
-        raise ValueError(
-            f"{where}.param_groups holds {count} group(s), the spec's optimizer has "
-            f"{len(optimizer.param_groups)}"
-        )
-    parameters: dict[Any, torch.Tensor] = {}
-    for index, (saved, own) in enumerate(zip(groups, optimizer.param_groups, strict=True)):
-        ids = saved.get("params") if isinstance(saved, dict) else None
-        if not isinstance(ids, list) or len(ids) != len(own["params"]):
-            count = len(ids) if isinstance(ids, list) else "no list of"
-            raise ValueError(
-                f"{where}.param_groups[{index}] holds {count} parameters, the spec's network "
-                f"has {len(own['params'])}"
-            )
-        for name, value in saved.items():
-            if _is_number(value) and not math.isfinite(value):
-                raise ValueError(f"{where}.param_groups[{index}].{name} is {value}")
-        parameters.update(zip(ids, own["params"], strict=True))
-    state = held["state"]
-    if not isinstance(state, dict):
-        raise ValueError(f"{where}.state is a {type(state).__name__}, not a mapping")
-    for key, entry in state.items():
-        if key not in parameters or not isinstance(entry, dict):
-            raise ValueError(f"{where}.state[{key!r}] belongs to no parameter of the network")
-        for name, value in entry.items():
-            if not isinstance(value, torch.Tensor):
-                continue
-            label = f"{where}.state[{key}].{name}"
-            if value.ndim and value.shape != parameters[key].shape:
-                raise ValueError(
-                    f"{label} has shape {_shape(value.shape)}, the spec needs "
-                    f"{_shape(parameters[key].shape)}"
-                )
-            problem = finite_problem(label, value)
-            if problem:
-                raise ValueError(problem)
-
-
-def check_learner_state(held: Any, learner: SAC | PPO) -> None:
-    """A saved learner state (SAC.state_dict, PPO.state_dict) fits `learner`: the same keys,
-    each network's tensors shaped as this learner's, finite, and its optimizers' statistics
-    shaped as their parameters; else ValueError naming the first key or tensor that does
-    not ("learner.actor.head.0.weight has shape (64, 256), the spec needs (16, 256)")."""
-    wanted = learner.state_dict()
-    if not isinstance(held, dict):
-        raise ValueError(f"learner is a {type(held).__name__}, not a learner's state")
-    for key, value in wanted.items():
-        where = f"learner.{key}"
-        if key not in held:
-            raise ValueError(f"{where} is missing from the saved state")
-        own = getattr(learner, key, None)
-        if isinstance(own, torch.nn.Module):
-            check_tensors(held[key], value, where)
-        elif isinstance(own, torch.optim.Optimizer):
-            _check_optimizer(held[key], own, where)
-        elif isinstance(value, torch.Tensor):
-            problem = tensor_problem(where, held[key], value)
-            if problem:
-                raise ValueError(problem)
-        elif _is_integer(value) and not (_is_integer(held[key]) and held[key] >= 0):
-            raise ValueError(f"{where} is {held[key]!r}, not a whole number >= 0")
-        elif isinstance(value, dict) and not isinstance(held[key], dict):
-            raise ValueError(f"{where} is a {type(held[key]).__name__}, not a mapping")
-    unexpected = sorted(set(map(str, held)) - set(wanted))
-    if unexpected:
-        raise ValueError(f"learner.{unexpected[0]} is not part of a {learner_name(learner)} state")
-
-
-def learner_name(learner: SAC | PPO) -> str:
-    return "SAC" if isinstance(learner, SAC) else "PPO"
-
-
 class Agent:
-    """A member: its spec, its learner (SAC or PPO) and its experience store."""
+    """A member: its spec and its learner (LEARNERS[spec.algorithm]), which holds the
+    networks, the optimizers and the experience."""
 
     def __init__(self, spec: MemberSpec, envs: int = 1, device: str | torch.device = "cpu") -> None:
         self.spec = spec
         self.envs = envs
-        config = spec.learner_config()
-        shape, actions, secrets = spec.observation_shape, spec.action_dim, spec.secret_dim
-        self.learner: SAC | PPO
-        if spec.algorithm == "sac":
-            self.learner = SAC(shape, actions, secrets, config, device)
-            schedule = spec.schedule()
-            self.replay = ReplayBuffer(int(schedule["buffer_size"]), shape, secrets, actions)
-        else:
-            self.learner = PPO(shape, actions, secrets, config, device)
-            self.rollout = RolloutBuffer(config.rollout_steps, envs, shape, secrets, actions)
-            self._pending_pre_tanh: np.ndarray | None = None
+        self.learner: Learner = spec.learner_type(
+            spec.observation_shape,
+            spec.action_dim,
+            spec.secret_dim,
+            spec.learner_config(),
+            spec.schedule(),
+            envs,
+            device,
+        )
         self.steps_seen = 0  # transitions observed (env steps x slots)
-        self._update_debt = 0.0
+
+    def __getattr__(self, name: str) -> Any:
+        # The experience under its learner's own name too (`agent.replay` of a SAC member,
+        # `agent.rollout` of a PPO one), as code written before the registry reads it.
+        learner = self.__dict__.get("learner")
+        if learner is not None and name == learner.experience_name:
+            return learner.experience
+        raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
 
     @property
     def id(self) -> str:
         return self.spec.id
 
     @property
+    def experience(self) -> Any:
+        """What the learner has stored (SAC: its replay; PPO: the rollout in progress)."""
+        return self.learner.experience
+
+    @property
     def metric_names(self) -> tuple[str, ...]:
-        return UPDATE_METRICS[self.spec.algorithm]
+        return self.learner.metric_names
 
     @property
     def updates(self) -> int:
@@ -387,13 +206,7 @@ class Agent:
     def explore(self, observation: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """Training actions for a batch of histories: SAC samples its policy after its random
         warm-up; PPO samples and keeps the pre-squash sample for `observe`."""
-        if isinstance(self.learner, SAC):
-            if self.steps_seen < self.spec.schedule()["random_steps"]:
-                return rng.uniform(-1.0, 1.0, (len(observation), self.spec.action_dim))
-            return self.learner.act(observation, deterministic=False)
-        pre_tanh = self.learner.sample(observation)
-        self._pending_pre_tanh = pre_tanh
-        return np.tanh(pre_tanh)
+        return self.learner.explore(observation, rng, self.steps_seen)
 
     def explore_rows(
         self,
@@ -407,27 +220,7 @@ class Agent:
         member still in its random warm-up acts uniformly at random, as in `explore`.
         Returns the actions and, for PPO, the pre-squash sample `observe(pre_tanh=...)`
         stores (None for SAC)."""
-        actions = self.spec.action_dim
-        if isinstance(self.learner, SAC):
-            if warm_up and self.steps_seen < self.spec.schedule()["random_steps"]:
-                return np.stack([g.uniform(-1.0, 1.0, actions) for g in generators]), None
-        noise = np.stack([g.standard_normal(actions) for g in generators]).astype(np.float32)
-        mean, std = self._policy_gaussian(observation)
-        # The same reparameterised sample as SAC's Actor.sample and PPO's Normal.sample.
-        pre_tanh = mean + std * noise
-        return np.tanh(pre_tanh), None if isinstance(self.learner, SAC) else pre_tanh
-
-    @torch.no_grad()
-    def _policy_gaussian(self, observation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Mean and standard deviation of the policy's Gaussian over pre-squash actions."""
-        batch = torch.as_tensor(observation, dtype=torch.float32, device=self.learner.device)
-        if isinstance(self.learner, SAC):
-            mean, log_std = self.learner.actor(batch)
-            std = log_std.exp()
-        else:
-            distribution = self.learner.policy(batch)
-            mean, std = distribution.mean, distribution.stddev
-        return mean.cpu().numpy(), std.cpu().numpy()
+        return self.learner.explore_rows(observation, generators, self.steps_seen, warm_up)
 
     # --- experience and learning ------------------------------------------------------
 
@@ -447,28 +240,18 @@ class Agent:
         moved (next_observation of a done slot: the episode's last history, not the reset
         one). PPO stores the pre-squash sample of the `explore` before, or `pre_tanh` where
         the actions were sampled elsewhere (`explore_rows` in a Ray worker)."""
-        done = done.astype(np.float32)
-        if isinstance(self.learner, SAC):
-            self.replay.add(
-                observation, secret, action, reward, next_observation, next_secret, done
-            )
-        else:
-            sample = pre_tanh if pre_tanh is not None else self._pending_pre_tanh
-            if sample is None:
-                raise RuntimeError(
-                    f"member {self.id}: observe() needs the explore() before it, or pre_tanh"
-                )
-            self.rollout.add(
-                observation,
-                secret,
-                sample,
-                reward,
-                next_observation,
-                next_secret,
-                done,
-                slots,
-            )
-            self._pending_pre_tanh = None
+        self.learner.observe(
+            observation,
+            secret,
+            action,
+            reward,
+            next_observation,
+            next_secret,
+            done.astype(np.float32),
+            slots,
+            pre_tanh,
+            self.id,
+        )
         self.steps_seen += len(reward)
 
     def learn(
@@ -480,44 +263,19 @@ class Agent:
         """The updates due after the last `observe`: SAC runs updates_per_step per new
         transition once past learning_starts; PPO updates when its rollout is full.
         `train_policy=False`: the critics learn, the policy stays as it is."""
-        rows = []
-        if isinstance(self.learner, SAC):
-            schedule = self.spec.schedule()
-            batch = self.learner.config.batch_size
-            if self.steps_seen < schedule["learning_starts"] or self.replay.size < batch:
-                return rows
-            self._update_debt += (new_steps or self.envs) * schedule["updates_per_step"]
-            while self._update_debt >= 1.0:
-                rows.append(self.update(self.replay.sample(batch, rng), train_policy=train_policy))
-                self._update_debt -= 1.0
-        elif self.rollout.full:
-            rows.append(self.learner.update(self.rollout.rollout(), rng, self.id, train_policy))
-            self.rollout.clear()
-        return rows
+        new = new_steps or self.envs
+        return self.learner.learn(rng, self.steps_seen, new, self.id, train_policy)
 
     def update(
         self, batch: Any, rng: np.random.Generator | None = None, train_policy: bool = True
     ) -> dict[str, float]:
         """One learner step: a SAC gradient step on a replay Batch, or PPO's epochs on a
         Rollout. A non-finite loss raises NonFiniteError naming this member."""
-        if isinstance(self.learner, SAC):
-            if not isinstance(batch, Batch):
-                raise TypeError(f"member {self.id}: SAC updates on a replay Batch")
-            return self.learner.update(batch, self.id, train_policy)
-        rng = rng or np.random.default_rng(self.updates)
-        return self.learner.update(batch, rng, self.id, train_policy)
+        return self.learner.learn_from(batch, rng, self.id, train_policy)
 
     def set_learning_rate(self, learning_rate: float) -> None:
         """Every optimizer of the learner steps at `learning_rate` from now on (PBT)."""
-        if isinstance(self.learner, SAC):
-            optimizers = [
-                self.learner.actor_optimizer,
-                self.learner.critic_optimizer,
-                self.learner.alpha_optimizer,
-            ]
-        else:
-            optimizers = [self.learner.optimizer]
-        for optimizer in optimizers:
+        for optimizer in self.learner.optimizers:
             for group in optimizer.param_groups:
                 group["lr"] = learning_rate
 
@@ -531,11 +289,10 @@ class Agent:
             "spec": self.spec.to_dict(),
             "learner": self.learner.state_dict(),
             "steps_seen": self.steps_seen,
-            "update_debt": self._update_debt,
+            "update_debt": self.learner.update_debt,
         }
         if replay:
-            store = self.replay if isinstance(self.learner, SAC) else self.rollout
-            state["replay"] = store.state_dict()
+            state["replay"] = self.learner.experience.state_dict()
         return state
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -569,34 +326,30 @@ class Agent:
             )
         check_learner_state(state["learner"], self.learner)
         steps_seen, update_debt = state["steps_seen"], state["update_debt"]
-        if not (_is_integer(steps_seen) and steps_seen >= 0):
+        if not (is_integer(steps_seen) and steps_seen >= 0):
             raise ValueError(f"steps_seen is {steps_seen!r}, not a whole number >= 0")
-        if not (_is_number(update_debt) and math.isfinite(update_debt) and update_debt >= 0):
+        if not (is_number(update_debt) and math.isfinite(update_debt) and update_debt >= 0):
             raise ValueError(f"update_debt is {update_debt!r}, not a finite number >= 0")
         if "replay" in state and not isinstance(state["replay"], dict):
             raise ValueError(f"replay is a {type(state['replay']).__name__}, not a mapping")
         self.learner.load_state_dict(state["learner"])
         self.steps_seen = steps_seen
-        self._update_debt = float(update_debt)
+        self.learner.update_debt = float(update_debt)
         if "replay" in state:
             replay = {
                 key: value.numpy() if isinstance(value, torch.Tensor) else value
                 for key, value in state["replay"].items()
             }
-            store = self.replay if isinstance(self.learner, SAC) else self.rollout
-            store.load_state_dict(replay)
-
-    @property
-    def _acting_network(self) -> torch.nn.Module:
-        return self.learner.actor if isinstance(self.learner, SAC) else self.learner.policy
+            self.learner.experience.load_state_dict(replay)
 
     def policy_state(self) -> dict[str, Any]:
         """What acting needs, and no more: the spec, the acting network's weights (SAC's
         actor, PPO's policy; on the CPU) and steps_seen (SAC's random warm-up)."""
+        network = self.learner.acting_network
         return {
             "format": POLICY_FORMAT,
             "spec": self.spec.to_dict(),
-            "policy": {k: v.cpu() for k, v in self._acting_network.state_dict().items()},
+            "policy": {k: v.cpu() for k, v in network.state_dict().items()},
             "steps_seen": self.steps_seen,
         }
 
@@ -613,11 +366,12 @@ class Agent:
                 f"member {self.id}: the policy state is of another member or other settings "
                 f"({owner!r})"
             )
-        check_tensors(state.get("policy"), self._acting_network.state_dict(), "policy")
+        network = self.learner.acting_network
+        check_tensors(state.get("policy"), network.state_dict(), "policy")
         steps_seen = state.get("steps_seen")
-        if not (_is_integer(steps_seen) and steps_seen >= 0):
+        if not (is_integer(steps_seen) and steps_seen >= 0):
             raise ValueError(f"steps_seen is {steps_seen!r}, not a whole number >= 0")
-        self._acting_network.load_state_dict(state["policy"])
+        network.load_state_dict(state["policy"])
         self.steps_seen = steps_seen
 
     @classmethod

@@ -10,12 +10,15 @@
   surrogate objective, an entropy bonus, minibatch epochs, gradient clipping.
 
 An update that meets a NaN/inf loss or gradient raises NonFiniteError and leaves the networks
-and the optimizer exactly as they were before the update began.
+and the optimizer exactly as they were before the update began. `PPO` is the algorithm (the
+epochs on one rollout); `PPOLearner` is PPO as a member trains with it
+(alignrl/agents/learners.py): it collects a rollout and updates when the rollout is full.
 """
 
 from __future__ import annotations
 
 import copy
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -23,17 +26,20 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from alignrl.agents.exploration import gaussian_rows
 from alignrl.agents.networks import make_encoder, mlp
 from alignrl.agents.sac import NonFiniteError
 
-__all__ = ["PPO", "PPOConfig", "Rollout", "RolloutBuffer"]
+__all__ = ["PPO", "PPOConfig", "PPOLearner", "Rollout", "RolloutBuffer"]
 
 
 @dataclass(frozen=True)
 class PPOConfig:
-    encoder: str = "gru"  # history encoder of the policy and the value network
+    # The network settings every learner shares default alike (alignrl/config.py reads them
+    # from here and from SACConfig, and refuses a disagreement).
+    encoder: str = "mlp"  # history encoder of the policy and the value network
     encoder_kwargs: dict[str, Any] = field(default_factory=dict)
-    hidden: tuple[int, ...] = (128, 128)  # hidden widths of the heads
+    hidden: tuple[int, ...] = (256, 256)  # hidden widths of the heads
     learning_rate: float = 3e-4
     gamma: float = 0.99
     gae_lambda: float = 0.95
@@ -396,3 +402,104 @@ class PPO:
         self.value.load_state_dict(state["value"])
         self.optimizer.load_state_dict(state["optimizer"])
         self.updates = int(state["updates"])
+
+
+class PPOLearner(PPO):
+    """PPO as a member trains with it: each explored action's pre-squash sample kept for
+    `observe`, a rollout of `rollout_steps` steps of every env slot, and an update (then a
+    fresh rollout) whenever the rollout is full."""
+
+    name = "ppo"
+    title = "PPO"
+    config_type = PPOConfig
+    schedule_defaults: Mapping[str, float] = {}
+    metric_names = ("policy_loss", "value_loss", "entropy", "approx_kl", "clip_fraction")
+    experience_name = "rollout"
+    keeps_replay = False  # on-policy: a rollout holds this policy's steps, in order
+    logs_every_update = True  # one update per rollout
+
+    def __init__(
+        self,
+        observation_shape: tuple[int, int],
+        action_dim: int,
+        secret_dim: int,
+        config: PPOConfig,
+        schedule: Mapping[str, float],
+        envs: int,
+        device: str | torch.device,
+    ) -> None:
+        super().__init__(observation_shape, action_dim, secret_dim, config, device)
+        steps = config.rollout_steps
+        self.experience = RolloutBuffer(steps, envs, observation_shape, secret_dim, action_dim)
+        self.update_debt = 0.0  # PPO is paced by its rollout, not by a debt of updates
+        self._pending_pre_tanh: np.ndarray | None = None  # of the last explore(), for observe()
+
+    @property
+    def optimizers(self) -> list[torch.optim.Optimizer]:
+        return [self.optimizer]
+
+    @property
+    def acting_network(self) -> nn.Module:
+        return self.policy
+
+    def explore(
+        self, observation: np.ndarray, rng: np.random.Generator, steps_seen: int
+    ) -> np.ndarray:
+        pre_tanh = self.sample(observation)
+        self._pending_pre_tanh = pre_tanh
+        return np.tanh(pre_tanh)
+
+    @torch.no_grad()
+    def explore_rows(
+        self,
+        observation: np.ndarray,
+        generators: Sequence[np.random.Generator],
+        steps_seen: int,
+        warm_up: bool,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        distribution = self.policy(self._tensor(observation))
+        mean, std = distribution.mean.cpu().numpy(), distribution.stddev.cpu().numpy()
+        return gaussian_rows(generators, mean, std)
+
+    def observe(
+        self,
+        observation: np.ndarray,
+        secret: np.ndarray,
+        action: np.ndarray,
+        reward: np.ndarray,
+        next_observation: np.ndarray,
+        next_secret: np.ndarray,
+        done: np.ndarray,
+        slots: np.ndarray | None,
+        pre_tanh: np.ndarray | None,
+        member: str,
+    ) -> None:
+        # The ratio is taken on the sample u, never on atanh of the action the env got.
+        sample = pre_tanh if pre_tanh is not None else self._pending_pre_tanh
+        if sample is None:
+            raise RuntimeError(
+                f"member {member}: observe() needs the explore() before it, or pre_tanh"
+            )
+        rollout = self.experience
+        rollout.add(observation, secret, sample, reward, next_observation, next_secret, done, slots)
+        self._pending_pre_tanh = None
+
+    def learn(
+        self,
+        rng: np.random.Generator,
+        steps_seen: int,
+        new_steps: int,
+        member: str,
+        train_policy: bool,
+    ) -> list[dict[str, float]]:
+        if not self.experience.full:
+            return []
+        metrics = self.update(self.experience.rollout(), rng, member, train_policy)
+        self.experience.clear()
+        return [metrics]
+
+    def learn_from(
+        self, batch: Any, rng: np.random.Generator | None, member: str, train_policy: bool
+    ) -> dict[str, float]:
+        rng = rng or np.random.default_rng(self.updates)
+        return self.update(batch, rng, member, train_policy)

@@ -8,13 +8,15 @@
   critic it describes); the entropy coefficient alpha is tuned toward a target entropy.
 
 Each network has its own history encoder (alignrl/agents/networks.py); parameters are never
-shared between members of a league.
+shared between members of a league. `SAC` is the algorithm (one gradient step on a batch);
+`SACLearner` is SAC as a member trains with it (alignrl/agents/learners.py): a replay, a
+random warm-up, and a number of updates per env step.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from typing import Any
@@ -24,14 +26,24 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from alignrl.agents.exploration import gaussian_rows, uniform_rows
 from alignrl.agents.networks import make_encoder, mlp
-from alignrl.agents.replay import Batch
+from alignrl.agents.replay import Batch, ReplayBuffer
 
-__all__ = ["SAC", "NonFiniteError", "SACConfig"]
+__all__ = ["SAC", "SAC_SCHEDULE", "NonFiniteError", "SACConfig", "SACLearner"]
 
 LOG_STD_MIN, LOG_STD_MAX = -5.0, 2.0  # keeps exp(log_std) in a range float32 handles well
 HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)  # normalising constant of log N(x; mean, std)
 LOSS_NAMES = ("policy", "q1", "q2", "v", "alpha")  # checked in this order: the first is named
+
+# How a SAC member gathers experience and how often it learns (not part of SACConfig, which
+# is one gradient step): uniform random actions first, then updates per env step.
+SAC_SCHEDULE = {
+    "updates_per_step": 1.0,
+    "buffer_size": 200_000,
+    "learning_starts": 1000,
+    "random_steps": 2000,
+}
 
 
 class NonFiniteError(FloatingPointError):
@@ -340,3 +352,112 @@ class SAC:
             for group in optimizer.param_groups:
                 group["fused"], group["foreach"] = True, None
         self.updates = int(state["updates"])
+
+
+class SACLearner(SAC):
+    """SAC as a member trains with it: the replay it stores every transition in, uniform
+    random actions for its first `random_steps` transitions, then `updates_per_step`
+    gradient steps per new transition once `learning_starts` have been seen."""
+
+    name = "sac"
+    title = "SAC"
+    config_type = SACConfig
+    schedule_defaults = SAC_SCHEDULE
+    metric_names = ("policy_loss", "q1_loss", "q2_loss", "v_loss", "entropy", "alpha")
+    experience_name = "replay"
+    keeps_replay = True
+    logs_every_update = False  # thousands of gradient steps: every UPDATE_LOG_EVERY-th
+
+    def __init__(
+        self,
+        observation_shape: tuple[int, int],
+        action_dim: int,
+        secret_dim: int,
+        config: SACConfig,
+        schedule: Mapping[str, float],
+        envs: int,
+        device: str | torch.device,
+    ) -> None:
+        super().__init__(observation_shape, action_dim, secret_dim, config, device)
+        self.schedule = dict(schedule)
+        capacity = int(self.schedule["buffer_size"])
+        self.experience = ReplayBuffer(capacity, observation_shape, secret_dim, action_dim)
+        self.update_debt = 0.0  # gradient steps owed: updates_per_step may be fractional
+
+    @property
+    def optimizers(self) -> list[torch.optim.Optimizer]:
+        return [self.actor_optimizer, self.critic_optimizer, self.alpha_optimizer]
+
+    @property
+    def acting_network(self) -> nn.Module:
+        return self.actor
+
+    def _warming_up(self, steps_seen: int) -> bool:
+        return steps_seen < self.schedule["random_steps"]
+
+    def explore(
+        self, observation: np.ndarray, rng: np.random.Generator, steps_seen: int
+    ) -> np.ndarray:
+        if self._warming_up(steps_seen):
+            return rng.uniform(-1.0, 1.0, (len(observation), self.action_dim))
+        return self.act(observation, deterministic=False)
+
+    @torch.no_grad()
+    def explore_rows(
+        self,
+        observation: np.ndarray,
+        generators: Sequence[np.random.Generator],
+        steps_seen: int,
+        warm_up: bool,
+    ) -> tuple[np.ndarray, None]:
+        if warm_up and self._warming_up(steps_seen):
+            return uniform_rows(generators, self.action_dim), None
+        batch = torch.as_tensor(observation, dtype=torch.float32, device=self.device)
+        mean, log_std = self.actor(batch)
+        actions, _ = gaussian_rows(generators, mean.cpu().numpy(), log_std.exp().cpu().numpy())
+        return actions, None
+
+    def observe(
+        self,
+        observation: np.ndarray,
+        secret: np.ndarray,
+        action: np.ndarray,
+        reward: np.ndarray,
+        next_observation: np.ndarray,
+        next_secret: np.ndarray,
+        done: np.ndarray,
+        slots: np.ndarray | None,
+        pre_tanh: np.ndarray | None,
+        member: str,
+    ) -> None:
+        # A replay keeps transitions, not episodes: which slot a row came from does not matter.
+        self.experience.add(
+            observation, secret, action, reward, next_observation, next_secret, done
+        )
+
+    def learn(
+        self,
+        rng: np.random.Generator,
+        steps_seen: int,
+        new_steps: int,
+        member: str,
+        train_policy: bool,
+    ) -> list[dict[str, float]]:
+        rows: list[dict[str, float]] = []
+        batch = self.config.batch_size
+        if steps_seen < self.schedule["learning_starts"] or self.experience.size < batch:
+            return rows
+        self.update_debt += new_steps * self.schedule["updates_per_step"]
+        while self.update_debt >= 1.0:
+            rows.append(
+                self.learn_from(self.experience.sample(batch, rng), rng, member, train_policy)
+            )
+            self.update_debt -= 1.0
+        return rows
+
+    def learn_from(
+        self, batch: Any, rng: np.random.Generator | None, member: str, train_policy: bool
+    ) -> dict[str, float]:
+        if not isinstance(batch, Batch):
+            raise TypeError(f"member {member}: SAC updates on a replay Batch")
+        return self.update(batch, member, train_policy)

@@ -17,10 +17,14 @@ A driver is a real instrument: `make_apparatus` returns it behind the safety shi
 calls, audit), whatever command opens it, so nothing reaches a microscope around the shield.
 Only `alignrl align`, which puts its own single-alignment shield around the driver, opens one
 unshielded (`build_apparatus`).
+
+`make_apparatus_copies` opens one spec several times, for the slots of a vectorized env:
+scenario simulators then share one parsed recording.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import inspect
 import math
@@ -30,11 +34,19 @@ from typing import Any
 
 from alignrl.apparatus.base import APPARATUS_METHODS, Apparatus
 from alignrl.apparatus.guard import DEFAULT_CALL_TIMEOUT_S, construct_within
-from alignrl.apparatus.shield import ShieldOptions, shield_apparatus
+from alignrl.apparatus.limits import ShieldOptions
+from alignrl.apparatus.sem_config import PRESET_DIR, load_sem_config
+from alignrl.apparatus.shield import shield_apparatus
 from alignrl.apparatus.simulator import ScenarioSimulator, default_scenarios_path
-from alignrl.apparatus.synthetic import PRESET_DIR, SyntheticSEM, load_sem_config
+from alignrl.apparatus.synthetic import SyntheticSEM
 
-__all__ = ["build_apparatus", "make_apparatus", "preset_names", "spec_form"]
+__all__ = [
+    "build_apparatus",
+    "make_apparatus",
+    "make_apparatus_copies",
+    "preset_names",
+    "spec_form",
+]
 
 
 def preset_names() -> list[str]:
@@ -171,7 +183,32 @@ def make_apparatus(
     driver's own intervals, no site limits, DEFAULT_CALL_TIMEOUT_S a call, audit in memory),
     a simulator too where `shield.simulators` says so."""
     timeout_s = shield.call_timeout_s if shield is not None else DEFAULT_CALL_TIMEOUT_S
-    apparatus = build_apparatus(spec, args, seed, timeout_s)
+    return _shielded_where_due(build_apparatus(spec, args, seed, timeout_s), spec, shield)
+
+
+def _shielded_where_due(apparatus: Apparatus, spec: str, shield: ShieldOptions | None) -> Apparatus:
+    """A driver behind the shield always, a simulator where `shield.simulators` says so."""
     if spec_form(spec) == "driver" or (shield is not None and shield.simulators):
         return shield_apparatus(apparatus, shield)
     return apparatus
+
+
+def make_apparatus_copies(
+    spec: str, args: Mapping[str, Any] | None, count: int, shield: ShieldOptions | None = None
+) -> list[Apparatus]:
+    """`count` independent instances of one spec, each as `make_apparatus` opens it;
+    scenario simulators share the parsed recording. Drivers (and, with `shield.simulators`,
+    simulators) come behind the shield, their audit records naming units 1..count."""
+    options = shield or ShieldOptions()
+    units = [dataclasses.replace(options, unit=str(number + 1)) for number in range(count)]
+    built = build_apparatus(spec, args, None, options.call_timeout_s)
+    first = _shielded_where_due(built, spec, units[0])
+    if isinstance(built, ScenarioSimulator):
+        extra = dict(args or {})
+        copies: list[Apparatus] = [
+            ScenarioSimulator(scenarios=built.scenarios, **extra) for _ in range(count - 1)
+        ]
+        if first is not built:  # shielded: so are its copies
+            copies = [shield_apparatus(c, u) for c, u in zip(copies, units[1:], strict=True)]
+        return [first, *copies]
+    return [first] + [make_apparatus(spec, args, shield=unit) for unit in units[1:]]

@@ -30,23 +30,36 @@ with the wall time (ISO 8601, UTC) and the monotonic clock of the watchdog, in s
 are in instrument units (volts for lenses), edge widths in px.
 
 Pure logic but for the worker thread: the only I/O is through the wrapped apparatus and the
-audit sink (`JsonLinesAudit` writes a file).
+audit sink (`JsonLinesAudit` writes a file). The rules themselves are plain functions of
+alignrl/apparatus/limits.py (limits, clamping, the options a command shields with), the
+watchdog is alignrl/apparatus/watchdog.py, the bounded calls and driver checks
+alignrl/apparatus/guard.py; their names are importable from here as well.
+
+Capabilities (alignrl/apparatus/base.py): every shield reports where a write left the column
+(ReportsApplied, `applied_setting`). A TrainingShield also passes on what a simulated
+instrument can tell, and only that: KnowsOptimum and KnowsBestQuality where its apparatus has
+them, and a scenario simulator's `indices`. It never offers BatchedQueries: a batched query
+would reach the instrument around every rule above.
 """
 
 from __future__ import annotations
 
 import contextlib
 import math
-import time
 from collections.abc import Callable, Iterator, Mapping
-from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from typing import Any
 
 import numpy as np
 
 from alignrl.apparatus.audit import MEMORY_AUDIT_RECORDS, AuditSink, JsonLinesAudit, MemoryAudit
-from alignrl.apparatus.base import Apparatus, ApparatusError, MeasurementError
+from alignrl.apparatus.base import (
+    Apparatus,
+    ApparatusError,
+    MeasurementError,
+    knows_best_quality,
+    knows_optimum,
+)
 from alignrl.apparatus.guard import (
     DEFAULT_CALL_TIMEOUT_S,
     Aborted,
@@ -60,7 +73,16 @@ from alignrl.apparatus.guard import (
     checked_reading,
     checked_width,
 )
+from alignrl.apparatus.limits import (
+    KnobLimits,
+    ShieldConfigError,
+    ShieldOptions,
+    WriteDecision,
+    clamp_write,
+    resolve_limits,
+)
 from alignrl.apparatus.measures import WOBBLE_KNOB, measure_directional, measure_wobble
+from alignrl.apparatus.watchdog import Watchdog
 
 __all__ = [
     "DEFAULT_CALL_TIMEOUT_S",
@@ -88,197 +110,6 @@ __all__ = [
 ]
 
 OPERATOR_ABORT = "operator abort (Ctrl-C or SIGTERM)"
-
-
-# --- exceptions ---------------------------------------------------------------------------
-
-
-class ShieldConfigError(ValueError):
-    """Site limits or maximum steps that cannot be used; raised before anything is written."""
-
-
-# --- limits -------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class KnobLimits:
-    """Where one knob may go: the interval the shield clamps to (and which rule set each
-    bound) and the largest change per write (None: no limit), instrument units."""
-
-    low: float
-    high: float
-    low_rule: str  # "apparatus interval" or "site limit"
-    high_rule: str
-    max_step: float | None = None
-
-    def as_dict(self) -> dict[str, Any]:
-        return {"low": self.low, "high": self.high, "max_step": self.max_step}
-
-
-def _number(value: Any, where: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        raise ShieldConfigError(f"{where}: {value!r} is not a number")
-    number = float(value)
-    if not math.isfinite(number):
-        raise ShieldConfigError(f"{where}: {value!r} is not a finite number")
-    return number
-
-
-def _known_knob(knobs: Mapping[str, tuple[float, float]], name: str, option: str) -> None:
-    if name not in knobs:
-        have = ", ".join(sorted(knobs)) or "none"
-        raise ShieldConfigError(f"{option}: unknown knob {name!r}; this apparatus has {have}")
-
-
-def resolve_limits(
-    knobs: Mapping[str, tuple[float, float]],
-    site_limits: Mapping[str, Any] | None = None,
-    max_step: Mapping[str, Any] | None = None,
-) -> dict[str, KnobLimits]:
-    """The limits of every knob of the apparatus, from its intervals, the site limits
-    (`{"defocus": [low, high]}`) and the maximum steps (`{"defocus": 2.0}`).
-
-    A site limit must lie inside the apparatus's interval (it can only tighten it): a bound
-    outside, low >= high, a non-finite number, an unknown knob or a maximum step that is not
-    positive is a ShieldConfigError naming the option and the knob.
-    """
-    site_limits = dict(site_limits or {})
-    max_step = dict(max_step or {})
-    for name in site_limits:
-        _known_knob(knobs, name, "--limits")
-    for name in max_step:
-        _known_knob(knobs, name, "--max-step")
-    limits = {}
-    for name, interval in knobs.items():
-        low, high = float(interval[0]), float(interval[1])
-        low_rule = high_rule = "apparatus interval"
-        if name in site_limits:
-            bounds = site_limits[name]
-            if not isinstance(bounds, list | tuple) or len(bounds) != 2:
-                raise ShieldConfigError(
-                    f"--limits: {name!r} needs [low, high] in instrument units, got {bounds!r}"
-                )
-            site_low = _number(bounds[0], f"--limits {name!r} low")
-            site_high = _number(bounds[1], f"--limits {name!r} high")
-            if not site_low < site_high:
-                raise ShieldConfigError(
-                    f"--limits: {name!r} low {site_low:g} must be below high {site_high:g}"
-                )
-            if site_low < low or site_high > high:
-                raise ShieldConfigError(
-                    f"--limits: {name!r} [{site_low:g}, {site_high:g}] is not inside the "
-                    f"apparatus's interval [{low:g}, {high:g}]: site limits can only tighten it"
-                )
-            if site_low > low:
-                low, low_rule = site_low, "site limit"
-            if site_high < high:
-                high, high_rule = site_high, "site limit"
-        step = None
-        if name in max_step:
-            step = _number(max_step[name], f"--max-step {name!r}")
-            if not step > 0:
-                raise ShieldConfigError(
-                    f"--max-step: {name!r} must be a positive change per write, got {step:g}"
-                )
-        limits[name] = KnobLimits(low, high, low_rule, high_rule, step)
-    return limits
-
-
-@dataclass(frozen=True)
-class WriteDecision:
-    """What the shield makes of one requested write: the values to write and, per clamped
-    knob, {"knob", "from", "to", "rule"}."""
-
-    values: dict[str, float]
-    clamps: tuple[dict[str, Any], ...]
-
-
-def clamp_write(
-    limits: Mapping[str, KnobLimits],
-    current: Mapping[str, float],
-    requested: Mapping[str, float],
-) -> WriteDecision:
-    """Clamp a requested write into the limits, then each change from `current` to its
-    maximum step. RefusedWrite for an unknown knob or a non-finite value.
-
-    `current` lies inside the limits (the shield refuses to start elsewhere), so a change cut
-    to the maximum step still ends inside them.
-    """
-    values: dict[str, float] = {}
-    clamps = []
-    for name, value in requested.items():
-        if name not in limits:
-            raise RefusedWrite(f"unknown knob {name!r}")
-        number = float(value)
-        if not math.isfinite(number):
-            raise RefusedWrite(f"{name} = {number} is not a finite value")
-        knob = limits[name]
-        target, rules = number, []
-        if target < knob.low:
-            target, rules = knob.low, [f"{knob.low_rule} low {knob.low:g}"]
-        elif target > knob.high:
-            target, rules = knob.high, [f"{knob.high_rule} high {knob.high:g}"]
-        if knob.max_step is not None and name in current:
-            change = target - current[name]
-            if abs(change) > knob.max_step:
-                target = current[name] + math.copysign(knob.max_step, change)
-                rules.append(f"max step {knob.max_step:g}")
-        if rules:
-            clamps.append({"knob": name, "from": number, "to": target, "rule": ", ".join(rules)})
-        values[name] = target
-    return WriteDecision(values, tuple(clamps))
-
-
-# --- the watchdog -------------------------------------------------------------------------
-
-
-@dataclass
-class Watchdog:
-    """Ends an alignment after `timeout_s` seconds of `clock` or `max_acquisitions` images
-    (None: no limit). Checked before every write and measurement."""
-
-    timeout_s: float | None = None
-    max_acquisitions: int | None = None
-    clock: Callable[[], float] = time.monotonic
-    started: float | None = None
-
-    def __post_init__(self) -> None:
-        if self.timeout_s is not None and not (
-            math.isfinite(self.timeout_s) and self.timeout_s > 0
-        ):
-            raise ShieldConfigError(f"--timeout must be positive seconds, got {self.timeout_s}")
-        if self.max_acquisitions is not None and self.max_acquisitions < 1:
-            raise ShieldConfigError(
-                f"--max-acquisitions must be at least 1, got {self.max_acquisitions}"
-            )
-
-    def start(self) -> None:
-        self.started = self.clock()
-
-    def elapsed_s(self) -> float:
-        return 0.0 if self.started is None else self.clock() - self.started
-
-    def remaining_s(self) -> float | None:
-        """Seconds left before the time limit (None: no limit, or not started)."""
-        if self.timeout_s is None or self.started is None:
-            return None
-        return max(0.0, self.timeout_s - self.elapsed_s())
-
-    def expiry(self, acquisitions: int | None) -> str | None:
-        """Why the alignment must end now, or None. `acquisitions`: images acquired so far,
-        or None where they do not count (the final verification image)."""
-        if self.timeout_s is not None and self.elapsed_s() >= self.timeout_s:
-            return f"watchdog: the time limit of {self.timeout_s:g} s passed"
-        if (
-            self.max_acquisitions is not None
-            and acquisitions is not None
-            and acquisitions >= self.max_acquisitions
-        ):
-            return f"watchdog: all {self.max_acquisitions} acquisitions are spent"
-        return None
-
-
-# --- the shielded apparatus ---------------------------------------------------------------
 
 
 class ShieldedApparatus:
@@ -650,18 +481,19 @@ class TrainingShield(ShieldedApparatus):
             for name, knob in self.limits.items()
         }
         self._starting = False
+        # A simulated instrument's secret (the optimum, the best edge width) passes through,
+        # bounded like every call, for the critics and for relative success thresholds; so do
+        # a scenario simulator's rows (`indices`), which evaluation sessions walk in order with
+        # `reset_to`. A real column has none of them, and then neither has its shield.
+        if knows_optimum(apparatus):
+            self.optimum: Callable[[], dict[str, float]] = self.inner.optimum
+        if knows_best_quality(apparatus):
+            self.best_quality: Callable[[], float] = self.inner.best_quality
+        if getattr(apparatus, "indices", None) is not None:
+            self.indices = self.inner.indices
 
     def log(self, event: str, **fields: Any) -> None:
         super().log(event, unit=self.unit, **fields)
-
-    def __getattr__(self, name: str) -> Any:
-        # A simulated instrument's secret (the optimum, the best edge width) passes through,
-        # for the critics and for relative success thresholds, and so do a scenario
-        # simulator's rows (`indices`), which evaluation sessions walk in order with
-        # `reset_to`; a real column has none of them, and then neither has its shield.
-        if name in ("optimum", "best_quality", "indices"):
-            return getattr(self.__dict__["inner"], name)
-        raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
 
     def reset(self, seed: int | None = None) -> None:
         self._new_scenario(lambda: self.inner.reset(seed), seed=seed)
@@ -700,25 +532,6 @@ class TrainingShield(ShieldedApparatus):
     def _count(self, event: str, images: int, count: bool = True, **fields: Any) -> str:
         self._starting = False  # the episode's first acquisition: its start is set
         return super()._count(event, images, count, **fields)
-
-
-# --- what every command wraps an apparatus in ---------------------------------------------
-
-
-@dataclass(frozen=True)
-class ShieldOptions:
-    """How a command shields the apparatus it opens: site limits and maximum steps (JSON
-    objects by knob, as `--limits` and `--max-step` take them), the limit on one driver
-    call, and where the audit records go (None: the newest MEMORY_AUDIT_RECORDS in memory).
-    `simulators`: shield a simulated apparatus too (an adaptation audits every call on
-    whatever it adapts to); drivers loaded by import path are always shielded."""
-
-    site_limits: Mapping[str, Any] = field(default_factory=dict)
-    max_step: Mapping[str, Any] = field(default_factory=dict)
-    call_timeout_s: float | None = DEFAULT_CALL_TIMEOUT_S
-    audit: AuditSink | None = None
-    simulators: bool = False
-    unit: str = "1"
 
 
 def shield_apparatus(apparatus: Apparatus, options: ShieldOptions | None = None) -> Apparatus:

@@ -6,7 +6,9 @@ re-measurement noise; `optimum` is the minimum of the recorded curve refined by 
 focus curve near it. A voltage outside the span a scenario could measure raises
 `NoEdgesError`, exactly as the recorded instrument did.
 
-`query` answers many (scenario, voltage) pairs at once in numpy, for vectorized envs.
+`query` answers many (scenario, voltage) pairs at once in numpy; simulators replaying one
+recording offer the BatchedQueries capability (alignrl/apparatus/base.py: `batch_key`,
+`measure_batch`), so that a vectorized env writes and measures all of them in one query.
 
 Varied replay (`randomize`): each reset also draws how this column differs from the recorded
 one, so that pre-training meets many microscopes instead of one (domain randomization for the
@@ -24,7 +26,7 @@ recording is replayed as it is, bit for bit.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal, get_args
@@ -274,6 +276,15 @@ class ScenarioSimulator:
         result = w0 + (volts - v0) * (w1 - w0) / (v1 - v0)
         outside = (volts < self._first_v[rows]) | (volts > self._last_v[rows])
         return np.where(outside, np.nan, result)
+
+    def batch_key(self) -> int:
+        """BatchedQueries: simulators replaying one parsed recording share the key."""
+        return id(self.scenarios)
+
+    def measure_batch(self, units: Sequence[ScenarioSimulator], settings: np.ndarray) -> np.ndarray:
+        """BatchedQueries: `measure_batch` of the module on `units`, `settings` one column
+        (this simulator's one knob) per unit."""
+        return measure_batch(list(units), np.asarray(settings)[:, 0])
 
     # --- the Apparatus protocol ---------------------------------------------------------
 

@@ -222,8 +222,8 @@ def add_deploy_parsers(verbs: argparse._SubParsersAction[argparse.ArgumentParser
     export.add_argument(
         "run",
         metavar="RUN",
-        help="a league run (its champion), a training run (its best checkpoint) or a member "
-        ".pt file",
+        help="a league run (its champion), a training run (its best checkpoint), a member "
+        ".pt file, a safetensors export, or champion:NAME (a shipped champion)",
     )
     export.add_argument("--member", metavar="ID", help="this member of a league run instead")
     export.add_argument(

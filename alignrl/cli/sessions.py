@@ -72,19 +72,26 @@ def _run_evaluations(
 
 
 def _check_trained_source(spec: str) -> None:
-    """Refuse a --policy that names nothing evaluate can load."""
+    """Refuse a --policy that names nothing at all, with the classical names too, before any
+    policy of a sequence loads. What it names is decided by alignrl.runs.sources, as for
+    align and export; something there that is no policy is refused as it loads."""
     from alignrl.evaluation.baselines import CLASSICAL
+    from alignrl.runs.sources import MissingSourceError, PolicySpecError, locate_source
 
-    if not (spec.startswith("champion:") or Path(spec).exists()):
+    try:
+        locate_source(spec)
+    except MissingSourceError:
         raise CommandError(
             f"unknown policy {spec!r}: give a run directory, a checkpoint file, an "
             f"exported policy directory, champion:NAME, or one of {', '.join(sorted(CLASSICAL))}"
-        )
+        ) from None
+    except PolicySpecError:
+        pass  # loading it says what is wrong (an unknown champion: the shipped ones)
 
 
-def _trained_controller(spec: str):
+def _trained_controller(spec: str) -> Any:
     """A trained aligner as a session controller: whatever `align` runs (a run directory, a
-    checkpoint, an exported policy, champion:NAME), resolved the same way."""
+    checkpoint, an exported policy, champion:NAME), loaded the same way."""
     from alignrl.deploy.policy import load_deployable
     from alignrl.evaluation.controllers import PolicyController
 

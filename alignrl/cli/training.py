@@ -46,11 +46,13 @@ def cmd_train(args: argparse.Namespace) -> int:
         if config.adaptation is not None:
             # An adaptation written as a YAML (e.g. a copy of a run's config.yaml with other
             # settings): it starts from its source, as `alignrl adapt` does, never from scratch.
+            from alignrl.adaptation import check_adaptable
             from alignrl.runs.sources import ExportError, resolve_source
             from alignrl.training import start_adaptation
 
             try:
                 source = resolve_source(config.adaptation.source)
+                check_adaptable(source, config.adaptation.source)
             except ExportError as error:
                 raise CommandError(f"{args.config}: adaptation.source: {error}") from None
             trainer = start_adaptation(config, source, args.runs_dir)
@@ -121,7 +123,7 @@ def cmd_adapt(args: argparse.Namespace) -> int:
         if trainer.config.adaptation is None:
             raise CommandError(f"{args.resume} is a training run, not an adaptation: use train")
         return _train_to_the_end(trainer, args, "alignrl adapt --resume")
-    from alignrl.adaptation import adaptation_config
+    from alignrl.adaptation import adaptation_config, check_adaptable
     from alignrl.runs.sources import ExportError, resolve_source
     from alignrl.training import start_adaptation
 
@@ -129,6 +131,7 @@ def cmd_adapt(args: argparse.Namespace) -> int:
         raise CommandError("give --from RUN_OR_POLICY, --apparatus SPEC and --steps N")
     try:
         source = resolve_source(args.source, args.member)
+        check_adaptable(source, args.source)
     except ExportError as error:
         raise CommandError(str(error)) from None
     apparatus_args = _json_object(args.apparatus_args, "--apparatus-args")
@@ -212,7 +215,8 @@ def add_training_parsers(verbs: argparse._SubParsersAction[argparse.ArgumentPars
         "--from",
         dest="source",
         metavar="RUN_OR_POLICY",
-        help="a league run (its champion), a training run or a member .pt file",
+        help="a league run (its champion), a training run or a member .pt file: a source "
+        "with its critics (an exported policy or champion:NAME has none and is refused)",
     )
     adapt.add_argument("--member", help="a league run's member id instead of its champion")
     _add_apparatus_options(

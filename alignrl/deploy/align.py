@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 
 from alignrl.apparatus.audit import plain
-from alignrl.apparatus.base import Apparatus, ApparatusError
+from alignrl.apparatus.base import Apparatus, ApparatusError, knows_best_quality
 from alignrl.apparatus.shield import (
     DEFAULT_CALL_TIMEOUT_S,
     OPERATOR_ABORT,
@@ -47,7 +47,7 @@ from alignrl.apparatus.shield import (
 )
 from alignrl.deploy.policy import DeployablePolicy
 from alignrl.envs.core import AlignmentEpisodes
-from alignrl.envs.task import Task
+from alignrl.envs.task import Criterion, Task
 from alignrl.evaluation.session import verify_task
 
 __all__ = [
@@ -156,11 +156,10 @@ def _spec_threshold(
         return float(spec_px)
     if rule.absolute_px is not None:
         return float(rule.absolute_px)
-    best_quality = getattr(apparatus, "best_quality", None)
-    if not callable(best_quality):
+    if not knows_best_quality(apparatus):
         return None
     try:
-        best_px = float(best_quality())
+        best_px = float(apparatus.best_quality())
     except ApparatusError as error:
         shield.log("reference", sent=True, error=str(error))
         raise DriverFailure(f"the apparatus failed to say its best edge width: {error}") from None
@@ -365,11 +364,10 @@ def align(
             final_width_px=final_width,
             **measured,
         )
-    verdicts = _judge(task, final_width, threshold, directional, shift, apparatus)
-    met = all(ok for ok, _ in verdicts)
+    criteria = _judge(task, final_width, threshold, directional, shift, apparatus)
     return result(
-        "aligned" if met else "not-aligned",
-        f"{reason}; " + "; ".join(words for _, words in verdicts),
+        "aligned" if all(criterion.met[0] for criterion in criteria) else "not-aligned",
+        f"{reason}; " + "; ".join(criterion.words() for criterion in criteria),
         final_width_px=final_width,
         threshold_px=threshold,
         **measured,
@@ -383,43 +381,18 @@ def _judge(
     directional: np.ndarray | None,
     shift: np.ndarray | None,
     apparatus: Apparatus,
-) -> list[tuple[bool, str]]:
-    """Each measure the task judges against its spec: (met, in words). A judged measure that
-    failed is not met."""
-    verdicts = []
-    if task.judges("width"):
-        verdicts.append(
-            (
-                width <= threshold,
-                f"final edge width {width:.3g} px "
-                f"{'<=' if width <= threshold else '>'} spec {threshold:.3g} px",
-            )
-        )
+) -> list[Criterion]:
+    """The final measurement judged as sessions and training judge it (Task.judge); a judged
+    measure that failed is not met. Only a task that judges the directional widths asks the
+    apparatus for its best width again (their spec is relative to it)."""
+    limit = None
     if task.judges("directional"):
-        best = getattr(apparatus, "best_quality", None)
-        limit = task.directional_threshold_px(threshold, float(best()) if callable(best) else None)
-        if directional is None:
-            verdicts.append((False, "the directional widths could not be measured"))
-        else:
-            widest = float(np.max(directional))
-            verdicts.append(
-                (
-                    widest <= limit,
-                    f"widest directional width {widest:.3g} px "
-                    f"{'<=' if widest <= limit else '>'} spec {limit:.3g} px",
-                )
-            )
-    if task.judges("wobble"):
-        if shift is None:
-            verdicts.append((False, "the wobble could not be measured"))
-        else:
-            size = float(np.hypot(*shift))
-            ok = size <= task.wobble_spec_px
-            verdicts.append(
-                (
-                    ok,
-                    f"wobble shift {size:.3g} px "
-                    f"{'<=' if ok else '>'} spec {task.wobble_spec_px:.3g} px",
-                )
-            )
-    return verdicts
+        best = float(apparatus.best_quality()) if knows_best_quality(apparatus) else None
+        limit = task.directional_threshold_px(threshold, best)
+    return task.judge(
+        np.array([width]),
+        np.array([threshold]),
+        None if directional is None else directional[None],
+        None if limit is None else np.array([limit]),
+        None if shift is None else shift[None],
+    )

@@ -12,22 +12,27 @@ safetensors (alignrl.deploy.formats), with its model card (alignrl.deploy.card).
 and refuses to write it unless the file it wrote, loaded back, gives the PyTorch policy's
 actions on random histories within PARITY_TOLERANCE (alignrl.deploy.parity). What the graph
 computes is in alignrl.deploy.graph; `alignrl.deploy.loading.load_exported` runs the folder.
+
+The knob intervals and steps (the action scale) are those the run recorded when it trained
+(knobs.json, alignrl.runs.state), or an export's card, as the source read them: the instrument
+is not opened. Only a run made before alignrl recorded them, or a member file outside any run,
+has its training apparatus opened to read them, and the export says so in one line.
 """
 
 from __future__ import annotations
 
 import json
-import os
 import shlex
 import shutil
-import tempfile
+import sys
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from alignrl.checkpoints import atomic_write_text, publish_folder, staging_folder
 from alignrl.deploy.formats import (
     EXPORT_FORMATS,
-    current_umask,
     import_onnxruntime,
     load_runner,
     sha256_of,
@@ -36,41 +41,49 @@ from alignrl.deploy.formats import (
 from alignrl.deploy.graph import PolicyGraph, PolicyInterface
 from alignrl.deploy.parity import PARITY_HISTORIES, PARITY_TOLERANCE, Parity, check_parity
 from alignrl.runs.sources import ExportError, PolicySource
+from alignrl.runs.state import KNOBS_FILE
+from alignrl.runs.state import knob_limits as limits_on
 
 __all__ = ["ExportResult", "export_command", "export_policy", "knob_limits"]
 
 
-def knob_limits(config: Any) -> list[dict[str, Any]]:
-    """Per task knob of a run config: its interval on the training apparatus and the largest
-    change one action makes (Task.step_sizes, as the env scales actions)."""
+def knob_limits(
+    source: PolicySource, note: Callable[[str], None] | None = None
+) -> list[dict[str, Any]]:
+    """Per task knob of `source`: its interval on the training apparatus and the largest
+    change one action makes, as its run recorded them or its card lists them
+    (`PolicySource.knobs`). Where neither does, the training apparatus is opened to read
+    them, and `note` is told so."""
+    if source.knobs is not None:
+        return source.knobs
+    config = source.config
+    if source.run_dir is not None:
+        why = (
+            f"{source.run_dir} records no knob intervals (no {KNOBS_FILE}: it was made before "
+            "alignrl recorded them)"
+        )
+    else:
+        why = f"{source.member_file} lies in no run, so no knob intervals are recorded"
+    (note or _to_stderr)(f"{why}; reading them from the training apparatus {config.apparatus!r}")
+    return _limits_of_apparatus(config, source.task)
+
+
+def _to_stderr(line: str) -> None:
+    print(f"note: {line}", file=sys.stderr)
+
+
+def _limits_of_apparatus(config: Any, task: Any) -> list[dict[str, Any]]:
     from alignrl.apparatus.base import ApparatusError
     from alignrl.apparatus.registry import make_apparatus
 
-    task = config.resolved_task()
     try:
         apparatus = make_apparatus(config.apparatus, config.apparatus_args)
-        steps = task.step_sizes(apparatus.knobs)
+        return limits_on(task, apparatus.knobs)
     except (ApparatusError, ImportError, OSError, ValueError) as error:
         raise ExportError(
             f"cannot read the knob intervals of the training apparatus {config.apparatus!r} "
             f"(they set the action scale): {error}"
         ) from None
-    return [
-        {
-            "name": knob,
-            "low": float(apparatus.knobs[knob][0]),
-            "high": float(apparatus.knobs[knob][1]),
-            "max_step": float(step),
-        }
-        for knob, step in zip(task.knobs, steps, strict=True)
-    ]
-
-
-def _write_text(path: Path, text: str) -> None:
-    with path.open("w", encoding="utf-8") as handle:
-        handle.write(text)
-        handle.flush()
-        os.fsync(handle.fileno())
 
 
 def _refuse_to_overwrite(out: Path, force: bool) -> None:
@@ -82,27 +95,6 @@ def _refuse_to_overwrite(out: Path, force: bool) -> None:
         raise ExportError(
             f"{out} is not empty: choose another --out, or add --force to replace what is there"
         )
-
-
-def _publish(staging: Path, out: Path) -> None:
-    """Put the staging folder in place of `out` with renames: a reader sees the old folder
-    or the new one, never a half-written one."""
-    # mkdtemp makes 0700; a policy folder is as mkdir makes it
-    staging.chmod(0o777 & ~current_umask())
-    if out.is_dir() and any(out.iterdir()):
-        aside = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.old-"))
-        os.replace(out, aside / out.name)
-        os.replace(staging, out)
-        shutil.rmtree(aside)
-    else:
-        if out.is_dir():
-            out.rmdir()
-        os.replace(staging, out)
-    descriptor = os.open(out.parent, os.O_RDONLY)
-    try:
-        os.fsync(descriptor)
-    finally:
-        os.close(descriptor)
 
 
 @dataclass(frozen=True)
@@ -122,11 +114,13 @@ def export_policy(
     seed: int = 0,
     tolerance: float = PARITY_TOLERANCE,
     command: str | None = None,
+    note: Callable[[str], None] | None = None,
 ) -> ExportResult:
     """Write `source`'s policy to the folder `out` as `export_format` (onnx, torchscript,
     safetensors) with its model card. The written file is loaded back and checked against
     the member on `histories` random histories; beyond `tolerance` nothing is written
-    (ExportError)."""
+    (ExportError). `note` receives a line where the knob intervals had to be read from the
+    training apparatus (default: standard error)."""
     from alignrl.deploy.card import build_card, check_card, render_model_card
 
     if export_format not in EXPORT_FORMATS:
@@ -137,10 +131,9 @@ def export_policy(
         import_onnxruntime()  # before any work: the parity check needs it
     out = Path(out)
     _refuse_to_overwrite(out, force)
-    knobs = knob_limits(source.config)
+    knobs = knob_limits(source, note)
     graph = PolicyGraph(source.agent, [knob["max_step"] for knob in knobs])
-    out.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.tmp-"))
+    staging = staging_folder(out)
     try:
         policy_path = staging / EXPORT_FORMATS[export_format]
         write_policy(source.agent, graph, policy_path, export_format)
@@ -166,9 +159,9 @@ def export_policy(
             check_card(card, out / "card.json")
         except ExportError as error:
             raise ExportError(f"{error}; nothing was written to {out}") from None
-        _write_text(staging / "card.json", json.dumps(card, indent=2) + "\n")
-        _write_text(staging / "model_card.md", render_model_card(card))
-        _publish(staging, out)
+        atomic_write_text(staging / "card.json", json.dumps(card, indent=2) + "\n")
+        atomic_write_text(staging / "model_card.md", render_model_card(card))
+        publish_folder(staging, out)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise

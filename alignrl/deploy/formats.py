@@ -8,13 +8,13 @@ and opened again as a `Runner` (`load_runner`), and its SHA-256.
                                        spec runs them by Agent.act
 
 Every file is checked as it is opened: finite weights, and for safetensors exactly the
-network's tensors. A missing or unreadable file is an ExportError naming it.
+network's tensors. A missing or unreadable file is an ExportError naming it. Each file is
+fsynced once written (alignrl.checkpoints): the export publishes the folder it lies in.
 """
 
 from __future__ import annotations
 
 import hashlib
-import os
 import warnings
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
@@ -26,6 +26,7 @@ import torch
 from torch import Tensor
 
 from alignrl.agents.agent import Agent, finite_problem
+from alignrl.checkpoints import current_umask, fsync_file
 from alignrl.deploy.graph import PolicyGraph, PolicyInterface, Runner, random_histories
 from alignrl.runs.sources import ExportError
 
@@ -33,7 +34,7 @@ __all__ = [
     "EXPORT_FORMATS",
     "ONNX_MISSING",
     "ONNX_OPSET",
-    "current_umask",
+    "current_umask",  # from alignrl.checkpoints, named here for older importers
     "import_onnxruntime",
     "load_runner",
     "sha256_of",
@@ -264,7 +265,7 @@ def _write_graph(graph: PolicyGraph, path: Path, export_format: str) -> None:
                 )
         else:
             torch.jit.save(torch.jit.trace(graph, example, check_trace=False), str(path))
-    _fsync(path)
+    fsync_file(path)
 
 
 def _write_weights(agent: Agent, path: Path) -> None:
@@ -278,7 +279,7 @@ def _write_weights(agent: Agent, path: Path) -> None:
     save_file(tensors, str(path), metadata={"format": state["format"], "member": agent.id})
     # save_file writes 0600 whatever the umask; card.json does not
     path.chmod(0o666 & ~current_umask())
-    _fsync(path)
+    fsync_file(path)
 
 
 def write_policy(agent: Agent, graph: PolicyGraph, path: Path, export_format: str) -> None:
@@ -286,15 +287,3 @@ def write_policy(agent: Agent, graph: PolicyGraph, path: Path, export_format: st
         _write_weights(agent, path)
     else:
         _write_graph(graph, path, export_format)
-
-
-def current_umask() -> int:
-    """The umask new files and folders are made with (mkdir and open honour it)."""
-    mask = os.umask(0)  # reading the umask means setting it: put it straight back
-    os.umask(mask)
-    return mask
-
-
-def _fsync(path: Path) -> None:
-    with path.open("rb") as handle:
-        os.fsync(handle.fileno())

@@ -29,7 +29,6 @@ from torch import Tensor, nn
 
 from alignrl.agents.agent import Agent, MemberSpec
 from alignrl.agents.networks import GTrXLEncoder, Memory
-from alignrl.agents.sac import SAC
 from alignrl.envs.core import feature_layout, observation_bounds
 from alignrl.runs.sources import ExportError
 
@@ -51,8 +50,7 @@ class PolicyGraph(nn.Module):
 
     def __init__(self, agent: Agent, max_step: Sequence[float]) -> None:
         super().__init__()
-        learner = agent.learner
-        policy = learner.actor if isinstance(learner, SAC) else learner.policy
+        policy = agent.learner.acting_network  # SAC's actor, PPO's policy
         self.encoder = copy.deepcopy(policy.encoder)
         self.head = copy.deepcopy(policy.head)
         # SAC's head gives [mean, log_std]; PPO's gives the mean (its std is a parameter).

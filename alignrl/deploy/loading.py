@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from alignrl.agents.agent import MemberSpec
+from alignrl.deploy.card_schema import check_card
 from alignrl.deploy.formats import load_runner, sha256_of
 from alignrl.deploy.graph import PolicyInterface, Runner, random_histories
 from alignrl.deploy.parity import PARITY_TOLERANCE
@@ -144,13 +145,11 @@ def _probe(run: Runner, card: dict[str, Any], policy_path: Path, max_step: np.nd
 def load_exported(path: str | Path) -> ExportedPolicy:
     """An exported policy from its folder (or its policy file): ONNX through onnxruntime,
     TorchScript through torch.jit.load, safetensors weights in the member rebuilt from the
-    card (Agent.act). The card is checked field by field (alignrl.deploy.card.check_card),
+    card (Agent.act). The card is checked field by field (alignrl.deploy.card_schema),
     the policy file against it (its tensors, its outputs on a few histories, its SHA-256
     where the card has one): a missing, corrupt or tampered card or policy file is an
     ExportError naming the file and what is wrong; ONNX without onnxruntime installed is an
     ImportError."""
-    from alignrl.deploy.card import check_card
-
     path = Path(path)
     folder = path if path.is_dir() else path.parent
     card_path = folder / "card.json"

@@ -18,7 +18,12 @@ from alignrl.deploy.graph import PolicyGraph, Runner, random_histories
 __all__ = ["PARITY_HISTORIES", "PARITY_TOLERANCE", "Parity", "check_parity"]
 
 PARITY_HISTORIES = 1000  # random histories the written file is checked on
-PARITY_TOLERANCE = 1e-5  # largest |exported - PyTorch| allowed, in action units
+# Largest |exported - PyTorch| allowed, in action units. Two float32 runtimes round a
+# 256-wide network differently by about 1e-5 (onnxruntime against PyTorch on focus-v1:
+# 1.1e-5, each about 6e-6 from a float64 evaluation); an export fault (a wrong weight, a
+# wrong operator) shows as 1e-2 or more, and 1e-4 of a step is far below any knob's
+# resolution (25 V steps: 2.5 mV).
+PARITY_TOLERANCE = 1e-4
 
 
 @dataclass(frozen=True)

@@ -1,9 +1,10 @@
 """Alignment environments: tasks, rewards, curriculum, AlignmentEnv (Gymnasium), DuelEnv
-(PettingZoo AEC), and a vectorized form over many microscopes."""
+(PettingZoo AEC) and DuelBatch (the duels the league plays, stepped together), and a
+vectorized form over many microscopes."""
 
 from alignrl.envs.alignment import AlignmentEnv
 from alignrl.envs.curriculum import Curriculum
-from alignrl.envs.duel import DuelEnv
+from alignrl.envs.duel import DuelBatch, DuelEnv
 from alignrl.envs.task import TASKS, SuccessRule, Task, get_task
 from alignrl.envs.vector import VectorAlignmentEnv, make_apparatus_copies
 
@@ -11,6 +12,7 @@ __all__ = [
     "TASKS",
     "AlignmentEnv",
     "Curriculum",
+    "DuelBatch",
     "DuelEnv",
     "SuccessRule",
     "Task",

@@ -21,6 +21,11 @@ FEATURES: [valid, knob settings (k, in [-1, 1]), log(width / ref), measured, las
 as they always were. The secret (optimum - setting, as a fraction of the interval) goes to
 info["secret"], never into an observation.
 
+What the engine asks of an apparatus beyond the protocol, it asks through the capabilities
+of alignrl/apparatus/base.py: the optimum and the best width where it knows them
+(`knows_optimum`, `knows_best_quality`), one batched query for a group that answers one
+(`answers_batched`), and where a write really left the column (`reports_applied`).
+
 Rewards are paid on the task's cost in px: the edge width, plus `wobble_weight` x the wobble
 shift where the task wobbles. Knobs the task does not control are set to their optimum at the
 start of an episode where the apparatus knows it (a stigmation episode starts in focus).
@@ -36,9 +41,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from alignrl.apparatus.base import Apparatus, ApparatusError, MeasurementError
+from alignrl.apparatus.base import (
+    Apparatus,
+    ApparatusError,
+    MeasurementError,
+    answers_batched,
+    knows_best_quality,
+    knows_optimum,
+    reports_applied,
+)
 from alignrl.apparatus.measures import measure_directional, measure_wobble
-from alignrl.apparatus.simulator import ScenarioSimulator, measure_batch
 from alignrl.envs import rewards
 from alignrl.envs.task import Task
 
@@ -76,10 +88,9 @@ def observation_bounds(n_knobs: int, extras: int = 0) -> tuple[np.ndarray, np.nd
 
 def known_optimum(unit: Apparatus, knobs: Sequence[str]) -> np.ndarray | None:
     """The optimum of `knobs` where `unit` can tell it (a simulator); None for a real column."""
-    optimum = getattr(unit, "optimum", None)
-    if not callable(optimum):
+    if not knows_optimum(unit):
         return None
-    best = optimum()
+    best = unit.optimum()
     return np.array([best[k] for k in knobs], float)
 
 
@@ -100,13 +111,12 @@ def align_others(
     within that offset of its optimum (uniformly, inside its interval), drawn from a
     generator of (`seed`, CONTEXT_STREAM), so that a scenario seed fixes it; knobs the
     apparatus lacks are passed over."""
-    optimum = getattr(unit, "optimum", None)
-    if not callable(optimum) or set(unit.knobs) <= set(knobs):
+    if not knows_optimum(unit) or set(unit.knobs) <= set(knobs):
         return
     current = unit.read()
     targets = {
         knob: float(value)
-        for knob, value in optimum().items()
+        for knob, value in unit.optimum().items()
         if knob in unit.knobs and knob not in knobs
     }
     if context:
@@ -161,9 +171,11 @@ class AlignmentEpisodes:
         # Per knob, the farthest a start may be from the optimum (Task.start_reach; inf: any).
         self.start_reach = np.array([task.start_reach.get(k, np.inf) for k in task.knobs])
         self.max_step = np.array([task.step_sizes(a.knobs) for a in self.apparatus])  # (N, k)
-        # Scenario simulators sharing one recording answer a whole batch in one numpy query.
-        self._batched = all(isinstance(a, ScenarioSimulator) for a in self.apparatus) and (
-            len({id(a.scenarios) for a in self.apparatus}) == 1
+        # Scenario simulators sharing one recording answer a whole batch in one numpy query
+        # (BatchedQueries); its settings columns are the task's knobs, so they must be the
+        # apparatus's, in order.
+        self._batched = answers_batched(self.apparatus) and all(
+            tuple(unit.knobs) == tuple(task.knobs) for unit in self.apparatus
         )
         self.history = np.zeros((self.n, history, self.n_features), np.float32)
         self.setting = np.zeros((self.n, self.k))  # knob values the env wrote, units
@@ -209,9 +221,8 @@ class AlignmentEpisodes:
                 found = unit.read()
                 optimum = np.array([found[k] for k in self.task.knobs], float)
             self.aligned[index] = optimum
-            best_quality = getattr(unit, "best_quality", None)
-            if callable(best_quality):
-                best[position] = float(best_quality())
+            if knows_best_quality(unit):
+                best[position] = float(unit.best_quality())
         rule = self.task.success
         self.best_width[indices] = best
         self.threshold[indices] = [
@@ -378,7 +389,7 @@ class AlignmentEpisodes:
     def secrets_known(self) -> np.ndarray:
         """(N,) bool: whether each slot's apparatus can tell its optimum, so that `secret` is
         the true one (a real column cannot: its secret is zeros)."""
-        return np.array([callable(getattr(unit, "optimum", None)) for unit in self.apparatus])
+        return np.array([knows_optimum(unit) for unit in self.apparatus])
 
     def positions(self) -> np.ndarray:
         """(N, k): each knob's setting as a fraction of its interval (0 low, 1 high)."""
@@ -405,8 +416,8 @@ class AlignmentEpisodes:
         widths, wobble shifts and costs of `indices` are updated alongside."""
         self.acquisitions[indices] += self.task.acquisitions_per_step
         if self._batched:
-            simulators = [self.apparatus[i] for i in indices]
-            widths = measure_batch(simulators, self.setting[indices, 0])  # type: ignore[arg-type]
+            units = [self.apparatus[i] for i in indices]
+            widths = units[0].measure_batch(units, self.setting[indices])  # type: ignore[attr-defined]
             for index in indices[~np.isfinite(widths)]:
                 self.info[index].failed_measurements += 1
                 self.info[index].last_error = "no edges"
@@ -421,7 +432,7 @@ class AlignmentEpisodes:
             values = dict(zip(self.task.knobs, self.setting[index].tolist(), strict=True))
             try:
                 unit.write(values)
-                if callable(getattr(unit, "applied_setting", None)):
+                if reports_applied(unit):
                     # A safety shield may have clamped the write, or (dry run) not sent it:
                     # the history must show where the column really is.
                     applied = unit.applied_setting()

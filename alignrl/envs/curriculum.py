@@ -6,16 +6,28 @@ every episode the curriculum records success or failure; when a full window of r
 episodes succeeds at least `raise_at` of the time, the level rises by `step` (up to 1); when
 it collapses below `lower_at`, the level falls back by `step` (down to `minimum`). The window
 restarts after each change, so a level is judged on its own episodes. Its state is a plain
-dict, saved and restored with a run.
+dict, saved and restored with a run. `Curriculum.from_config` builds it from a run config's
+`curriculum:` section, for the trainer and the league alike.
 """
 
 from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
-__all__ = ["Curriculum"]
+__all__ = ["Curriculum", "CurriculumSettings"]
+
+
+class CurriculumSettings(Protocol):
+    """A config's `curriculum:` section (alignrl.config.CurriculumConfig)."""
+
+    enabled: bool
+    level: float
+    step: float
+    window: int
+    raise_at: float
+    lower_at: float
 
 
 @dataclass
@@ -45,6 +57,21 @@ class Curriculum:
                 f"{self.raise_at}"
             )
         self._recent = deque(self._recent, maxlen=self.window)
+
+    @classmethod
+    def from_config(cls, settings: CurriculumSettings) -> Curriculum | None:
+        """The curriculum a config's section describes, None where it is disabled. Its level
+        may fall back as far as the smaller of its start and one step."""
+        if not settings.enabled:
+            return None
+        return cls(
+            level=settings.level,
+            minimum=min(settings.level, settings.step),
+            step=settings.step,
+            window=settings.window,
+            raise_at=settings.raise_at,
+            lower_at=settings.lower_at,
+        )
 
     @property
     def success_rate(self) -> float | None:

@@ -1,4 +1,5 @@
-"""DuelEnv: the zero-sum alignment game of seed section 3 (PettingZoo AEC).
+"""DuelEnv: the zero-sum alignment game of seed section 3 (PettingZoo AEC), and DuelBatch:
+N duels stepped together, the form the league plays its matches in.
 
 Card
 ----
@@ -7,6 +8,7 @@ Card
   or reaches the task's step limit.
 * Misaligner observation: Box(k + 1): the aligned knob settings in [-1, 1] and the
   complexity level; what it could know on a real instrument, never the aligner's future.
+  A league member reads it as a one-row history, [1, observation] (`misaligner_inputs`).
 * Misaligner action: Box(-1, 1)^k: where in the complexity window around the aligned state
   each knob starts.
 * Aligner observation/action: as in AlignmentEnv (history of settings, quality, actions;
@@ -18,11 +20,15 @@ Card
   total is what the aligner did not recover (alignrl.envs.rewards).
 * Termination: both agents at the end of the alignment. info as in AlignmentEnv.
 * Seeding: only through `self.np_random` (reset(seed=...)).
+
+`raw_env` is a view of a DuelBatch of one slot: what `api_test` checks is what the league
+plays (alignrl.league.matches.play_round), one code path.
 """
 
 from __future__ import annotations
 
 import functools
+from collections.abc import Sequence
 from typing import Any
 
 import gymnasium
@@ -33,11 +39,125 @@ from pettingzoo.utils import wrappers
 
 from alignrl.apparatus.base import Apparatus
 from alignrl.envs.alignment import aligner_spaces, episode_info, misaligner_spaces, single_episode
+from alignrl.envs.core import AlignmentEpisodes
 from alignrl.envs.task import Task
 
-__all__ = ["ALIGNER", "MISALIGNER", "DuelEnv", "env", "raw_env"]
+__all__ = [
+    "ALIGNER",
+    "MISALIGNER",
+    "DuelBatch",
+    "DuelEnv",
+    "env",
+    "misaligner_input_shape",
+    "misaligner_inputs",
+    "raw_env",
+]
 
 MISALIGNER, ALIGNER = "misaligner", "aligner"
+AGENTS = (MISALIGNER, ALIGNER)
+
+
+def misaligner_input_shape(n_knobs: int) -> tuple[int, int]:
+    """The shape a misaligner member reads (`misaligner_inputs` of one observation)."""
+    return (1, n_knobs + 2)
+
+
+def misaligner_inputs(observations: np.ndarray) -> np.ndarray:
+    """Misaligner observations (n, k + 1) as league members read them, (n, 1, k + 2): a
+    one-row history [1, observation], the leading 1 marking the row valid for the sequence
+    encoders."""
+    valid = np.ones((len(observations), 1), np.float32)
+    return np.concatenate([valid, observations], axis=1)[:, None]
+
+
+class DuelBatch:
+    """N duels over one engine (N apparatus), stepped together in the AEC turn order.
+
+    `reset(seeds)` starts one duel per seed on slots 0..len(seeds)-1 (each apparatus reset
+    with its seed); the misaligner is selected, and its `step(actions)` places every slot's
+    start; then the aligner is, and each of its `step(actions)` moves the unfinished slots
+    (`active`) until none is left. `observe(agent)` answers for the active slots, one row
+    each; `rewards` (that step's, zero-sum) and `terminations` are arrays indexed by slot.
+    No info dicts are built on the way: `info(slot)` builds one where it is wanted."""
+
+    def __init__(self, episodes: AlignmentEpisodes) -> None:
+        self.possible_agents = list(AGENTS)
+        self.episodes = episodes
+        self.n = episodes.n
+        self.slots = np.arange(0)  # the slots of this round
+        self.active = np.arange(0)  # the slots the selected agent acts for
+        self.agent_selection = MISALIGNER
+        self.rewards = {agent: np.zeros(self.n) for agent in AGENTS}
+        self.terminations = {agent: np.ones(self.n, bool) for agent in AGENTS}
+
+    @property
+    def complexity(self) -> float:
+        return self.episodes.complexity
+
+    def set_complexity(self, level: float) -> None:
+        """Width of the misalignment window as a fraction of the interval, from the next
+        reset on."""
+        self.episodes.set_complexity(level)
+
+    def reset(self, seeds: Sequence[int | None]) -> None:
+        """One new duel per seed, on slots 0..len(seeds)-1; the misaligner moves first."""
+        if not 0 < len(seeds) <= self.n:
+            raise ValueError(f"a batch of {self.n} duels takes 1 to {self.n} seeds: {len(seeds)}")
+        self.slots = np.arange(len(seeds))
+        self.episodes.begin(self.slots, list(seeds))
+        self.active = self.slots
+        self.agent_selection = MISALIGNER
+        for agent in AGENTS:
+            self.rewards[agent][:] = 0.0
+            self.terminations[agent][:] = True  # a slot outside the round plays no duel
+            self.terminations[agent][self.slots] = False
+
+    def observe(self, agent: str, slots: np.ndarray | None = None) -> np.ndarray:
+        """What `agent` reads in `slots` (default: the active ones): (n, k + 1) for the
+        misaligner, (n, H, F) histories for the aligner; fresh arrays."""
+        slots = self.active if slots is None else slots
+        if agent == MISALIGNER:
+            return np.stack([self.episodes.misaligner_observation(int(i)) for i in slots])
+        return self.episodes.history[slots]
+
+    def secrets(self, slots: np.ndarray | None = None) -> np.ndarray:
+        """(n, k) optimum - setting of `slots` (default: the active ones): for critics, never
+        for policies (info["secret"] of DuelEnv)."""
+        return self.episodes.secrets()[self.active if slots is None else slots]
+
+    def step(self, actions: np.ndarray) -> None:
+        """The selected agent's actions, one row per active slot."""
+        if not self.active.size:
+            raise RuntimeError("every duel of the batch has ended: reset it first")
+        for agent in AGENTS:
+            self.rewards[agent][:] = 0.0
+        if self.agent_selection == MISALIGNER:
+            self.episodes.misalign(self.slots, actions)
+            score = self.episodes.misalignment_scores(self.slots)
+            self.rewards[MISALIGNER][self.slots] = score
+            self.rewards[ALIGNER][self.slots] = -score
+            self.agent_selection = ALIGNER
+            return
+        active = self.active
+        reward, done = self.episodes.step(active, actions)
+        # Zero-sum, step by step: whatever the aligner gains, the misaligner loses.
+        self.rewards[ALIGNER][active] = reward
+        self.rewards[MISALIGNER][active] = -reward
+        for agent in AGENTS:
+            self.terminations[agent][active[done]] = True
+        self.active = active[~done]
+
+    def info(self, slot: int) -> dict[str, Any]:
+        """DuelEnv's info of `slot` (success and the width before once it has ended)."""
+        return episode_info(self.episodes, slot, done=bool(self.terminations[ALIGNER][slot]))
+
+    def successes(self) -> np.ndarray:
+        """(n,) bool per slot of the round: its latest image meets every spec of the task."""
+        return self.episodes.successes()[self.slots]
+
+    def acquisitions(self) -> np.ndarray:
+        """(n,) images acquired per slot of the round."""
+        return self.episodes.acquisitions[self.slots].copy()
 
 
 class raw_env(AECEnv):
@@ -55,6 +175,7 @@ class raw_env(AECEnv):
     ) -> None:
         super().__init__()
         self.episodes = single_episode(apparatus, task, history, complexity, apparatus_args)
+        self.batch = DuelBatch(self.episodes)
         self.task, self.apparatus = self.episodes.task, self.episodes.apparatus[0]
         spaces_of = {
             MISALIGNER: misaligner_spaces(self.episodes.k),
@@ -62,13 +183,13 @@ class raw_env(AECEnv):
         }
         self._observation_spaces = {agent: pair[0] for agent, pair in spaces_of.items()}
         self._action_spaces = {agent: pair[1] for agent, pair in spaces_of.items()}
-        self.possible_agents = [MISALIGNER, ALIGNER]
+        self.possible_agents = list(AGENTS)
         self.agents: list[str] = []
-        self._index = np.array([0])
+        self._slot = np.array([0])
         self.np_random, _ = gymnasium.utils.seeding.np_random(None)
 
     def set_complexity(self, level: float) -> None:
-        self.episodes.set_complexity(level)
+        self.batch.set_complexity(level)
 
     @functools.cache  # noqa: B019 (spaces are fixed per env)
     def observation_space(self, agent: str) -> spaces.Space:
@@ -79,14 +200,12 @@ class raw_env(AECEnv):
         return self._action_spaces[agent]
 
     def observe(self, agent: str) -> np.ndarray:
-        if agent == MISALIGNER:
-            return self.episodes.misaligner_observation(0)
-        return self.episodes.observation(0)
+        return self.batch.observe(agent, self._slot)[0]
 
     def reset(self, seed: int | None = None, options: dict[str, Any] | None = None) -> None:
         if seed is not None:
             self.np_random, _ = gymnasium.utils.seeding.np_random(seed)
-        self.episodes.begin(self._index, [int(self.np_random.integers(2**31 - 1))])
+        self.batch.reset([int(self.np_random.integers(2**31 - 1))])
         self.agents = list(self.possible_agents)
         self.rewards = dict.fromkeys(self.agents, 0.0)
         self._cumulative_rewards = dict.fromkeys(self.agents, 0.0)
@@ -102,22 +221,18 @@ class raw_env(AECEnv):
             return
         self._cumulative_rewards[agent] = 0.0
         self._clear_rewards()
+        self.batch.step(np.asarray(action, float)[None])
+        for each in self.agents:
+            self.rewards[each] = float(self.batch.rewards[each][0])
+        info = self.batch.info(0)
         if agent == MISALIGNER:
-            self.episodes.misalign(self._index, np.asarray(action, float))
-            score = float(self.episodes.misalignment_scores(self._index)[0])
-            self.rewards[MISALIGNER], self.rewards[ALIGNER] = score, -score
-            self.infos[ALIGNER] = episode_info(self.episodes, 0, done=False)
-            self.agent_selection = ALIGNER
+            self.infos[ALIGNER] = info
         else:
-            reward, done = self.episodes.step(self._index, np.asarray(action, float)[None])
-            # Zero-sum, step by step: whatever the aligner gains, the misaligner loses.
-            self.rewards[ALIGNER] = float(reward[0])
-            self.rewards[MISALIGNER] = -float(reward[0])
-            info = episode_info(self.episodes, 0, done=bool(done[0]))
             self.infos = {ALIGNER: info, MISALIGNER: dict(info)}
-            if done[0]:
-                self.terminations = dict.fromkeys(self.agents, True)
-                self.agent_selection = MISALIGNER  # dead steps: misaligner, then aligner
+        self.agent_selection = self.batch.agent_selection
+        if self.batch.terminations[ALIGNER][0]:
+            self.terminations = dict.fromkeys(self.agents, True)
+            self.agent_selection = MISALIGNER  # dead steps: misaligner, then aligner
         self._accumulate_rewards()
 
     def close(self) -> None:

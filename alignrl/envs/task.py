@@ -13,7 +13,8 @@ What a task measures after each action (`measures`):
   an off-axis objective aperture. It costs two more acquisitions, counted as such.
 Success needs every measured quality within its spec: the width within the success rule, every
 directional width within `directional_relative` x the best width, the wobble shift at most
-`wobble_spec_px`.
+`wobble_spec_px`. `Task.judge` gives each judged measure against its spec (a `Criterion`, which
+`align` prints); `Task.within_spec` is all of them met, as training and sessions count success.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["MEASURES", "TASKS", "SuccessRule", "Task", "get_task"]
+__all__ = ["MEASURES", "TASKS", "Criterion", "SuccessRule", "Task", "get_task"]
 
 MEASURES = ("width", "directional", "wobble")
 DIRECTIONAL_BINS = 4  # edge-normal orientation bins of quality.directional_widths
@@ -59,6 +60,39 @@ class SuccessRule:
                 "a simulated apparatus knows: give an absolute spec (--spec-px) for this one"
             )
         return self.relative * best_px
+
+
+@dataclass(frozen=True)
+class Criterion:
+    """One judged measure of a batch of measurements against its spec (px): the final width,
+    the widest directional width, or the wobble shift's magnitude. `measured` False: the
+    measure could not be taken at all (`value_px` NaN); a NaN value is never `met`."""
+
+    measure: str  # one of MEASURES
+    value_px: np.ndarray  # (n,)
+    spec_px: np.ndarray  # (n,)
+    met: np.ndarray  # (n,) bool
+    measured: bool = True
+
+    def words(self, index: int = 0) -> str:
+        """Measurement `index` in words, as `alignrl align` reports it."""
+        if not self.measured:
+            return _UNMEASURED[self.measure]
+        value, spec = float(self.value_px[index]), float(self.spec_px[index])
+        relation = "<=" if self.met[index] else ">"
+        return f"{_LABELS[self.measure]} {value:.3g} px {relation} spec {spec:.3g} px"
+
+
+_LABELS = {
+    "width": "final edge width",
+    "directional": "widest directional width",
+    "wobble": "wobble shift",
+}
+_UNMEASURED = {
+    "width": "the final image had no edges",
+    "directional": "the directional widths could not be measured",
+    "wobble": "the wobble could not be measured",
+}
 
 
 @dataclass(frozen=True)
@@ -210,6 +244,46 @@ class Task:
             return self.directional_relative * width_threshold_px / self.success.relative
         return self.directional_relative * best_px
 
+    def judge(
+        self,
+        width_px: np.ndarray,
+        width_threshold_px: np.ndarray,
+        directional_px: np.ndarray | None = None,
+        directional_threshold_px: np.ndarray | None = None,
+        wobble_px: np.ndarray | None = None,
+    ) -> list[Criterion]:
+        """Each measure the task judges, in the order of MEASURES, against its spec (batched:
+        widths (n,), directional (n, 4), wobble (n, 2)); None: that measure was not taken.
+        The measures the task does not take or judge are not looked at."""
+        width = np.asarray(width_px, dtype=np.float64)
+        unmeasured, unmet = np.full(width.shape, np.nan), np.zeros(width.shape, bool)
+        criteria = []
+        with np.errstate(invalid="ignore"):
+            if self.judges("width"):
+                spec = np.broadcast_to(np.asarray(width_threshold_px, np.float64), width.shape)
+                met = np.isfinite(width) & (width <= spec)
+                criteria.append(Criterion("width", width, spec, met))
+            if self.judges("directional"):
+                spec = np.broadcast_to(
+                    np.asarray(directional_threshold_px, np.float64), width.shape
+                )
+                if directional_px is None:
+                    criteria.append(
+                        Criterion("directional", unmeasured, spec, unmet, measured=False)
+                    )
+                else:
+                    # NaN in any bin (a failed measure) makes the widest NaN: not met.
+                    widest = np.max(np.asarray(directional_px, dtype=np.float64), axis=-1)
+                    criteria.append(Criterion("directional", widest, spec, widest <= spec))
+            if self.judges("wobble"):
+                spec = np.full(width.shape, self.wobble_spec_px)
+                if wobble_px is None:
+                    criteria.append(Criterion("wobble", unmeasured, spec, unmet, measured=False))
+                else:
+                    shift = np.hypot(*np.moveaxis(np.asarray(wobble_px, dtype=np.float64), -1, 0))
+                    criteria.append(Criterion("wobble", shift, spec, shift <= spec))
+        return criteria
+
     def within_spec(
         self,
         width_px: np.ndarray,
@@ -218,20 +292,14 @@ class Task:
         directional_threshold_px: np.ndarray | None = None,
         wobble_px: np.ndarray | None = None,
     ) -> np.ndarray:
-        """Whether each measurement meets every judged spec of the task (batched: widths
-        (n,), directional (n, 4), wobble (n, 2)); NaN anywhere, a failed measure, is not
-        within. The measures the task does not take or judge are not looked at."""
-        width = np.asarray(width_px, dtype=np.float64)
-        with np.errstate(invalid="ignore"):
-            within = np.ones(width.shape, bool)
-            if self.judges("width"):
-                within &= np.isfinite(width) & (width <= width_threshold_px)
-            if self.judges("directional"):
-                limit = np.asarray(directional_threshold_px, dtype=np.float64)[..., None]
-                within &= np.all(np.asarray(directional_px) <= limit, axis=-1)
-            if self.judges("wobble"):
-                shift = np.hypot(*np.moveaxis(np.asarray(wobble_px, dtype=np.float64), -1, 0))
-                within &= shift <= self.wobble_spec_px
+        """Whether each measurement meets every judged spec of the task (`judge`, batched
+        alike); NaN anywhere, a failed measure, is not within."""
+        criteria = self.judge(
+            width_px, width_threshold_px, directional_px, directional_threshold_px, wobble_px
+        )
+        within = np.ones(np.shape(width_px), bool)
+        for criterion in criteria:
+            within &= criterion.met
         return within
 
     def check_apparatus(self, knobs: Mapping[str, tuple[float, float]]) -> None:

@@ -18,7 +18,6 @@ with the returned observation.
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Sequence
 from typing import Any
 
@@ -26,35 +25,13 @@ import gymnasium
 import numpy as np
 
 from alignrl.apparatus.base import Apparatus
-from alignrl.apparatus.registry import make_apparatus
-from alignrl.apparatus.shield import ShieldOptions, shield_apparatus
-from alignrl.apparatus.simulator import ScenarioSimulator
+from alignrl.apparatus.registry import make_apparatus_copies
 from alignrl.envs.alignment import aligner_spaces
 from alignrl.envs.core import AlignmentEpisodes
 from alignrl.envs.task import Task, get_task
 
+# make_apparatus_copies lives in alignrl/apparatus/registry.py; importable from here as before.
 __all__ = ["VectorAlignmentEnv", "make_apparatus_copies"]
-
-
-def make_apparatus_copies(
-    spec: str, args: dict | None, count: int, shield: ShieldOptions | None = None
-) -> list[Apparatus]:
-    """`count` independent instances of one spec; simulators share the parsed recording.
-    Drivers (and, with `shield.simulators`, simulators) come behind the shield, their audit
-    records naming units 1..count."""
-    options = shield or ShieldOptions()
-    units = [dataclasses.replace(options, unit=str(number + 1)) for number in range(count)]
-    first = make_apparatus(spec, args, shield=units[0])
-    inner = getattr(first, "driver", first)
-    if isinstance(inner, ScenarioSimulator):
-        extra = dict(args or {})
-        copies: list[Apparatus] = [
-            ScenarioSimulator(scenarios=inner.scenarios, **extra) for _ in range(count - 1)
-        ]
-        if inner is not first:  # shielded: so are its copies
-            copies = [shield_apparatus(c, u) for c, u in zip(copies, units[1:], strict=True)]
-        return [first, *copies]
-    return [first] + [make_apparatus(spec, args, shield=unit) for unit in units[1:]]
 
 
 class VectorAlignmentEnv:

@@ -32,7 +32,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from alignrl.apparatus.base import Apparatus, ApparatusError
+from alignrl.apparatus.base import (
+    Apparatus,
+    ApparatusError,
+    knows_best_quality,
+    knows_optimum,
+    offers_wobble,
+)
 from alignrl.apparatus.measures import WOBBLE_KNOB, measure_directional, measure_wobble
 from alignrl.apparatus.recorder import scenario_seed
 from alignrl.envs.core import align_others
@@ -301,8 +307,7 @@ def reset_scenario(apparatus: Apparatus, seed: int, index: int) -> int:
 
 
 def _best_quality(apparatus: Apparatus) -> Callable[[], float] | None:
-    best = getattr(apparatus, "best_quality", None)
-    return best if callable(best) else None
+    return apparatus.best_quality if knows_best_quality(apparatus) else None
 
 
 def _check_spec_reachable(apparatus: Apparatus, seed: int, scenarios: int, spec_px: float) -> None:
@@ -349,9 +354,7 @@ def run_session(
     apparatus can focus, and no spec_px on an apparatus that cannot say its best edge width.
     """
     task.check_apparatus(apparatus.knobs)
-    if task.wobble and not (
-        WOBBLE_KNOB in apparatus.knobs or callable(getattr(apparatus, "measure_wobble", None))
-    ):
+    if task.wobble and not (WOBBLE_KNOB in apparatus.knobs or offers_wobble(apparatus)):
         raise ValueError(
             f"task {task.name!r} measures the wobble, which swings {WOBBLE_KNOB!r}: this "
             "apparatus has neither that knob nor a measure_wobble() of its own"
@@ -407,8 +410,7 @@ def _run_scenario(
     best_quality = _best_quality(apparatus)
     best_px = float(best_quality()) if best_quality is not None else None
     threshold = rule.threshold_px(best_px)  # an absolute spec ignores best_px
-    optimum = getattr(apparatus, "optimum", None)
-    known = optimum() if callable(optimum) and task.start_reach else None
+    known = apparatus.optimum() if knows_optimum(apparatus) and task.start_reach else None
     start = start_setting(seed, index, task.start_intervals(apparatus.knobs, known))
     starts = dict(zip(task.knobs, start.tolist(), strict=True))
     apparatus.write(starts)
@@ -421,8 +423,8 @@ def _run_scenario(
     settings = apparatus.read()
     final_settings = {knob: float(settings[knob]) for knob in task.knobs}
     optima = (
-        {knob: float(value) for knob, value in optimum().items() if knob in task.knobs}
-        if callable(optimum)
+        {knob: float(value) for knob, value in apparatus.optimum().items() if knob in task.knobs}
+        if knows_optimum(apparatus)
         else None
     )
     width, directional, shift = verify_task(apparatus, task)

@@ -15,8 +15,15 @@ from alignrl.agents.agent import Agent
 from alignrl.config import ConfigError
 from alignrl.envs import make_apparatus_copies
 from alignrl.envs.core import AlignmentEpisodes
+from alignrl.envs.duel import DuelBatch
 from alignrl.league.config import LeagueConfig
-from alignrl.league.matches import AlignerSteps, Chooser, MatchResult, play_round
+from alignrl.league.matches import (
+    AlignerSteps,
+    Chooser,
+    MatchResult,
+    learn_from_starts,
+    play_round,
+)
 
 __all__ = ["BACKENDS", "Backend", "InProcessBackend", "backend_class"]
 
@@ -45,22 +52,23 @@ class Backend(Protocol):
 
 
 class InProcessBackend:
-    """Plays matches on `envs` apparatus in this process, in rounds: every slot starts a
-    match, the aligner steps the unfinished ones until all are done; learning members store
-    and learn after every step."""
+    """Plays matches on `envs` apparatus in this process, in rounds of a DuelBatch: every
+    slot starts a match, the aligner steps the unfinished ones until all are done; learning
+    members store and learn after every step."""
 
     def __init__(self, config: LeagueConfig) -> None:
         apparatus = make_apparatus_copies(config.apparatus, config.apparatus_args, config.envs)
         self.task = config.resolved_task()
         self.episodes = AlignmentEpisodes(apparatus, self.task, config.history)
-        self.episodes.set_complexity(config.complexity)
+        self.duel = DuelBatch(self.episodes)
+        self.duel.set_complexity(config.complexity)
 
     @property
     def complexity(self) -> float:
-        return self.episodes.complexity
+        return self.duel.complexity
 
     def set_complexity(self, level: float) -> None:
-        self.episodes.set_complexity(level)
+        self.duel.set_complexity(level)
 
     def play(
         self,
@@ -75,7 +83,7 @@ class InProcessBackend:
         """`matches` matches; members whose id is in `learning` store and learn, the others
         act with their stochastic policy (their mean action if `deterministic`: how they are
         judged) and change nothing."""
-        episodes, result = self.episodes, MatchResult()
+        duel, result = self.duel, MatchResult()
         result.updates = {member.id: [] for member in (aligner, misaligner)}
 
         def chooser(agent: Agent) -> Chooser:
@@ -99,10 +107,10 @@ class InProcessBackend:
 
         remaining = matches
         while remaining > 0:
-            count = min(episodes.n, remaining)
+            count = min(duel.n, remaining)
             remaining -= count
             seeds = [int(s) for s in rng.integers(0, 2**31 - 1, count)]
-            played = play_round(episodes, seeds, chooser(misaligner), chooser(aligner), learn_step)
+            played = play_round(duel, seeds, chooser(misaligner), chooser(aligner), learn_step)
             # The curriculum's complexity is read when a round begins: reporting each match
             # at the end of its round changes nothing.
             for slot in played.finish_order:
@@ -116,20 +124,15 @@ class InProcessBackend:
                 if on_episode:
                     on_episode(bool(played.successes[slot]))
             if misaligner.id in learning:
-                # One-step episodes: the start is the action, the reward its score minus the
-                # aligner's return (zero-sum), and nothing follows.
-                none = np.zeros((count, misaligner.spec.secret_dim), np.float32)
-                misaligner.observe(
+                result.updates[misaligner.id] += learn_from_starts(
+                    misaligner,
                     played.rows,
-                    none,
                     played.starts,
                     played.scores - played.returns,
-                    played.rows,
-                    none,
-                    np.ones(count, bool),
-                    np.arange(count),
+                    rng,
+                    slots=np.arange(count),
+                    pre_tanh=played.starts_pre_tanh,
                 )
-                result.updates[misaligner.id] += misaligner.learn(rng, new_steps=count)
         return result
 
     def close(self) -> None:

@@ -23,6 +23,7 @@ from alignrl.config import (
     _Strict,
     check_file_name,
     parse_config,
+    read_layered,
     read_yaml,
 )
 
@@ -253,22 +254,22 @@ def parse_league(data: Any, source: str = "league config") -> LeagueConfig:
 
 
 def load_league(path: str | Path) -> tuple[LeagueConfig, Roster, Roster]:
-    """A league experiment and its two rosters. Roster paths are read relative to the
-    working directory first, then to the experiment file's folder's parent (the repo)."""
-    path = Path(path)
-    config = parse_config(
-        LeagueConfig, read_yaml(path, "league config"), str(path), check_device=True
-    )
+    """A league experiment (its `base:` chain merged in) and its two rosters. Roster paths
+    are read relative to the working directory first, then to the parent of the folder of
+    the chain's first experiment, the one without a base (experiments/ -> the repo): an
+    overlay names rosters as its base does."""
+    layers = read_layered(Path(path), "league config")
+    config = parse_config(LeagueConfig, layers.data, layers.source, check_device=True)
     rosters = []
     for team, name in (("aligner", config.aligners), ("misaligner", config.misaligners)):
         candidate = Path(name)
         if not candidate.exists() and not candidate.is_absolute():
-            candidate = path.resolve().parent.parent / name
+            candidate = layers.root.resolve().parent.parent / name
         if not candidate.exists():
-            raise ConfigError(f"{path}: {team}s: roster file {name} does not exist")
+            raise ConfigError(f"{layers.source}: {team}s: roster file {name} does not exist")
         rosters.append(load_roster(candidate, team))
     aligners, misaligners = rosters
     clash = {m.id for m in aligners.members} & {m.id for m in misaligners.members}
     if clash:
-        raise ConfigError(f"{path}: ids used in both teams: {', '.join(sorted(clash))}")
+        raise ConfigError(f"{layers.source}: ids used in both teams: {', '.join(sorted(clash))}")
     return config, aligners, misaligners

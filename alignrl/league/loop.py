@@ -16,6 +16,7 @@ aligners by rating run an evaluation session, and the league is checkpointed.
 A run lives in runs/<name>/:
 
     config.yaml, aligners.yaml, misaligners.yaml   the resolved experiment and rosters
+    knobs.json                                      the knobs' intervals and steps, for export
     checkpoints/LATEST                              names the newest complete checkpoint
     checkpoints/iteration-NNNNNN/                   league.pt + members/<id>.pt (atomic)
     snapshots/<id>@<iteration>.pt                   frozen members of the opponent pool
@@ -34,13 +35,13 @@ Matches run through the backend `backend:` names (alignrl.league.backends: in th
 or on Ray workers where the microscopes are, alignrl.league.ray_backend and docs/scaling.md);
 League sees only the MatchResult either gives back. Members' shapes and warm starts from
 trained aligners are in alignrl.league.warm_starts, the population-based training rule in
-alignrl.league.pbt; this module holds the loop and the run directory.
+alignrl.league.pbt, writing and reading checkpoints in alignrl.league.checkpointing, the
+metrics CSVs and TensorBoard events in alignrl.league.logs; this module holds the loop.
 """
 
 from __future__ import annotations
 
 import json
-import shutil
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -50,38 +51,39 @@ import numpy as np
 import torch
 import yaml
 
-from alignrl.agents.agent import Agent, MemberSpec
-from alignrl.checkpoints import (
-    CheckpointError,
-    atomic_write_text,
-    load_checkpoint,
-    remove_partial_writes,
-    save_checkpoint,
-)
+from alignrl.agents.agent import Agent
+from alignrl.checkpoints import CheckpointError, atomic_write_text
 from alignrl.config import dump_experiment
 from alignrl.envs import Curriculum
 from alignrl.league.backends import Backend, backend_class
+from alignrl.league.checkpointing import (
+    STATE_FORMAT,
+    latest_checkpoint,
+    read_checkpoint,
+    remove_partial_files,
+    remove_unreferenced,
+    write_checkpoint,
+)
 from alignrl.league.config import LeagueConfig, Roster, parse_league
-from alignrl.league.matches import MatchResult, UniformStarts, WorkerFailedError
+from alignrl.league.logs import LeagueLogs
+from alignrl.league.matches import UniformStarts, WorkerFailedError
 from alignrl.league.matchmaking import Matchmaker, MatchmakingConfig, OpponentPool
 from alignrl.league.pbt import choose_replacements, copy_id, copy_member, learning_rate
 from alignrl.league.ratings import EloConfig, PayoffTable, Ratings
 from alignrl.league.warm_starts import member_spec, start_from, warm_starts
-from alignrl.metrics import (
-    EPISODE_COLUMNS,
-    LEAGUE_EVALUATION_COLUMNS,
-    LEAGUE_ITERATION_COLUMNS,
-    LINEAGE_COLUMNS,
-    CsvLog,
-    truncate_csv,
+from alignrl.runs.state import (
+    CONFIG_FILE,
+    knob_limits,
+    record_knobs,
+    restore_rng,
+    rng_state,
+    run_config_data,
 )
 from alignrl.training import evaluate_policy
-from alignrl.yaml_io import read_yaml_file
 
-# WorkerFailedError (alignrl.league.matches) is named here for the CLI, which catches it.
-__all__ = ["League", "WorkerFailedError", "leaderboard"]
-
-STATE_FORMAT = "alignrl-league-1"
+# WorkerFailedError (alignrl.league.matches) is named here for the CLI, which catches it;
+# STATE_FORMAT (alignrl.league.checkpointing) for older importers.
+__all__ = ["STATE_FORMAT", "League", "WorkerFailedError", "leaderboard"]
 
 
 class League:
@@ -120,39 +122,15 @@ class League:
                 agent = Agent(member_spec(member, team, config), config.envs, config.device)
                 self._add_member(agent)
         knobs = len(config.resolved_task().knobs)
-        self.uniform_starts = UniformStarts(
-            MemberSpec(UniformStarts.ID, "misaligner", "sac", (1, knobs + 2), knobs, knobs)
-        )
-        cc = config.curriculum
-        self.curriculum = (
-            Curriculum(
-                level=cc.level,
-                minimum=min(cc.level, cc.step),
-                step=cc.step,
-                window=cc.window,
-                raise_at=cc.raise_at,
-                lower_at=cc.lower_at,
-            )
-            if cc.enabled
-            else None
-        )
+        self.uniform_starts = UniformStarts.for_knobs(knobs)
+        self.curriculum = Curriculum.from_config(config.curriculum)
         if self.curriculum:
             self.backend.set_complexity(self.curriculum.level)
         self.iteration = 0
         self.env_steps = 0
         self.best: dict[str, dict[str, Any]] = {}  # aligner id -> its best evaluation
         self._snapshot_cache: dict[str, Agent] = {}
-        self._tensorboard = None
-        self._purge_step: int | None = None  # resumed: TensorBoard drops events from here on
-        metrics = self.run_dir / "metrics"
-        self.iteration_log = CsvLog(
-            metrics / "iterations.csv", list(LEAGUE_ITERATION_COLUMNS), key="iteration"
-        )
-        self.evaluation_log = CsvLog(
-            metrics / "evaluations.csv", list(LEAGUE_EVALUATION_COLUMNS), key="iteration"
-        )
-        self.lineage_log = CsvLog(metrics / "lineage.csv", list(LINEAGE_COLUMNS), key="iteration")
-        self._member_logs: dict[str, tuple[CsvLog, CsvLog]] = {}
+        self.logs = LeagueLogs(self.run_dir)
 
     # --- members ------------------------------------------------------------------------
 
@@ -161,16 +139,6 @@ class League:
         self.pool.add_member(agent.id, agent.spec.team)
         if agent.id not in self.ratings:
             self.ratings.add(agent.id, rating)
-
-    def _member_log(self, member: str) -> tuple[CsvLog, CsvLog]:
-        if member not in self._member_logs:
-            folder = self.run_dir / "metrics" / "members" / member
-            metrics = self.members[member].metric_names
-            self._member_logs[member] = (
-                CsvLog(folder / "updates.csv", ["env_steps", "updates", *metrics]),
-                CsvLog(folder / "episodes.csv", list(EPISODE_COLUMNS)),
-            )
-        return self._member_logs[member]
 
     def player(self, player: str) -> Agent:
         """An active member, or a frozen snapshot loaded from its file."""
@@ -203,17 +171,20 @@ class League:
     ) -> League:
         run_dir = Path(runs_root) / config.name
         backend_class(config.backend)  # a backend that cannot run here stops before any file
-        if (run_dir / "config.yaml").exists():
+        if (run_dir / CONFIG_FILE).exists():
             raise FileExistsError(
                 f"{run_dir} already holds a run: continue it with `alignrl league resume "
                 f"{run_dir}` or choose another --name"
             )
         aligners, sources = warm_starts(config, aligners)
+        knobs = _training_knobs(config)
         run_dir.mkdir(parents=True, exist_ok=True)
         for name, roster in (("aligners.yaml", aligners), ("misaligners.yaml", misaligners)):
             atomic_write_text(
                 run_dir / name, yaml.safe_dump(roster.model_dump(mode="json"), sort_keys=False)
             )
+        if knobs is not None:
+            record_knobs(run_dir, config.apparatus, knobs)
         league = cls(config, aligners, misaligners, run_dir)
         for member_id, (source, replay) in sources.items():
             start_from(league.members[member_id], source, replay)
@@ -222,7 +193,7 @@ class League:
         # Iteration 0 checkpointed (warm starts included), and config.yaml last: a run killed
         # before it is no run and starts again; one killed after resumes from its start.
         league.checkpoint()
-        atomic_write_text(run_dir / "config.yaml", dump_experiment(config))
+        atomic_write_text(run_dir / CONFIG_FILE, dump_experiment(config))
         return league
 
     @classmethod
@@ -233,19 +204,16 @@ class League:
         from alignrl.league.config import load_roster
 
         run_dir = Path(run_dir)
-        path = run_dir / "config.yaml"
-        if not path.exists():
-            raise FileNotFoundError(f"{run_dir} is not a league run (no config.yaml)")
-        config = parse_league(read_yaml_file(path), str(path))
+        config = parse_league(run_config_data(run_dir, "league run"), str(run_dir / CONFIG_FILE))
         league = cls(
             config,
             load_roster(run_dir / "aligners.yaml", "aligner"),
             load_roster(run_dir / "misaligners.yaml", "misaligner"),
             run_dir,
         )
-        latest = run_dir / "checkpoints" / "LATEST"
-        if latest.exists():
-            league._restore(run_dir / "checkpoints" / latest.read_text().strip())
+        latest = latest_checkpoint(run_dir)
+        if latest is not None:
+            league._restore(run_dir / "checkpoints" / latest)
         if not read_only:
             league._cut_back_to_checkpoint()
         return league
@@ -261,74 +229,35 @@ class League:
             "pool": self.pool.state_dict(),
             "best": json.dumps(self.best),
             "curriculum": self.curriculum.state_dict() if self.curriculum else {},
-            "numpy_rng": self.rng.bit_generator.state,
-            "torch_rng": torch.get_rng_state(),
+            **rng_state(self.rng),
             "config": dump_experiment(self.config),
         }
 
     def checkpoint(self) -> Path:
-        """A new checkpoint folder (members first, league state last), then LATEST names
-        it; only after that are older folders removed, and the snapshots the pool no longer
-        lists. A kill at any moment leaves LATEST naming a complete checkpoint and all it
-        refers to; a write that fails (a full disk) removes the new folder and leaves the
-        previous checkpoint as it was."""
-        root = self.run_dir / "checkpoints"
-        folder = root / f"iteration-{self.iteration:06d}"
-        if self._tensorboard is not None:
-            self._tensorboard.flush()  # the events up to this checkpoint are on disk
-        try:
-            for member_id, agent in self.members.items():
-                agent.save(folder / "members" / f"{member_id}.pt", replay=True)
-            save_checkpoint(folder / "league.pt", self._state())
-            atomic_write_text(root / "LATEST", folder.name + "\n")
-        except OSError:
-            if self._latest() != folder.name:
-                shutil.rmtree(folder, ignore_errors=True)
-            raise
-        self._remove_unreferenced()
+        """A new checkpoint (alignrl.league.checkpointing: members first, league state last,
+        then LATEST), and only then older folders and the snapshots the pool no longer lists
+        removed. A kill at any moment leaves a complete checkpoint to resume from."""
+        self.logs.flush()  # the events up to this checkpoint are on disk
+        folder = write_checkpoint(self.run_dir, self.iteration, self.members, self._state())
+        remove_unreferenced(self.run_dir, self._listed_snapshots())
         return folder
 
-    def _latest(self) -> str | None:
-        latest = self.run_dir / "checkpoints" / "LATEST"
-        return latest.read_text().strip() if latest.exists() else None
-
-    def _remove_unreferenced(self) -> None:
-        """Checkpoint folders other than LATEST's, and snapshot files its pool does not list
-        (pruned from it, or frozen after it by a run that was killed)."""
-        current = self._latest()
-        for folder in (self.run_dir / "checkpoints").glob("iteration-*"):
-            if folder.name != current and folder.is_dir():
-                shutil.rmtree(folder, ignore_errors=True)
-        listed = {snapshot.id for team in ("aligner", "misaligner")
-                  for snapshot in self.pool.snapshots(team)}  # fmt: skip
-        for path in (self.run_dir / "snapshots").glob("*.pt"):
-            if path.stem not in listed:
-                path.unlink(missing_ok=True)
+    def _listed_snapshots(self) -> set[str]:
+        return {snapshot.id for team in ("aligner", "misaligner")
+                for snapshot in self.pool.snapshots(team)}  # fmt: skip
 
     def _cut_back_to_checkpoint(self) -> None:
         """Before a resumed league continues: every file written after its checkpoint goes
         back to what that checkpoint knew (metrics rows, snapshots, unfinished checkpoints and
         writes, TensorBoard events), for the run to write it again."""
-        self._remove_unreferenced()
-        for folder in ("checkpoints", "snapshots", "best", "metrics", "initial"):
-            remove_partial_writes(self.run_dir / folder)
-        for log in (self.iteration_log, self.evaluation_log, self.lineage_log):
-            log.truncate_after(self.iteration)
-        # Every member's, also one that a PBT copy after the checkpoint made (it comes back).
-        for path in sorted((self.run_dir / "metrics" / "members").glob("*/*.csv")):
-            truncate_csv(path, "env_steps", self.env_steps)
-        self._purge_step = self.iteration + 1
+        remove_unreferenced(self.run_dir, self._listed_snapshots())
+        remove_partial_files(self.run_dir)
+        self.logs.cut_back(self.iteration, self.env_steps)
 
     def _restore(self, folder: Path) -> None:
-        state = load_checkpoint(folder / "league.pt", self.config.device)
-        if state.get("format") != STATE_FORMAT:
-            raise CheckpointError(f"{folder}/league.pt: format {state.get('format')!r}")
-        self.members, self._snapshot_cache = {}, {}
+        state, self.members = read_checkpoint(folder, self.config.envs, self.config.device)
+        self._snapshot_cache = {}
         self.pool = OpponentPool(self.config.matchmaking.max_snapshots)
-        for member_id in state["members"]:
-            self.members[member_id] = Agent.load(
-                folder / "members" / f"{member_id}.pt", self.config.envs, self.config.device
-            )
         self.pool.load_state_dict(state["pool"])
         self.ratings.load_state_dict(state["ratings"])
         self.payoff.load_state_dict(state["payoff"])
@@ -337,8 +266,10 @@ class League:
         if self.curriculum and state["curriculum"]:
             self.curriculum.load_state_dict(state["curriculum"])
             self.backend.set_complexity(self.curriculum.level)
-        self.rng.bit_generator.state = state["numpy_rng"]
-        torch.set_rng_state(state["torch_rng"])
+        try:
+            restore_rng(self.rng, state)
+        except ValueError as error:
+            raise CheckpointError(f"{folder}/league.pt: {error}") from None
 
     # --- one iteration -----------------------------------------------------------------
 
@@ -369,8 +300,8 @@ class League:
                 aligner, self.uniform_starts, uniform, self.rng, {pairing.aligner}, on_episode
             )
             played = result.joined(extra)
-            self._board().add_scalar("league/uniform_success_rate", extra.success_rate,
-                                     self.iteration + 1)  # fmt: skip
+            self.logs.add_scalar("league/uniform_success_rate", extra.success_rate,
+                                 self.iteration + 1)  # fmt: skip
         self.env_steps += sum(played.acquisitions)  # every image of every match
         self.iteration += 1
         # Ratings, payoffs and the success rate logged: the rated matches, the misaligner's.
@@ -378,7 +309,10 @@ class League:
         self.payoff.add(pairing.aligner, pairing.misaligner, result.matches, sum(result.successes))
         self.ratings.record(self.iteration)
         self.payoff.record(self.iteration)
-        self._log_members(played, aligner, complexity)
+        first_episode = (self.iteration - 1) * self.config.schedule.matches + 1
+        self.logs.write_members(
+            played, self.members, aligner.id, self.env_steps, first_episode, complexity
+        )
         row = {
             "iteration": self.iteration,
             "env_steps": self.env_steps,
@@ -394,58 +328,12 @@ class League:
             "complexity": round(complexity, 4),
             "seconds": round(time.perf_counter() - started, 3),
         }
-        self.iteration_log.write([row])
-        board = self._board()
-        board.add_scalar("league/success_rate", result.success_rate, self.iteration)
-        board.add_scalar("league/complexity", complexity, self.iteration)
+        self.logs.iterations.write([row])
+        self.logs.add_scalar("league/success_rate", result.success_rate, self.iteration)
+        self.logs.add_scalar("league/complexity", complexity, self.iteration)
         for player, rating in self.ratings.ranking(list(self.members)):
-            board.add_scalar(f"rating/{player}", rating, self.iteration)
+            self.logs.add_scalar(f"rating/{player}", rating, self.iteration)
         return row
-
-    def _log_members(self, result: MatchResult, aligner: Agent, complexity: float) -> None:
-        for member, rows in result.updates.items():
-            if member not in self.members or not rows:
-                continue
-            updates_log, _ = self._member_log(member)
-            agent = self.members[member]
-            stride = max(1, len(rows) // 10)  # a few rows per iteration, not every step
-            first = agent.updates - len(rows) + 1
-            updates_log.write(
-                [
-                    {
-                        "env_steps": self.env_steps,
-                        "updates": first + i,
-                        **{key: round(value, 6) for key, value in rows[i].items()},
-                    }
-                    for i in range(0, len(rows), stride)
-                ]
-            )
-        if aligner.id in self.members:
-            _, episodes_log = self._member_log(aligner.id)
-            episodes_log.write(
-                [
-                    {
-                        "env_steps": self.env_steps,
-                        "episode": (self.iteration - 1) * self.config.schedule.matches + i + 1,
-                        "return": round(ret, 5),
-                        "success": int(ok),
-                        "acquisitions": acq,
-                        "complexity": complexity,
-                    }
-                    for i, (ret, ok, acq) in enumerate(
-                        zip(result.returns, result.successes, result.acquisitions, strict=True)
-                    )
-                ]
-            )
-
-    def _board(self):
-        if self._tensorboard is None:
-            from torch.utils.tensorboard import SummaryWriter
-
-            self._tensorboard = SummaryWriter(
-                str(self.run_dir / "tensorboard"), purge_step=self._purge_step
-            )
-        return self._tensorboard
 
     # --- snapshots, PBT, evaluation ---------------------------------------------------
 
@@ -489,7 +377,7 @@ class League:
                     "replaced": replacement.replaced,
                     "learning_rate": f"{replacement.learning_rate:.3g}",
                 }
-                self.lineage_log.write([change])
+                self.logs.lineage.write([change])
                 changes.append(change)
         return changes
 
@@ -532,7 +420,7 @@ class League:
             ):
                 self.best[member_id] = row
                 self.members[member_id].save(self.run_dir / "best" / f"{member_id}.pt")
-        self.evaluation_log.write(rows)
+        self.logs.evaluations.write(rows)
         ranked = sorted(
             self.best.values(), key=lambda r: (-r["successes"], r["median_acquisitions"])
         )
@@ -621,8 +509,22 @@ class League:
                 if log:
                     log(f"checkpoint {folder.name}")
         bar.close()
-        if self._tensorboard is not None:
-            self._tensorboard.flush()
+        self.logs.flush()
+
+
+def _training_knobs(config: LeagueConfig) -> list[dict[str, Any]] | None:
+    """The task knobs' intervals and steps on the league's apparatus, for knobs.json. None
+    where it cannot be opened on this machine (a Ray league whose drivers live on the
+    microscopes' PCs): an export of such a run opens the apparatus to read them, as one of a
+    run made before alignrl recorded them does."""
+    from alignrl.apparatus.base import ApparatusError
+    from alignrl.apparatus.registry import make_apparatus
+
+    try:
+        apparatus = make_apparatus(config.apparatus, config.apparatus_args)
+    except (ApparatusError, ImportError, OSError, ValueError):
+        return None
+    return knob_limits(config.resolved_task(), apparatus.knobs)
 
 
 def leaderboard(league: League) -> list[dict[str, Any]]:

@@ -1,9 +1,10 @@
-"""Playing matches on alignment episodes: the code every execution backend shares.
+"""Playing matches through the duel: the code every execution backend shares.
 
-A round is one match per episode slot: each slot's apparatus is reset with its match's seed,
-the misaligner reads [1, aligned settings, complexity] and chooses the start, and the
-aligner acts on the unfinished matches until all are done (a stop, or the task's last step).
-Who chooses, and what happens to each step, is the caller's:
+A round is one match per slot of a DuelBatch (alignrl.envs.duel, the batched DuelEnv): each
+slot's apparatus is reset with its match's seed, the misaligner reads its observation (as a
+member's one-row input, `misaligner_inputs`) and chooses the start, and the aligner acts on
+the unfinished matches until all are done (a stop, or the task's last step). Who chooses,
+and what happens to each step, is the caller's:
 
 * the in-process backend lets learning members `explore` with the league's generator and
   `observe` and `learn` after every step (`play_round` with its own choosers);
@@ -13,7 +14,7 @@ Who chooses, and what happens to each step, is the caller's:
   learns (`learn_from_matches`).
 
 Payoffs are the aligner's, in the zero-sum game: its return (the seed's rewards) minus what
-the start was worth (`AlignmentEpisodes.misalignment_scores`); the misaligner's is the
+the start was worth (the duel's reward to the misaligner's move); the misaligner's is the
 negative.
 """
 
@@ -26,7 +27,13 @@ from typing import Any
 import numpy as np
 
 from alignrl.agents.agent import Agent, MemberSpec
-from alignrl.envs.core import AlignmentEpisodes
+from alignrl.envs.duel import (
+    ALIGNER,
+    MISALIGNER,
+    DuelBatch,
+    misaligner_input_shape,
+    misaligner_inputs,
+)
 
 __all__ = [
     "AlignerSteps",
@@ -39,7 +46,7 @@ __all__ = [
     "WorkerFailedError",
     "exploration_generator",
     "learn_from_matches",
-    "misaligner_rows",
+    "learn_from_starts",
     "play_round",
     "record_matches",
 ]
@@ -66,6 +73,12 @@ class UniformStarts:
     def __init__(self, spec: MemberSpec) -> None:
         self.spec = spec
         self.rng = np.random.default_rng(0)
+
+    @classmethod
+    def for_knobs(cls, knobs: int) -> UniformStarts:
+        """The stand-in for a task of `knobs` knobs, shaped as the league's misaligners."""
+        shape = misaligner_input_shape(knobs)
+        return cls(MemberSpec(cls.ID, "misaligner", "sac", shape, knobs, knobs))
 
     @property
     def id(self) -> str:
@@ -180,35 +193,29 @@ class MatchTrajectory:
         return self.aligner_return - self.score
 
 
-def misaligner_rows(episodes: AlignmentEpisodes, slots: np.ndarray) -> np.ndarray:
-    """What the misaligner reads per slot: [1, aligned settings (k), complexity], as a
-    one-row history (the leading 1 marks the row valid for the sequence encoders)."""
-    rows = np.stack([episodes.misaligner_observation(int(i)) for i in slots])
-    return np.concatenate([np.ones((len(slots), 1), np.float32), rows], axis=1)[:, None]
-
-
 def play_round(
-    episodes: AlignmentEpisodes,
+    duel: DuelBatch,
     seeds: Sequence[int],
     choose_start: Chooser,
     choose_action: Chooser,
     on_step: Callable[[AlignerSteps], None],
 ) -> Round:
-    """One match per seed on slots 0..len(seeds)-1, played to the end; `on_step` sees every
-    aligner step as it happens."""
-    slots = np.arange(len(seeds))
-    episodes.begin(slots, list(seeds))
-    rows = misaligner_rows(episodes, slots)
+    """One match per seed on slots 0..len(seeds)-1 of `duel`, played to the end; `on_step`
+    sees every aligner step as it happens."""
+    duel.reset(seeds)
+    slots = duel.slots
+    rows = misaligner_inputs(duel.observe(MISALIGNER))
     starts, starts_pre_tanh = choose_start(rows, slots)
-    episodes.misalign(slots, starts)
-    scores = episodes.misalignment_scores(slots)
+    duel.step(starts)
+    scores = duel.rewards[MISALIGNER][slots]
     returns = np.zeros(len(slots))
     finish_order: list[int] = []
-    active = slots.copy()
-    while active.size:
-        observation, secret = episodes.history[active].copy(), episodes.secrets()[active]
+    while duel.active.size:
+        active = duel.active
+        observation, secret = duel.observe(ALIGNER), duel.secrets()
         action, pre_tanh = choose_action(observation, active)
-        reward, done = episodes.step(active, action)
+        duel.step(action)
+        reward, done = duel.rewards[ALIGNER][active], duel.terminations[ALIGNER][active]
         returns[active] += reward
         on_step(
             AlignerSteps(
@@ -218,23 +225,42 @@ def play_round(
                 action,
                 pre_tanh,
                 reward,
-                episodes.history[active].copy(),
-                episodes.secrets()[active],
+                duel.observe(ALIGNER, active),
+                duel.secrets(active),
                 done,
             )
         )
         finish_order += [int(slot) for slot in active[done]]
-        active = active[~done]
     return Round(
         rows,
         starts,
         starts_pre_tanh,
         scores,
         returns,
-        episodes.successes()[slots],
-        episodes.acquisitions[slots].copy(),
+        duel.successes(),
+        duel.acquisitions(),
         finish_order,
     )
+
+
+def learn_from_starts(
+    misaligner: Agent,
+    rows: np.ndarray,
+    starts: np.ndarray,
+    rewards: np.ndarray,
+    rng: np.random.Generator,
+    slots: np.ndarray | None = None,
+    pre_tanh: np.ndarray | None = None,
+) -> list[dict[str, float]]:
+    """Store a misaligner's one-step episodes and run the updates that are due: each start
+    is the action on its row, the reward its score minus the aligner's return (zero-sum),
+    and nothing follows. Returns the updates' metrics."""
+    count = len(rows)
+    none = np.zeros((count, misaligner.spec.secret_dim), np.float32)
+    misaligner.observe(
+        rows, none, starts, rewards, rows, none, np.ones(count, bool), slots, pre_tanh=pre_tanh
+    )
+    return misaligner.learn(rng, new_steps=count)
 
 
 # --- matches played elsewhere (a Ray worker), learned from in the driver -------------------
@@ -285,7 +311,7 @@ def _per_match(steps: list[AlignerSteps], slot: int) -> AlignerSteps:
 
 
 def record_matches(
-    episodes: AlignmentEpisodes,
+    duel: DuelBatch,
     seeds: Sequence[int],
     aligner: Agent,
     misaligner: Agent,
@@ -293,14 +319,14 @@ def record_matches(
     deterministic: bool = False,
     on_step: Callable[[AlignerSteps], None] | None = None,
 ) -> list[MatchTrajectory]:
-    """One match per seed, in rounds of `episodes.n`, recorded in the order of `seeds`.
+    """One match per seed, in rounds of `duel.n`, recorded in the order of `seeds`.
     `learns`: whether the aligner and the misaligner learn from these matches (they then
     explore). Each match's randomness comes from its own seed alone, so it plays the same
     on any worker, beside any other matches."""
     aligner_learns, misaligner_learns = learns
     trajectories = []
-    for first in range(0, len(seeds), episodes.n):
-        chunk = [int(seed) for seed in seeds[first : first + episodes.n]]
+    for first in range(0, len(seeds), duel.n):
+        chunk = [int(seed) for seed in seeds[first : first + duel.n]]
         generators = [exploration_generator(seed) for seed in chunk]
         steps: list[AlignerSteps] = []
 
@@ -310,7 +336,7 @@ def record_matches(
                 on_step(step)
 
         played = play_round(
-            episodes,
+            duel,
             chunk,
             _seeded_chooser(misaligner, generators, misaligner_learns, deterministic),
             _seeded_chooser(aligner, generators, aligner_learns, deterministic),
@@ -367,19 +393,12 @@ def learn_from_matches(
                 )
                 result.updates[aligner.id] += aligner.learn(rng, new_steps=1)
         if misaligner.id in learning:
-            # One-step episodes: the start is the action, the reward its score minus the
-            # aligner's return (zero-sum), and nothing follows.
-            none = np.zeros((1, misaligner.spec.secret_dim), np.float32)
-            row = match.misaligner_row
-            misaligner.observe(
-                row,
-                none,
+            result.updates[misaligner.id] += learn_from_starts(
+                misaligner,
+                match.misaligner_row,
                 match.start,
                 np.array([-match.payoff]),
-                row,
-                none,
-                np.ones(1, bool),
+                rng,
                 pre_tanh=match.start_pre_tanh,
             )
-            result.updates[misaligner.id] += misaligner.learn(rng, new_steps=1)
     return result

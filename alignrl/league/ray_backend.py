@@ -54,6 +54,7 @@ from ray.exceptions import (
 from alignrl.agents.agent import Agent, MemberSpec
 from alignrl.envs import make_apparatus_copies
 from alignrl.envs.core import AlignmentEpisodes
+from alignrl.envs.duel import DuelBatch
 from alignrl.envs.task import Task
 from alignrl.league.config import LeagueConfig, RayWorkerConfig
 from alignrl.league.matches import (
@@ -86,8 +87,9 @@ def split_matches(matches: int, envs: list[int]) -> list[int]:
 
 
 class MatchWorker:
-    """One microscope's worker: its apparatus, its episodes and acting copies of the two
-    members of the latest batch. Runs as a Ray actor; plain Python otherwise."""
+    """One microscope's worker: its apparatus, their duels (a DuelBatch over its episodes)
+    and acting copies of the two members of the latest batch. Runs as a Ray actor; plain
+    Python otherwise."""
 
     def __init__(
         self,
@@ -103,6 +105,7 @@ class MatchWorker:
         self.index, self.apparatus = index, apparatus
         units = make_apparatus_copies(apparatus, apparatus_args, envs)
         self.episodes = AlignmentEpisodes(units, task, history)
+        self.duel = DuelBatch(self.episodes)
         self._members: dict[str, Agent] = {}  # team -> acting copy, reused while the spec holds
         self._steps_to_failure: int | None = None
 
@@ -132,9 +135,9 @@ class MatchWorker:
         """One match per seed (see alignrl.league.matches.record_matches)."""
         aligner = self._member("aligner", policies["aligner"])
         misaligner = self._member("misaligner", policies["misaligner"])
-        self.episodes.set_complexity(complexity)
+        self.duel.set_complexity(complexity)
         return record_matches(
-            self.episodes, seeds, aligner, misaligner, learns, deterministic, self._count
+            self.duel, seeds, aligner, misaligner, learns, deterministic, self._count
         )
 
     def _member(self, team: str, state: dict[str, Any]) -> Agent | UniformStarts:

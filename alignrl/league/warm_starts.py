@@ -11,32 +11,15 @@ from __future__ import annotations
 from alignrl.agents.agent import Agent, MemberSpec
 from alignrl.checkpoints import CheckpointError
 from alignrl.config import ConfigError, LearnerConfig
-from alignrl.envs.alignment import aligner_spaces
 from alignrl.league.config import LeagueConfig, MemberConfig, Roster
+from alignrl.runs.training_runs import team_spec
 
 __all__ = ["NETWORK_KEYS", "member_spec", "start_from", "warm_starts"]
 
 
 def member_spec(member: MemberConfig, team: str, config: LeagueConfig) -> MemberSpec:
-    """Shapes per team: an aligner reads the history; a misaligner reads one row
-    [1, aligned settings (k), complexity] (the leading 1 marks the row valid for the
-    sequence encoders) and answers with a start in the window per knob."""
-    task = config.resolved_task()
-    knobs = len(task.knobs)
-    if team == "aligner":
-        observation_space, action_space = aligner_spaces(knobs, config.history, task.extra_features)
-        shape, actions = observation_space.shape, action_space.shape[0]
-    else:
-        shape, actions = (1, knobs + 2), knobs
-    return MemberSpec(
-        id=member.id,
-        team=team,
-        algorithm=member.learner.algorithm,
-        observation_shape=shape,
-        action_dim=actions,
-        secret_dim=knobs,
-        hyperparameters=member.learner.hyperparameters(),
-    )
+    """A roster member of `team` as this league builds it (runs.training_runs.team_spec)."""
+    return team_spec(member.id, team, member.learner, config)
 
 
 # Learner settings that shape a member's networks: a warm-started aligner keeps its source's.
@@ -51,9 +34,12 @@ def warm_starts(
     aligners those members start from (with whether their replay comes along). A
     warm-started member takes its source's learner settings; the roster's own `learner:`
     keys override the rest (a lower learning_rate for fine-tuning, say), and a key that
-    shapes the networks must agree with the source's. Every check is made here, before the
-    run directory is written."""
-    from alignrl.runs.sources import ExportError, resolve_source
+    shapes the networks must agree with the source's. A source is anything
+    alignrl.runs.sources resolves, but it must bring its critics: an export or a shipped
+    champion (champion:NAME) holds its acting network alone, and a warm start with fresh
+    critics would train the policy on their noise, so it is refused. Every check is made
+    here, before the run directory is written."""
+    from alignrl.runs.sources import ExportError, require_learner_state, resolve_source
 
     task = config.resolved_task()
     members, sources = [], {}
@@ -64,6 +50,7 @@ def warm_starts(
         where = f"aligner {member.id!r}: init_from {member.init_from}"
         try:
             source = resolve_source(member.init_from)
+            require_learner_state(source, member.init_from, "a warm start")
         except (ExportError, CheckpointError, OSError, ValueError) as error:
             raise ConfigError(f"{where}: {error}") from None
         if tuple(source.task.knobs) != tuple(task.knobs):
@@ -88,9 +75,7 @@ def warm_starts(
             )
         learner = inherited.model_copy(update={key: getattr(member.learner, key) for key in given})
         if member.init_replay and (
-            spec.algorithm != "sac"
-            or getattr(source.agent, "replay", None) is None
-            or source.agent.replay.size == 0
+            not source.agent.learner.keeps_replay or source.agent.experience.size == 0
         ):
             raise ConfigError(
                 f"{where}: init_replay needs a SAC checkpoint that holds its replay (a "

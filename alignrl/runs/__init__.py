@@ -1,6 +1,8 @@
-"""Run directories: what a run holds and how to read it. `sources` names the trained aligner a
-run, a member file or a training checkpoint stands for (`resolve_source`), as `export`,
-`align`, `adapt` and league warm starts read it; `training_runs` reads a training run's
-config and checkpoints (`member_spec`, `load_policy`)."""
+"""Run directories and other policy sources: what a path or a name holds and how to read it.
+`sources` decides what a spec names, once (`locate_source`: a league run, a training run, a
+member or checkpoint file, an exported folder, a shipped champion) and loads its aligner
+(`resolve_source`), as `export`, `align`, `evaluate`, `adapt` and league warm starts read
+it; `training_runs` reads a training run's config and checkpoints (`member_spec`,
+`load_policy`). Nothing here imports the league, deploy or the command line."""
 
 __all__ = ["sources", "training_runs"]

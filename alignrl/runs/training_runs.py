@@ -1,5 +1,5 @@
-"""What a training run's files say: the aligner its config trains (`member_spec`, from the task
-and the history alone: no apparatus is opened) and the trained aligner of a run directory or
+"""What a training run's files say: the members' shapes (`team_spec`, `member_spec`: from the task
+and the history alone, no apparatus is opened) and the trained aligner of a run directory or
 checkpoint file (`load_policy`: checkpoints/best.pt, a training checkpoint, or a league member
 file).
 """
@@ -10,33 +10,45 @@ from pathlib import Path
 
 from alignrl.agents.agent import Agent, MemberSpec
 from alignrl.checkpoints import load_checkpoint
-from alignrl.config import ExperimentConfig, parse_experiment
+from alignrl.config import ExperimentConfig, LearnerConfig, RunConfig, parse_experiment
 from alignrl.envs.alignment import aligner_spaces
+from alignrl.envs.duel import misaligner_input_shape
+from alignrl.runs.state import config_of_checkpoint
 
-__all__ = ["load_policy", "member_spec"]
+__all__ = ["load_policy", "member_spec", "team_spec"]
+
+
+def team_spec(member_id: str, team: str, learner: LearnerConfig, config: RunConfig) -> MemberSpec:
+    """A member of either team, its shapes from the task and the history alone (no apparatus
+    is opened): an aligner reads the history (aligner_spaces); a misaligner reads one row
+    [1, aligned settings (k), complexity] (misaligner_input_shape) and answers with a start
+    in the window per knob. The one place a member's shapes are decided: the trainer, the
+    league and the league's warm starts all build their members here."""
+    task = config.resolved_task()
+    knobs = len(task.knobs)
+    if team == "aligner":
+        observation_space, action_space = aligner_spaces(knobs, config.history, task.extra_features)
+        shape, actions = observation_space.shape, action_space.shape[0]
+    else:
+        shape, actions = misaligner_input_shape(knobs), knobs
+    return MemberSpec(
+        id=member_id,
+        team=team,
+        algorithm=learner.algorithm,
+        observation_shape=shape,
+        action_dim=actions,
+        secret_dim=knobs,
+        hyperparameters=learner.hyperparameters(),
+    )
 
 
 def member_spec(config: ExperimentConfig, member_id: str | None = None) -> MemberSpec:
-    """The aligner an experiment trains. Its shapes follow from the task and the history
-    alone, so no apparatus needs to be opened to build or load it."""
-    task = config.resolved_task()
-    knobs = len(task.knobs)
-    observation_space, action_space = aligner_spaces(knobs, config.history, task.extra_features)
-    return MemberSpec(
-        id=member_id or config.name,
-        team="aligner",
-        algorithm=config.learner.algorithm,
-        observation_shape=observation_space.shape,
-        action_dim=action_space.shape[0],
-        secret_dim=knobs,
-        hyperparameters=config.learner.hyperparameters(),
-    )
+    """The aligner an experiment trains."""
+    return team_spec(member_id or config.name, "aligner", config.learner, config)
 
 
 def load_policy(path: str | Path, device: str = "cpu") -> tuple[Agent, ExperimentConfig]:
     """A trained aligner from a run directory (its best.pt) or a checkpoint file."""
-    from alignrl.yaml_io import parse_yaml
-
     path = Path(path)
     checkpoint = path / "checkpoints" / "best.pt" if path.is_dir() else path
     state = load_checkpoint(checkpoint, device)
@@ -47,8 +59,7 @@ def load_policy(path: str | Path, device: str = "cpu") -> tuple[Agent, Experimen
         return agent, parse_experiment(
             {"name": agent.id, "history": agent.spec.observation_shape[0]}, str(checkpoint)
         )
-    source = f"{checkpoint} (config)"
-    config = parse_experiment(parse_yaml(state["config"], source), source)
+    config = config_of_checkpoint(state, checkpoint)
     spec = member_spec(config)
     agent = Agent(spec, device=device)
     saved = state["agent"]

@@ -1,0 +1,169 @@
+"""The learners a member can train with, by name: the `Learner` protocol and `LEARNERS`.
+
+A learner is one module (alignrl/agents/sac.py, alignrl/agents/ppo.py) holding the algorithm
+and its member-facing class, plus one entry in `LEARNERS`. `Agent` looks its learner up here
+once and delegates to it; `MemberSpec` and `LearnerConfig` read from the learner class what
+settings it has and their defaults, so neither keeps its own list:
+
+    LEARNERS["sac"].config_type        SACConfig: its field defaults are SAC's defaults
+    LEARNERS["sac"].schedule_defaults  how a member gathers experience (replay size, warm-up)
+    learner_defaults("sac")            both, as one mapping of hyperparameter -> default
+
+A new learner: a class that satisfies `Learner` in a module of its own, and one line below
+(or `LEARNERS[name] = cls` at run time, as tests/test_learners.py does with a toy learner).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping, Sequence
+from typing import Any, ClassVar, Protocol
+
+import numpy as np
+import torch
+from torch import nn
+
+from alignrl.agents.ppo import PPOLearner
+from alignrl.agents.sac import SACLearner
+
+__all__ = ["LEARNERS", "Experience", "Learner", "learner_class", "learner_defaults"]
+
+
+class Experience(Protocol):
+    """A learner's store of what happened (SAC's replay, PPO's rollout in progress)."""
+
+    size: int
+
+    def state_dict(self) -> dict[str, Any]: ...  # numpy arrays and numbers only
+    def load_state_dict(self, state: dict[str, Any]) -> None: ...
+
+
+class Learner(Protocol):
+    """What a member's learner does for its `Agent`.
+
+    The class attributes describe the learner to the registry, the member spec, the config
+    and the trainer; an instance holds the networks, the optimizers and the experience of
+    one member. Numbers of the member itself (transitions seen, its id for messages) are
+    passed in by the Agent.
+    """
+
+    name: ClassVar[str]  # its key in LEARNERS and in configs: `algorithm: sac`
+    title: ClassVar[str]  # its name in messages: "SAC"
+    config_type: ClassVar[type]  # a frozen dataclass of its settings; its defaults are the defaults
+    # Settings of how a member gathers experience and how often it learns, beside config_type
+    # (which is one update); their defaults. Empty where the learner has none.
+    schedule_defaults: ClassVar[Mapping[str, float]]
+    metric_names: ClassVar[tuple[str, ...]]  # the figures `learn` returns per update, in order
+    experience_name: ClassVar[str]  # what its experience is called: `agent.replay` for SAC
+    # Its experience is a replay of past transitions: a transition may be stored late or
+    # come from another run (hindsight secrets, a warm start's init_replay).
+    keeps_replay: ClassVar[bool]
+    # Each update is worth a row of the metrics (PPO: one per rollout), not every n-th.
+    logs_every_update: ClassVar[bool]
+
+    config: Any  # an instance of config_type
+    device: torch.device
+    updates: int  # updates done so far
+    update_debt: float  # updates owed but not yet run (0 where env steps do not pace learning)
+    experience: Experience
+
+    def __init__(
+        self,
+        observation_shape: tuple[int, int],
+        action_dim: int,
+        secret_dim: int,
+        config: Any,
+        schedule: Mapping[str, float],
+        envs: int,
+        device: str | torch.device,
+    ) -> None: ...
+
+    @property
+    def optimizers(self) -> list[torch.optim.Optimizer]: ...  # all of them (PBT sets their rate)
+
+    @property
+    def acting_network(self) -> nn.Module:
+        """The network that acts (SAC's actor, PPO's policy): all that `policy_state`
+        carries. Export reads its `encoder` and `head`; the head's first action_dim outputs
+        are the mean of the pre-squash Gaussian."""
+        ...
+
+    def act(self, observation: np.ndarray, deterministic: bool = False) -> np.ndarray: ...
+
+    def explore(
+        self, observation: np.ndarray, rng: np.random.Generator, steps_seen: int
+    ) -> np.ndarray:
+        """Training actions in (-1, 1) for a batch of histories."""
+        ...
+
+    def explore_rows(
+        self,
+        observation: np.ndarray,
+        generators: Sequence[np.random.Generator],
+        steps_seen: int,
+        warm_up: bool,
+    ) -> tuple[np.ndarray, np.ndarray | None]:
+        """Training actions whose row i draws from generators[i] alone, and what `observe`
+        needs besides them (`pre_tanh`; None where it needs nothing)."""
+        ...
+
+    def observe(
+        self,
+        observation: np.ndarray,
+        secret: np.ndarray,
+        action: np.ndarray,
+        reward: np.ndarray,
+        next_observation: np.ndarray,
+        next_secret: np.ndarray,
+        done: np.ndarray,
+        slots: np.ndarray | None,
+        pre_tanh: np.ndarray | None,
+        member: str,
+    ) -> None:
+        """Store one env step of the slots `slots` (all where None); done is float32."""
+        ...
+
+    def learn(
+        self,
+        rng: np.random.Generator,
+        steps_seen: int,
+        new_steps: int,
+        member: str,
+        train_policy: bool,
+    ) -> list[dict[str, float]]:
+        """The updates due now that `new_steps` more transitions are stored."""
+        ...
+
+    def learn_from(
+        self, batch: Any, rng: np.random.Generator | None, member: str, train_policy: bool
+    ) -> dict[str, float]:
+        """One update on a batch of its own experience."""
+        ...
+
+    def state_dict(self) -> dict[str, Any]: ...  # tensors, numbers, strings, lists, dicts
+    def load_state_dict(self, state: dict[str, Any]) -> None: ...
+
+
+LEARNERS: dict[str, type[Learner]] = {
+    "sac": SACLearner,
+    "ppo": PPOLearner,
+}
+
+
+def learner_class(name: str) -> type[Learner]:
+    """The learner registered as `name`."""
+    if name not in LEARNERS:
+        raise ValueError(f"unknown learner {name!r}; known learners: {', '.join(LEARNERS)}")
+    return LEARNERS[name]
+
+
+def learner_defaults(name: str) -> dict[str, Any]:
+    """Every hyperparameter the learner `name` takes, with its default: the fields of its
+    config dataclass, then its schedule."""
+    learner = learner_class(name)
+    defaults = {
+        field.name: field.default if field.default_factory is dataclasses.MISSING
+        else field.default_factory()
+        for field in dataclasses.fields(learner.config_type)
+    }  # fmt: skip
+    return {**defaults, **learner.schedule_defaults}

@@ -1,0 +1,227 @@
+"""A run's state beside its weights, kept and read in one place by the trainer, the league and
+deploy:
+
+    config.yaml   the resolved experiment (`run_config_data`, `read_training_config`)
+    knobs.json    per task knob, its interval on the training apparatus and the largest change
+                  one action makes, recorded when the run starts (`record_knobs`), so that an
+                  export reads them from the run and never opens the instrument
+                  (`recorded_knobs`)
+    tensorboard/  TensorBoard events, opened on first use (`TensorBoardLog`)
+
+and the random streams a checkpoint carries (`rng_state`, `restore_rng`). Intervals and steps
+are in the apparatus's units (volts for lenses, percent for stigmators, micrometres for the
+aperture).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Mapping
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import torch
+
+from alignrl.checkpoints import atomic_write_text
+from alignrl.config import ConfigError, ExperimentConfig, parse_experiment, read_yaml
+from alignrl.envs.task import Task
+
+if TYPE_CHECKING:
+    from torch.utils.tensorboard import SummaryWriter
+
+__all__ = [
+    "CONFIG_FILE",
+    "KNOBS_FILE",
+    "TensorBoardLog",
+    "checked_knobs",
+    "config_of_checkpoint",
+    "knob_limits",
+    "read_training_config",
+    "record_knobs",
+    "recorded_knobs",
+    "restore_rng",
+    "rng_state",
+    "run_config_data",
+]
+
+CONFIG_FILE = "config.yaml"
+KNOBS_FILE = "knobs.json"
+KNOBS_FORMAT = "alignrl-knobs-1"
+
+
+# --- random streams -------------------------------------------------------------------------
+
+
+def rng_state(rng: np.random.Generator) -> dict[str, Any]:
+    """The state of `rng` and of torch's CPU stream, under the keys a checkpoint keeps them."""
+    return {"numpy_rng": rng.bit_generator.state, "torch_rng": torch.get_rng_state()}
+
+
+def _shown(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def restore_rng(rng: np.random.Generator, state: Mapping[str, Any]) -> None:
+    """Set `rng` and torch's CPU stream to what `rng_state` gave. A state that is missing or
+    is not of these streams is a ValueError naming its key, and neither stream changes."""
+    expected = type(rng.bit_generator).__name__
+    numpy_state = state.get("numpy_rng")
+    if not isinstance(numpy_state, Mapping) or numpy_state.get("bit_generator") != expected:
+        raise ValueError(f"numpy_rng: not a {expected} generator state: {_shown(numpy_state)}")
+    torch_state = state.get("torch_rng")
+    size = torch.get_rng_state().shape
+    if not (
+        isinstance(torch_state, torch.Tensor)
+        and torch_state.dtype == torch.uint8
+        and torch_state.shape == size
+    ):
+        raise ValueError(
+            f"torch_rng: not the state of torch's CPU generator ({size[0]} bytes as a uint8 "
+            f"tensor): {_shown(torch_state)}"
+        )
+    before = rng.bit_generator.state
+    try:
+        rng.bit_generator.state = numpy_state
+    except (KeyError, TypeError, ValueError) as error:
+        rng.bit_generator.state = before
+        raise ValueError(f"numpy_rng: not a {expected} generator state: {error}") from None
+    torch.set_rng_state(torch_state)
+
+
+# --- TensorBoard ----------------------------------------------------------------------------
+
+
+class TensorBoardLog:
+    """A run's TensorBoard events in `folder`. The writer opens on first use (TensorBoard takes
+    seconds to import); a resumed run calls `resume_after(step)` before it logs, so that the
+    events a kill left after its checkpoint are dropped (purge_step) and written again."""
+
+    def __init__(self, folder: Path) -> None:
+        self.folder = folder
+        self.purge_step: int | None = None
+        self._writer: SummaryWriter | None = None
+
+    def resume_after(self, step: int) -> None:
+        if self._writer is not None:
+            raise RuntimeError(f"{self.folder}: resume_after must come before the first event")
+        self.purge_step = step + 1
+
+    def add_scalar(self, tag: str, value: float, step: int) -> None:
+        if self._writer is None:
+            from torch.utils.tensorboard import SummaryWriter
+
+            self._writer = SummaryWriter(str(self.folder), purge_step=self.purge_step)
+        self._writer.add_scalar(tag, value, step)
+
+    def flush(self) -> None:
+        """The events so far on disk (before a checkpoint: they are what it has seen)."""
+        if self._writer is not None:
+            self._writer.flush()
+
+    def close(self) -> None:
+        if self._writer is not None:
+            self._writer.close()
+            self._writer = None
+
+
+# --- the run's config -----------------------------------------------------------------------
+
+
+def run_config_data(run_dir: str | Path, kind: str = "run directory") -> dict[str, Any]:
+    """A run's config.yaml as a mapping, read strictly and within bounds (alignrl.yaml_io).
+    FileNotFoundError where `run_dir` has none ("runs/x is not a league run (no
+    config.yaml)", with `kind` "league run"); ConfigError where it is no mapping."""
+    path = Path(run_dir) / CONFIG_FILE
+    if not path.exists():
+        raise FileNotFoundError(f"{run_dir} is not a {kind} (no {CONFIG_FILE})")
+    data = read_yaml(path, "run config")
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a mapping of settings at the top level")
+    return data
+
+
+def read_training_config(run_dir: str | Path) -> ExperimentConfig:
+    """The experiment of an `alignrl train` (or `alignrl adapt`) run directory."""
+    return parse_experiment(run_config_data(run_dir), str(Path(run_dir) / CONFIG_FILE))
+
+
+def config_of_checkpoint(state: Mapping[str, Any], checkpoint: Path) -> ExperimentConfig:
+    """The experiment a training checkpoint carries (last.pt and best.pt keep it as YAML)."""
+    from alignrl.yaml_io import parse_yaml
+
+    source = f"{checkpoint} (config)"
+    return parse_experiment(parse_yaml(state["config"], source), source)
+
+
+# --- knob intervals and steps ---------------------------------------------------------------
+
+
+def knob_limits(task: Task, knobs: Mapping[str, tuple[float, float]]) -> list[dict[str, Any]]:
+    """Per task knob: its interval on an apparatus with these `knobs` and the largest change
+    one action makes (Task.step_sizes, as the env scales actions)."""
+    steps = task.step_sizes(knobs)
+    return [
+        {
+            "name": knob,
+            "low": float(knobs[knob][0]),
+            "high": float(knobs[knob][1]),
+            "max_step": float(step),
+        }
+        for knob, step in zip(task.knobs, steps, strict=True)
+    ]
+
+
+def record_knobs(run_dir: Path, apparatus: str, limits: list[dict[str, Any]]) -> None:
+    """Write knobs.json (atomically): `limits` as `knob_limits` gives them, and the spec of
+    the apparatus they were read from."""
+    record = {"format": KNOBS_FORMAT, "apparatus": apparatus, "knobs": limits}
+    atomic_write_text(run_dir / KNOBS_FILE, json.dumps(record, indent=2) + "\n")
+
+
+def recorded_knobs(run_dir: Path, task: Task) -> list[dict[str, Any]] | None:
+    """The knob limits `run_dir` recorded when it started, checked against `task` (its knobs
+    in order, finite intervals, positive steps); None where the run records none (it was
+    made before alignrl recorded them). A record that does not fit is a ValueError naming
+    the file and the entry."""
+    path = run_dir / KNOBS_FILE
+    if not path.exists():
+        return None
+    try:
+        record = json.loads(path.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise ValueError(f"{path}: not valid JSON ({error})") from None
+    if not isinstance(record, dict) or record.get("format") != KNOBS_FORMAT:
+        raise ValueError(f"{path}: not a knob record (format {KNOBS_FORMAT} expected)")
+    return checked_knobs(record.get("knobs"), task, str(path))
+
+
+def checked_knobs(knobs: Any, task: Task, where: str) -> list[dict[str, Any]]:
+    """`knobs` (a record's or a model card's list) if it describes `task`'s knobs in order,
+    each with a finite interval (low < high) and a positive finite max_step."""
+    if not isinstance(knobs, list) or len(knobs) != len(task.knobs):
+        count = len(knobs) if isinstance(knobs, list) else _shown(knobs)
+        raise ValueError(
+            f"{where}: lists {count} knob(s); task {task.name!r} has {len(task.knobs)}"
+        )
+    checked = []
+    for index, (entry, name) in enumerate(zip(knobs, task.knobs, strict=True)):
+        if not isinstance(entry, dict) or entry.get("name") != name:
+            raise ValueError(f"{where}: knobs[{index}] is not knob {name!r}: {_shown(entry)}")
+        values = {}
+        for key in ("low", "high", "max_step"):
+            value = entry.get(key)
+            if isinstance(value, bool) or not isinstance(value, int | float):
+                raise ValueError(f"{where}: knobs[{index}].{key} is {_shown(value)}, not a number")
+            if not math.isfinite(value):
+                raise ValueError(f"{where}: knobs[{index}].{key} is {value}, not finite")
+            values[key] = float(value)
+        if not values["low"] < values["high"] or not values["max_step"] > 0:
+            raise ValueError(
+                f"{where}: knobs[{index}] ({name}) needs low < high and max_step > 0, got "
+                f"[{values['low']:g}, {values['high']:g}] and {values['max_step']:g}"
+            )
+        checked.append({"name": name, **values})
+    return checked

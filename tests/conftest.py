@@ -1,0 +1,136 @@
+"""What many test files build: tiny learners, rosters, leagues and training experiments
+written as YAML under a test's own folder, and the CSV reader for run metrics.
+
+Test files import these by name (`from conftest import SMALL_SAC, write_league`); the values
+are those the tests were written with, so a test that moved here draws the same random numbers
+and asserts the same results. Everything is written under the folder a test passes in (its
+`tmp_path`): nothing here touches a fixed path, so tests run in parallel (`pytest -n 2`).
+"""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import yaml
+
+if TYPE_CHECKING:
+    from alignrl.league.loop import League
+
+# A SAC and a PPO learner small enough to learn something in a few dozen env steps.
+SMALL_SAC = {
+    "encoder_kwargs": {"hidden": [16]},
+    "hidden": [16],
+    "batch_size": 16,
+    "learning_starts": 16,
+    "random_steps": 32,
+    "buffer_size": 2000,
+}
+SMALL_PPO = {
+    "algorithm": "ppo",
+    "encoder": "mlp",
+    "encoder_kwargs": {"hidden": [16]},
+    "hidden": [16],
+    "batch_size": 16,
+    "rollout_steps": 4,
+    "epochs": 2,
+}
+
+
+def narrowed(learner: dict[str, Any], width: int) -> dict[str, Any]:
+    """`learner` with one hidden layer of `width` units in its encoder and its heads."""
+    return {**learner, "encoder_kwargs": {"hidden": [width]}, "hidden": [width]}
+
+
+def write_yaml(path: Path, data: dict[str, Any]) -> Path:
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def write_experiment(folder: Path, settings: dict[str, Any]) -> Path:
+    """A training experiment, `folder/<name>.yaml`."""
+    return write_yaml(folder / f"{settings['name']}.yaml", settings)
+
+
+def write_rosters(
+    folder: Path, aligners: list[dict[str, Any]], misaligners: list[dict[str, Any]]
+) -> dict[str, str]:
+    """`folder/aligners.yaml` and `folder/misaligners.yaml`; the league keys naming them."""
+    for team, members in (("aligner", aligners), ("misaligner", misaligners)):
+        write_yaml(folder / f"{team}s.yaml", {"team": team, "members": members})
+    return {team: str(folder / f"{team}.yaml") for team in ("aligners", "misaligners")}
+
+
+def one_sac_each(learner: dict[str, Any]) -> dict[str, list[dict[str, Any]]]:
+    """Rosters of one member per team, `a-sac` and `m-sac`, both with `learner`."""
+    return {
+        "aligners": [{"id": "a-sac", "learner": learner}],
+        "misaligners": [{"id": "m-sac", "learner": learner}],
+    }
+
+
+def write_league_files(
+    folder: Path,
+    aligners: list[dict[str, Any]],
+    misaligners: list[dict[str, Any]],
+    settings: dict[str, Any],
+    file: str = "league.yaml",
+) -> Path:
+    """A league experiment `folder/file` with its two rosters beside it; `settings` may name
+    other roster files instead."""
+    return write_yaml(folder / file, {**write_rosters(folder, aligners, misaligners), **settings})
+
+
+def write_league(folder: Path, **changes: Any) -> Path:
+    """The tiny league of the league tests: a SAC and a PPO member per team (the PPO aligner
+    with a GRU), 8 iterations of 8 matches with snapshots, PBT, evaluations and checkpoints
+    all happening; `changes` replace top-level keys."""
+    gru_ppo = {**SMALL_PPO, "encoder": "gru", "encoder_kwargs": {"hidden": 8}}
+    settings = {
+        "name": "tiny",
+        "envs": 4,
+        "schedule": {
+            "iterations": 8,
+            "matches": 8,
+            "snapshot_every": 3,
+            "pbt_every": 4,
+            "evaluate_every": 4,
+            "eval_scenarios": 4,
+            "checkpoint_every": 2,
+        },
+        "pbt": {"min_gap": 0.0},
+        **changes,
+    }
+    return write_league_files(
+        folder,
+        aligners=[{"id": "a-sac", "learner": SMALL_SAC}, {"id": "a-ppo", "learner": gru_ppo}],
+        misaligners=[{"id": "m-sac", "learner": SMALL_SAC}, {"id": "m-ppo", "learner": SMALL_PPO}],
+        settings=settings,
+    )
+
+
+def quiet_schedule(**changes: Any) -> dict[str, Any]:
+    """A short schedule without snapshots or evaluations to speak of; `changes` on top."""
+    return {
+        "iterations": 6,
+        "matches": 8,
+        "snapshot_every": 100,
+        "evaluate_every": 100,
+        "eval_scenarios": 2,
+        "checkpoint_every": 3,
+        **changes,
+    }
+
+
+def create_league(path: Path, runs: Path) -> League:
+    """The league of experiment `path`, its run directory made under `runs`."""
+    from alignrl.league.config import load_league  # torch: only for the tests that need it
+    from alignrl.league.loop import League
+
+    return League.create(*load_league(path), runs)
+
+
+def read_csv(path: Path) -> list[dict[str, str]]:
+    with path.open(newline="") as handle:
+        return list(csv.DictReader(handle))
