@@ -39,8 +39,9 @@ __all__ = [
 
 def check_adaptable(source: PolicySource, named: str) -> None:
     """Refuse a source without a learner's state: an adaptation trains on from the source's
-    critics, optimizers and entropy coefficient, and an exported policy or a shipped
-    champion (`named`: as it was given) brings its acting network alone."""
+    critics, optimizers and entropy coefficient, which a run, a member file, and an export or
+    a shipped champion made with --with-learner-state bring; any other export or champion
+    (`named`: as it was given) brings its acting network alone."""
     require_learner_state(
         source,
         named,
@@ -79,8 +80,8 @@ def adaptation_config(
     cannot tell its best edge width, as a real column cannot. `updates_per_step` (SAC): more
     gradient updates per acquisition than in pre-training. `critic_warmup_steps`: the first
     env steps in which only the critics learn. `hindsight_secrets`, `hindsight_optimum`: see
-    HindsightSecrets. A source without critics (an export, a champion) is refused
-    (check_adaptable)."""
+    HindsightSecrets. A source without critics (an export or a champion without its learner
+    state) is refused (check_adaptable)."""
     check_adaptable(source, str(source.member_file))
     spec = source.agent.spec
     learner = LearnerConfig(algorithm=spec.algorithm, **spec.hyperparameters)  # type: ignore[arg-type]

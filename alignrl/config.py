@@ -273,12 +273,20 @@ class TaskOptions(_Strict):
     acquisition_cost: float | None = Field(None, ge=0, description="reward cost per image")
     out_of_bounds_penalty: float | None = Field(None, ge=0, description="bound penalty")
     final_reward_scale: float | None = Field(None, gt=0, description="final reward factor")
+    final_reward_form: Literal["difference", "log_ratio"] | None = Field(
+        None, description="final reward on widths in px (difference) or on their logs"
+    )
     success_bonus: float | None = Field(None, ge=0, description="optional shaping at success")
     bonus_relative: float | None = Field(
         None, gt=1, description="bonus only within this x best width (the spec unchanged)"
     )
     verify_final: bool | None = Field(
         None, description="judge final reward and bonus on one more image (as evaluation does)"
+    )
+    quality_reference: Literal["fixed", "first"] | None = Field(
+        None,
+        description="quality observations relative to quality_ref_px (fixed) or to the "
+        "episode's first width (first: unit-free)",
     )
     success_relative: float | None = Field(None, gt=1, description="threshold x best width")
     success_absolute_px: float | None = Field(None, gt=0, description="absolute spec, px")
@@ -398,7 +406,29 @@ class RunConfig(_Strict):
         if self.curriculum.lower_at >= self.curriculum.raise_at:
             raise ValueError("curriculum.lower_at must be below curriculum.raise_at")
         self.resolved_task()  # an unknown task, or options it cannot take
+        if getattr(self, "adaptation", None) is None:  # adapting on a user's column is no choice
+            self._refuse_held_out()
         return self
+
+    def apparatus_specs(self) -> list[tuple[str, str, dict[str, Any]]]:
+        """(key, spec, arguments) of every apparatus this run trains or chooses on."""
+        return [
+            ("apparatus", self.apparatus, self.apparatus_args),
+            ("eval_apparatus", self.eval_apparatus, self.eval_apparatus_args),
+        ]
+
+    def _refuse_held_out(self) -> None:
+        """The held-out instruments judge generalization: no run trains or chooses on them
+        (alignrl/apparatus/instruments.py)."""
+        from alignrl.apparatus.instruments import held_out_reason
+
+        for key, spec, arguments in self.apparatus_specs():
+            reason = held_out_reason(spec, arguments)
+            if reason is not None:
+                raise ValueError(
+                    f"{key}: {reason}; held-out instruments are never trained or chosen on "
+                    "(choose on set:validation; judge with alignrl evaluate --set heldout)"
+                )
 
 
 class AdaptationConfig(_Strict):

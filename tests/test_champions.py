@@ -1,7 +1,7 @@
 """The shipped champions (alignrl/champions/, package data) align their task as their model
 cards say, and `champion:NAME` is taken wherever a policy or a source is: evaluate, align,
-export, adapt (refused: a champion ships no critics) and a roster's init_from (refused for the
-same reason), each decided by alignrl.runs.sources.
+export, adapt (refused for a champion that ships no critics) and a roster's init_from (refused
+for the same reason), each decided by alignrl.runs.sources.
 
 Each champion is run by `alignrl evaluate` on the apparatus its card says it was evaluated on,
 on scenarios of a seed no card names: a champion whose weights, card or task went out of step

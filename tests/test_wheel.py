@@ -55,6 +55,15 @@ def test_the_wheel_holds_every_champion(wheel: Path) -> None:
             assert f"alignrl/champions/{champion}/{file}" in names, (champion, file)
 
 
+def test_the_wheel_holds_every_family_and_instrument(wheel: Path) -> None:
+    names = set(zipfile.ZipFile(wheel).namelist())
+    apparatus = ROOT / "alignrl" / "apparatus"
+    files = [*apparatus.glob("families/*.yaml"), *apparatus.glob("instruments/*/*.yaml")]
+    assert len(files) >= 12
+    for path in files:
+        assert path.relative_to(ROOT).as_posix() in names, path
+
+
 def test_an_unpacked_wheel_aligns_with_a_champion_outside_the_repository(
     wheel: Path, tmp_path: Path
 ) -> None:

@@ -2,15 +2,21 @@
 
 * a preset name: `synthetic`, `synthetic-b` (every YAML file in alignrl/apparatus/presets/),
 * `sem:PATH.yaml`: a synthetic SEM with the instrument parameters of a YAML file,
+* `family:NAME` or `family:PATH.yaml`: a column drawn anew every episode from an instrument
+  family's box (alignrl/apparatus/families/NAME.yaml; alignrl/apparatus/family.py),
+* `instrument:NAME`: one instrument of alignrl/apparatus/instruments/<set>/NAME.yaml, and
+  `set:NAME` a whole set of them, the next instrument at every reset
+  (alignrl/apparatus/instruments.py),
 * `csv:PATH`: the scenario simulator replaying a recorded CSV (`csv:default` is the shipped
   2000-scenario set of the `synthetic` preset),
 * `package.module:Class`: a user's own driver, imported and constructed with the keyword
   arguments of `apparatus_args` / `--apparatus-args JSON`. alignrl needs no change for it.
 
-For presets, `sem:` and `csv:` the same arguments override instrument or simulator settings
-(for example `{"dose_electrons_per_px": 50}` or `{"noise": 0.02, "split": "test"}`). For presets
-and `sem:` the argument `analytic` (true or false) switches the synthetic SEM to its analytic
-mode: readings computed from the probe, without images (docs/physics.md).
+For presets, `sem:`, `family:`, `instrument:` and `csv:` the same arguments override
+instrument or simulator settings (for example `{"dose_electrons_per_px": 50}` or
+`{"noise": 0.02, "split": "test"}`). For presets, `sem:`, `family:`, `instrument:` and `set:`
+(which takes no other argument) the argument `analytic` (true or false) switches to the
+analytic mode: readings computed from the probe, without images (docs/physics.md).
 
 A driver is a real instrument: `make_apparatus` returns it behind the safety shield
 (alignrl/apparatus/shield.py: intervals, site limits, maximum steps, finite values, bounded
@@ -33,7 +39,9 @@ from pathlib import Path
 from typing import Any
 
 from alignrl.apparatus.base import APPARATUS_METHODS, Apparatus
+from alignrl.apparatus.family import FAMILY_DIR, FamilyColumn, family_names, load_family
 from alignrl.apparatus.guard import DEFAULT_CALL_TIMEOUT_S, construct_within
+from alignrl.apparatus.instruments import InstrumentSet, find_instrument, load_set
 from alignrl.apparatus.limits import ShieldOptions
 from alignrl.apparatus.sem_config import PRESET_DIR, load_sem_config
 from alignrl.apparatus.shield import shield_apparatus
@@ -129,21 +137,24 @@ def _import_driver(
 
 
 def spec_form(spec: str) -> str:
-    """Which form a spec has: 'csv', 'sem', 'preset' or 'driver'; a ValueError for none.
+    """Which form a spec has: 'csv', 'sem', 'family', 'instrument', 'set', 'preset' or
+    'driver'; a ValueError for none.
     Nothing is built or imported: a driver may be importable only on its microscope's PC."""
     if not isinstance(spec, str) or not spec:
         raise ValueError("an apparatus spec must be a non-empty string")
     if spec.startswith("csv:"):
         return "csv"
-    if spec.startswith("sem:"):
-        return "sem"
+    for form in ("sem", "family", "instrument", "set"):
+        if spec.startswith(f"{form}:"):
+            return form
     if spec in preset_names():
         return "preset"
     if ":" in spec and all(part.isidentifier() for part in spec.replace(":", ".").split(".")):
         return "driver"
     raise ValueError(
         f"unknown apparatus {spec!r}: use a preset ({', '.join(preset_names())}), "
-        "csv:PATH (or csv:default), sem:PATH.yaml, or an import path package.module:Class"
+        "csv:PATH (or csv:default), sem:PATH.yaml, family:NAME, instrument:NAME, set:NAME, "
+        "or an import path package.module:Class"
     )
 
 
@@ -162,15 +173,39 @@ def build_apparatus(
         location = spec[len("csv:") :]
         path = default_scenarios_path() if location == "default" else Path(location)
         return _construct(ScenarioSimulator, spec, args, path=path, seed=seed, scenarios=None)
-    if form in ("sem", "preset"):
-        path = Path(spec[len("sem:") :]) if form == "sem" else PRESET_DIR / f"{spec}.yaml"
+    if form in ("sem", "preset", "family", "instrument", "set"):
         analytic = args.pop("analytic", False)
         if not isinstance(analytic, bool):
             raise ValueError(
                 f"apparatus {spec!r}: analytic must be true or false, got {analytic!r}"
             )
+        target = spec.partition(":")[2]
+        if form == "set":
+            if args:
+                raise ValueError(
+                    f"apparatus {spec!r}: a set takes only the argument analytic, got "
+                    f"{', '.join(sorted(args))}"
+                )
+            return InstrumentSet([family for _, family in load_set(target)], seed, analytic)
+        if form == "family":
+            return FamilyColumn(load_family(_family_path(target), **args), seed, analytic)
+        if form == "instrument":
+            return FamilyColumn(load_family(find_instrument(target), **args), seed, analytic)
+        path = Path(target) if form == "sem" else PRESET_DIR / f"{spec}.yaml"
         return SyntheticSEM(load_sem_config(path, **args), seed=seed, analytic=analytic)
     return _import_driver(spec, args, call_timeout_s)
+
+
+def _family_path(target: str) -> Path:
+    """family:NAME names a shipped box, family:PATH.yaml a file."""
+    if target.endswith((".yaml", ".yml")) or "/" in target:
+        return Path(target)
+    if target not in family_names():
+        raise ValueError(
+            f"no instrument family {target!r}; the shipped families are: "
+            f"{', '.join(family_names())} (or give family:PATH.yaml)"
+        )
+    return FAMILY_DIR / f"{target}.yaml"
 
 
 def make_apparatus(

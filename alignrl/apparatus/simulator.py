@@ -21,6 +21,14 @@ so its optimum sits at o + s (kept inside the interval), its focus curve is g ti
 and every edge width, the best one included, c times as wide. The span where edges are
 measurable shrinks or grows with 1 / g around the new optimum. Without `randomize` the
 recording is replayed as it is, bit for bit.
+
+`randomize: {family: NAME}` (or a family file's path) draws the same three from an
+instrument family (alignrl/apparatus/family.py), where it applies to a replay: the optimum
+at the family's `optimum_fraction` of the interval, the steepness so that the curve's blur
+per interval is the family's `blur_px_per_interval` (g = B / B_recorded), and the widths so
+that the in-focus probe is the family's `floor_sigma_px` (c = sigma0 / sigma0_recorded). The
+recording's own B and sigma0 are estimated from its curves once (`recorded_column`). Its
+curve shape, noise, drift and hysteresis stay the recorded column's.
 """
 
 from __future__ import annotations
@@ -34,6 +42,8 @@ from typing import Literal, get_args
 import numpy as np
 
 from alignrl.apparatus.base import NoEdgesError, check_write
+from alignrl.apparatus.edge_profiles import TEN_NINETY_PER_SIGMA
+from alignrl.apparatus.family import FAMILY_DIR, FocusFamily, draw_column, family_names, load_family
 from alignrl.apparatus.scenarios import ScenarioSet, read_scenarios
 
 __all__ = [
@@ -82,6 +92,7 @@ class Randomization:
     shift_v: float = 0.0
     gain: tuple[float, float] = (1.0, 1.0)
     width: tuple[float, float] = (1.0, 1.0)
+    family: FocusFamily | None = None  # draw from an instrument family instead
 
     @classmethod
     def parse(cls, value: object) -> Randomization | None:
@@ -95,12 +106,18 @@ class Randomization:
                 "randomize must be a mapping such as {shift_v: 20, gain: [0.8, 2], "
                 f"width: [0.9, 1.5]}}, got {_shown(value)}"
             )
-        unknown = sorted(map(str, set(value) - {"shift_v", "gain", "width"}))
+        unknown = sorted(map(str, set(value) - {"shift_v", "gain", "width", "family"}))
         if unknown:
             raise ValueError(
                 f"randomize: unknown key(s) {_shown(', '.join(unknown))} "
-                "(it takes: shift_v, gain, width)"
+                "(it takes: shift_v, gain, width; or family alone)"
             )
+        if "family" in value:
+            if len(value) > 1:
+                raise ValueError(
+                    "randomize: family draws the shift, gain and width itself: give it alone"
+                )
+            return cls(family=_family(value["family"]))
         shift = value.get("shift_v", 0.0)
         if (
             isinstance(shift, bool)
@@ -130,13 +147,44 @@ class Randomization:
         return cls(float(shift), ranges["gain"], ranges["width"])
 
     def draw(self, rng: np.random.Generator) -> tuple[float, float, float]:
-        """(shift in V, steepness factor, width factor) for one scenario."""
+        """(shift in V, steepness factor, width factor) for one scenario (not for a family:
+        `draw_family`)."""
         shift = float(rng.uniform(-self.shift_v, self.shift_v)) if self.shift_v else 0.0
         gain, width = (
             float(np.exp(rng.uniform(np.log(low), np.log(high))))
             for low, high in (self.gain, self.width)
         )
         return shift, gain, width
+
+
+def _family(value: object) -> FocusFamily:
+    """randomize.family: a shipped family's name or a family file's path."""
+    if not isinstance(value, str) or not value:
+        raise ValueError(f"randomize.family must name a family or a file, got {_shown(value)}")
+    path = Path(value) if value.endswith((".yaml", ".yml")) else FAMILY_DIR / f"{value}.yaml"
+    if not path.exists():
+        raise ValueError(
+            f"randomize.family: no family {_shown(value)} (shipped: {', '.join(family_names())})"
+        )
+    return load_family(path)
+
+
+def recorded_column(
+    voltages: np.ndarray, widths: np.ndarray, n_pairs: np.ndarray, optima: np.ndarray, span: float
+) -> tuple[float, float]:
+    """(blur px per interval, in-focus sigma px) of a recording, the medians over its rows:
+    sigma0 = best width / 2.563; the blur from the curve where it grows linearly, widths of
+    3-8 x the best: sigma ~ gain |V - V_opt|, B = gain x the interval's width."""
+    valid = np.arange(voltages.shape[1])[None, :] < n_pairs[:, None]
+    best = np.min(np.where(valid, widths, np.inf), axis=1)
+    ratio = widths / best[:, None]
+    linear = valid & (ratio >= 3.0) & (ratio <= 8.0)
+    distance = np.abs(voltages - optima[:, None])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        gains = widths / TEN_NINETY_PER_SIGMA / distance
+    gains = gains[linear & (distance > 0)]
+    blur = float(np.median(gains)) * span if gains.size else float("nan")
+    return blur, float(np.median(best)) / TEN_NINETY_PER_SIGMA
 
 
 def split_indices(n_scenarios: int, split: Split) -> np.ndarray:
@@ -215,6 +263,7 @@ class ScenarioSimulator:
             raise ValueError(f"{source}: {error}") from None
         # This scenario's variation: optimum shift (V), steepness and width factors.
         self._shift, self._gain, self._scale = 0.0, 1.0, 1.0
+        self._recorded: tuple[float, float] | None = None  # its (blur, sigma0): recorded_column
         if isinstance(noise, bool) or not isinstance(noise, int | float):
             raise ValueError(
                 f"{source}: noise must be a number (relative std, e.g. 0.02), got {_shown(noise)}"
@@ -298,9 +347,27 @@ class ScenarioSimulator:
         self._voltage = 0.5 * (low + high)
         if self.randomize is not None:  # its own stream: the noise draws stay as they were
             variation = np.random.default_rng([seed, RANDOMIZE_STREAM])
-            self._shift, self._gain, self._scale = self.randomize.draw(variation)
+            if self.randomize.family is None:
+                self._shift, self._gain, self._scale = self.randomize.draw(variation)
+            else:
+                self._draw_family(self.randomize.family, variation)
 
     # --- the varied column (identity without `randomize`) --------------------------------
+
+    def _draw_family(self, family: FocusFamily, rng: np.random.Generator) -> None:
+        """This scenario's shift, steepness and widths from a family's draw (module doc)."""
+        column = draw_column(family, rng)
+        low, high = self.knobs[self.knob]
+        if self._recorded is None:
+            data = self.scenarios
+            self._recorded = recorded_column(
+                data.voltages, data.edge_widths, data.n_pairs, self.optima, high - low
+            )
+        blur, sigma0 = self._recorded
+        fraction = (column.optimum - column.low) / column.width
+        self._shift = low + fraction * (high - low) - self._recorded_optimum()
+        self._gain = column.blur_px_per_interval / blur if math.isfinite(blur) else 1.0
+        self._scale = column.floor_sigma_px / sigma0
 
     def _recorded_optimum(self) -> float:
         return float(self.optima[self.row])

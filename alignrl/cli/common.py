@@ -176,10 +176,11 @@ def _add_policy_option(parser: argparse.ArgumentParser, help_text: str) -> None:
     parser.add_argument("--policy", required=True, action="append", help=help_text)
 
 
-def _add_session_options(parser: argparse.ArgumentParser) -> None:
+def _add_session_options(parser: argparse.ArgumentParser, apparatus_required: bool = True) -> None:
     """The options of an evaluation session (evaluate, baselines): where, which task, how many
-    alignments against which spec."""
-    _add_apparatus_options(parser)
+    alignments against which spec. `apparatus_required=False`: the verb checks that it has
+    --apparatus or its alternative (evaluate and baselines: --set)."""
+    _add_apparatus_options(parser, required=apparatus_required)
     parser.add_argument(
         "--task",
         default=None,

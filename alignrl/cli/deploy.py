@@ -117,10 +117,19 @@ def cmd_export(args: argparse.Namespace) -> int:
     from alignrl.runs.sources import resolve_source
 
     started = time.perf_counter()
+    learner = args.with_learner_state
     source = resolve_source(args.run, args.member)
-    command = export_command(args.run, args.member, args.format, args.out)
+    command = export_command(args.run, args.member, args.format, args.out, learner)
     try:
-        result = export_policy(source, args.out, args.format, force=args.force, command=command)
+        result = export_policy(
+            source,
+            args.out,
+            args.format,
+            force=args.force,
+            command=command,
+            learner_state=learner,
+            named=args.run,
+        )
     except ImportError as error:  # the optional extra: its message says what to install
         raise CommandError(str(error)) from None
     card, parity = result.card, result.parity
@@ -133,6 +142,7 @@ def cmd_export(args: argparse.Namespace) -> int:
         "policy": str(result.policy_file),
         "card": str(result.out / "card.json"),
         "model_card": str(result.out / "model_card.md"),
+        "learner": str(result.learner_file) if result.learner_file else None,
         "inputs": card["inputs"],
         "outputs": card["outputs"],
         "history": card["history"],
@@ -164,6 +174,12 @@ def cmd_export(args: argparse.Namespace) -> int:
         f"{parity.histories} random histories (allowed {parity.tolerance:g})",
         f"  model card: {payload['model_card']} and {payload['card']}",
     ]
+    if result.learner_file:
+        lines.append(
+            f"  learner: {result.learner_file} and {result.out / 'learner.json'} (critics, "
+            "target critics, entropy coefficient, optimizers: adapt and init_from train on "
+            "from them)"
+        )
     _emit(payload, args.json, lines)
     return 0
 
@@ -234,6 +250,13 @@ def add_deploy_parsers(verbs: argparse._SubParsersAction[argparse.ArgumentParser
         "policy.safetensors (the network's weights; no extra dependencies)",
     )
     export.add_argument("--out", required=True, metavar="DIR", help="folder to write")
+    export.add_argument(
+        "--with-learner-state",
+        action="store_true",
+        help="with --format safetensors: also the critics, optimizers and entropy coefficient "
+        "(learner.safetensors, learner.json), so that adapt and init_from can train on from "
+        "the export",
+    )
     export.add_argument("--force", action="store_true", help="replace a non-empty --out")
     export.add_argument("--json", action="store_true", help="machine-readable summary")
     export.set_defaults(handler=cmd_export)

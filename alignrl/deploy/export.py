@@ -8,10 +8,17 @@ safetensors (alignrl.deploy.formats), with its model card (alignrl.deploy.card).
                               no graph and no pickle: card.json's member rebuilds the network
     card.json                 the model card for machines (keys: docs/deploy.md)
     model_card.md             the same card for a person
+    learner.safetensors       with learner_state (safetensors only): the member's whole
+    learner.json              learner state, critics and optimizers included, as tensors
+                              and strict JSON (format: alignrl.runs.learner_state;
+                              written by alignrl.deploy.learner_state), what `alignrl adapt`
+                              and a roster's `init_from` train on from
 
 and refuses to write it unless the file it wrote, loaded back, gives the PyTorch policy's
-actions on random histories within PARITY_TOLERANCE (alignrl.deploy.parity). What the graph
-computes is in alignrl.deploy.graph; `alignrl.deploy.loading.load_exported` runs the folder.
+actions on random histories within PARITY_TOLERANCE (alignrl.deploy.parity), and a learner
+state unless, read back as `resolve_source` reads it, it is the source's to the last bit.
+What the graph computes is in alignrl.deploy.graph; `alignrl.deploy.loading.load_exported`
+runs the folder.
 
 The knob intervals and steps (the action scale) are those the run recorded when it trained
 (knobs.json, alignrl.runs.state), or an export's card, as the source read them: the instrument
@@ -39,6 +46,7 @@ from alignrl.deploy.formats import (
     write_policy,
 )
 from alignrl.deploy.graph import PolicyGraph, PolicyInterface
+from alignrl.deploy.learner_state import write_checked
 from alignrl.deploy.parity import PARITY_HISTORIES, PARITY_TOLERANCE, Parity, check_parity
 from alignrl.runs.sources import ExportError, PolicySource
 from alignrl.runs.state import KNOBS_FILE
@@ -103,6 +111,26 @@ class ExportResult:
     policy_file: Path
     card: dict[str, Any]
     parity: Parity
+    learner_file: Path | None = None  # learner.safetensors, where the learner state was written
+
+
+def _check_learner_export(source: PolicySource, export_format: str, named: str) -> None:
+    """Refuse, before any work, a learner state that cannot be written: beside a graph (it
+    loads into the member a safetensors policy rebuilds), or of a source that has none."""
+    if export_format != "safetensors":
+        raise ExportError(
+            f"--with-learner-state needs --format safetensors: the learner state loads into the "
+            f"member that a safetensors policy rebuilds, and a {export_format} graph is none"
+        )
+    if not source.learner_state:
+        what = "a shipped champion" if source.kind == "champion" else "an exported policy"
+        origin = ((source.card or {}).get("source") or {}).get("member_file")
+        raise ExportError(
+            f"{named} is {what} without a learner state (its acting network alone): "
+            "--with-learner-state exports critics, optimizers and entropy coefficient, so "
+            "give the league run, training run or member .pt file it was exported from"
+            + (f" (its card names {origin})" if origin else "")
+        )
 
 
 def export_policy(
@@ -115,18 +143,25 @@ def export_policy(
     tolerance: float = PARITY_TOLERANCE,
     command: str | None = None,
     note: Callable[[str], None] | None = None,
+    learner_state: bool = False,
+    named: str | None = None,
 ) -> ExportResult:
     """Write `source`'s policy to the folder `out` as `export_format` (onnx, torchscript,
     safetensors) with its model card. The written file is loaded back and checked against
     the member on `histories` random histories; beyond `tolerance` nothing is written
     (ExportError). `note` receives a line where the knob intervals had to be read from the
-    training apparatus (default: standard error)."""
+    training apparatus (default: standard error). `learner_state` (safetensors only): the
+    member's critics, optimizers and entropy coefficient too (learner.safetensors,
+    learner.json), for a source that holds them; `named`: the source as the user gave it,
+    for the messages."""
     from alignrl.deploy.card import build_card, check_card, render_model_card
 
     if export_format not in EXPORT_FORMATS:
         raise ExportError(
             f"unknown export format {export_format!r}; formats: {', '.join(EXPORT_FORMATS)}"
         )
+    if learner_state:
+        _check_learner_export(source, export_format, named or str(source.member_file))
     if export_format == "onnx":
         import_onnxruntime()  # before any work: the parity check needs it
     out = Path(out)
@@ -161,17 +196,33 @@ def export_policy(
             raise ExportError(f"{error}; nothing was written to {out}") from None
         atomic_write_text(staging / "card.json", json.dumps(card, indent=2) + "\n")
         atomic_write_text(staging / "model_card.md", render_model_card(card))
+        learner_file = write_checked(source, staging, knobs, card) if learner_state else None
         publish_folder(staging, out)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise
-    return ExportResult(out, out / EXPORT_FORMATS[export_format], card, parity)
+    return ExportResult(
+        out,
+        out / EXPORT_FORMATS[export_format],
+        card,
+        parity,
+        out / learner_file.name if learner_file else None,
+    )
 
 
-def export_command(run: str | Path, member: str | None, export_format: str, out: str | Path) -> str:
+def export_command(
+    run: str | Path,
+    member: str | None,
+    export_format: str,
+    out: str | Path,
+    learner_state: bool = False,
+) -> str:
     """The `alignrl export` command line that writes this export (for the model card)."""
     words = ["alignrl", "export", str(run)]
     if member is not None:
         words += ["--member", member]
-    words += ["--format", export_format, "--out", str(out)]
+    words += ["--format", export_format]
+    if learner_state:
+        words.append("--with-learner-state")
+    words += ["--out", str(out)]
     return shlex.join(words)

@@ -7,6 +7,9 @@ and opened again as a `Runner` (`load_runner`), and its SHA-256.
                                        no graph and no pickle; the member rebuilt from its
                                        spec runs them by Agent.act
 
+`save_tensors` writes any named tensors as safetensors (the learner state beside a policy,
+alignrl.deploy.learner_state, too).
+
 Every file is checked as it is opened: finite weights, and for safetensors exactly the
 network's tensors. A missing or unreadable file is an ExportError naming it. Each file is
 fsynced once written (alignrl.checkpoints): the export publishes the folder it lies in.
@@ -14,7 +17,6 @@ fsynced once written (alignrl.checkpoints): the export publishes the folder it l
 
 from __future__ import annotations
 
-import hashlib
 import warnings
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
@@ -28,6 +30,7 @@ from torch import Tensor
 from alignrl.agents.agent import Agent, finite_problem
 from alignrl.checkpoints import current_umask, fsync_file
 from alignrl.deploy.graph import PolicyGraph, PolicyInterface, Runner, random_histories
+from alignrl.runs.learner_state import file_sha256
 from alignrl.runs.sources import ExportError
 
 __all__ = [
@@ -37,6 +40,7 @@ __all__ = [
     "current_umask",  # from alignrl.checkpoints, named here for older importers
     "import_onnxruntime",
     "load_runner",
+    "save_tensors",
     "sha256_of",
     "write_policy",
 ]
@@ -192,12 +196,9 @@ def load_runner(path: Path, export_format: str, interface: PolicyInterface) -> t
 
 
 def sha256_of(path: Path) -> str:
-    """The policy file's SHA-256, hex: card.json's `policy_sha256`."""
-    digest = hashlib.sha256()
-    with path.open("rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
+    """The policy file's SHA-256, hex: card.json's `policy_sha256` (one reader of digests,
+    alignrl.runs.learner_state's)."""
+    return file_sha256(path)
 
 
 # --- writing a policy file ------------------------------------------------------------
@@ -268,18 +269,27 @@ def _write_graph(graph: PolicyGraph, path: Path, export_format: str) -> None:
     fsync_file(path)
 
 
-def _write_weights(agent: Agent, path: Path) -> None:
-    """The acting network's tensors (Agent.policy_state) as safetensors: tensors and a few
-    strings, nothing a loader would unpickle."""
+def save_tensors(path: Path, tensors: dict[str, Tensor], metadata: dict[str, str]) -> None:
+    """`tensors` as one safetensors file at `path` (a new file in an export's staging
+    folder): raw tensors and a header of strings, nothing a loader would unpickle. Made
+    contiguous (save_file refuses a transposed parameter) and on the CPU; fsynced, with the
+    permissions the umask gives (save_file writes 0600 whatever the umask; card.json does
+    not)."""
     from safetensors.torch import save_file
 
-    state = agent.policy_state()
-    # save_file refuses non-contiguous tensors; a transposed parameter would be one.
-    tensors = {name: tensor.contiguous() for name, tensor in state["policy"].items()}
-    save_file(tensors, str(path), metadata={"format": state["format"], "member": agent.id})
-    # save_file writes 0600 whatever the umask; card.json does not
+    save_file(
+        {name: tensor.detach().cpu().contiguous() for name, tensor in tensors.items()},
+        str(path),
+        metadata=metadata,
+    )
     path.chmod(0o666 & ~current_umask())
     fsync_file(path)
+
+
+def _write_weights(agent: Agent, path: Path) -> None:
+    """The acting network's tensors (Agent.policy_state) as safetensors."""
+    state = agent.policy_state()
+    save_tensors(path, state["policy"], {"format": state["format"], "member": agent.id})
 
 
 def write_policy(agent: Agent, graph: PolicyGraph, path: Path, export_format: str) -> None:

@@ -15,7 +15,10 @@ An episode (seed section 4.3):
 
 Observations are histories of H steps, oldest first, zero-padded at the front; each row is
 FEATURES: [valid, knob settings (k, in [-1, 1]), log(width / ref), measured, last action
-(k + 1), steps left (fraction), extras]. The extras are the task's further measures
+(k + 1), steps left (fraction), extras]. The reference width is the task's quality_ref_px,
+or, with `quality_reference: first`, the episode's first measured width: then no feature
+carries a unit (knobs and steps are fractions of the interval, readings ratios), and the same
+network runs on any interval and any pixel scale. The extras are the task's further measures
 (alignrl/envs/task.py): log(directional width / width) per orientation bin (4, clipped to
 [-1, 1]) and tanh(wobble shift / ref) for x and y (2); a focus task has none, so its rows are
 as they always were. The secret (optimum - setting, as a fraction of the interval) goes to
@@ -165,12 +168,13 @@ class AlignmentEpisodes:
         self.n_extra = task.extra_features
         self.layout = feature_layout(self.k, self.n_extra)
         self.n_features = 5 + 2 * self.k + self.n_extra
-        intervals = np.array([[a.knobs[k] for k in task.knobs] for a in self.apparatus], float)
-        self.low, self.high = intervals[..., 0], intervals[..., 1]  # (N, k)
+        self.low = np.zeros((self.n, self.k))  # (N, k): each knob's interval, its units
+        self.high = np.ones((self.n, self.k))
         self.span = self.high - self.low
+        self.max_step = np.zeros((self.n, self.k))  # largest change per action, its units
+        self._read_intervals(np.arange(self.n))
         # Per knob, the farthest a start may be from the optimum (Task.start_reach; inf: any).
         self.start_reach = np.array([task.start_reach.get(k, np.inf) for k in task.knobs])
-        self.max_step = np.array([task.step_sizes(a.knobs) for a in self.apparatus])  # (N, k)
         # Scenario simulators sharing one recording answer a whole batch in one numpy query
         # (BatchedQueries); its settings columns are the task's knobs, so they must be the
         # apparatus's, in order.
@@ -178,6 +182,9 @@ class AlignmentEpisodes:
             tuple(unit.knobs) == tuple(task.knobs) for unit in self.apparatus
         )
         self.history = np.zeros((self.n, history, self.n_features), np.float32)
+        # The reading quality observations are relative to (Task.quality_reference): the
+        # fixed quality_ref_px, or each episode's first measured width (unit-free).
+        self.quality_ref = np.full(self.n, task.quality_ref_px)
         self.setting = np.zeros((self.n, self.k))  # knob values the env wrote, units
         self.aligned = np.zeros((self.n, self.k))
         self._optima = np.full((self.n, self.k), np.nan)  # replayed recordings' (fixed) optima
@@ -197,6 +204,16 @@ class AlignmentEpisodes:
         self.info = [EpisodeInfo() for _ in range(self.n)]
         self.complexity = 1.0
 
+    def _read_intervals(self, indices: np.ndarray) -> None:
+        """Each knob's interval and largest step of `indices`, read from the apparatus: an
+        instrument family draws a column, with its own interval, at every reset."""
+        for index in indices:
+            knobs = self.apparatus[index].knobs
+            self.low[index] = [float(knobs[k][0]) for k in self.task.knobs]
+            self.high[index] = [float(knobs[k][1]) for k in self.task.knobs]
+            self.max_step[index] = self.task.step_sizes(knobs)
+        self.span[indices] = self.high[indices] - self.low[indices]
+
     def set_complexity(self, level: float) -> None:
         """Width of the misalignment window as a fraction of the interval, in (0, 1]."""
         if not 0.0 < level <= 1.0:
@@ -212,6 +229,8 @@ class AlignmentEpisodes:
         for index, seed in zip(indices, seeds, strict=True):
             self.apparatus[index].reset(seed)
             align_others(self.apparatus[index], self.task.knobs, self.task.context, seed)
+        self._read_intervals(indices)
+        self._reset_quality_ref(indices)
         best = np.full(len(indices), np.nan)
         for position, index in enumerate(indices):
             unit = self.apparatus[index]
@@ -254,6 +273,8 @@ class AlignmentEpisodes:
         trained aligner meets a column in an evaluation session or on a user's instrument.
         The first image is acquired here; success thresholds are left to the caller."""
         indices = np.asarray(indices, dtype=np.int64)
+        self._read_intervals(indices)
+        self._reset_quality_ref(indices)
         for index in indices:
             unit = self.apparatus[index]
             settings = unit.read()
@@ -307,6 +328,7 @@ class AlignmentEpisodes:
             self.cost_before[indices],
             self.best_width[indices],
             self.task.final_reward_scale,
+            self.task.final_reward_form,
         )
 
     # --- stepping -----------------------------------------------------------------------
@@ -342,7 +364,10 @@ class AlignmentEpisodes:
             # aligner chose to stop at; the history is over, so it records no row.
             self._measure(finished)
         reward[done] += rewards.final_reward(
-            self.cost_before[finished], self.cost[finished], task.final_reward_scale
+            self.cost_before[finished],
+            self.cost[finished],
+            task.final_reward_scale,
+            task.final_reward_form,
         )
         if task.success_bonus:
             within = self._within(finished, self.bonus_threshold[finished])
@@ -462,6 +487,12 @@ class AlignmentEpisodes:
         shift = measure_wobble(unit, task.wobble_amplitude_v) if task.wobble else np.empty(0)
         return width, directional, shift
 
+    def _reset_quality_ref(self, indices: np.ndarray) -> None:
+        """A new episode's reference width: fixed, or (unit-free) none until its first
+        measured width."""
+        relative = self.task.quality_reference == "first"
+        self.quality_ref[indices] = np.nan if relative else self.task.quality_ref_px
+
     def _record(self, indices: np.ndarray, widths: np.ndarray, actions: np.ndarray) -> None:
         layout = self.layout
         rows = np.zeros((len(indices), self.n_features), np.float32)
@@ -469,8 +500,12 @@ class AlignmentEpisodes:
         normalized = 2.0 * (self.setting[indices] - self.low[indices]) / self.span[indices] - 1.0
         rows[:, layout["knobs"]] = np.clip(normalized, -1.0, 1.0)
         measured = np.isfinite(widths)
+        reference = self.quality_ref[indices]
+        first = measured & ~np.isfinite(reference)  # the episode's first measured width
+        reference[first] = widths[first]
+        self.quality_ref[indices] = reference
         with np.errstate(invalid="ignore", divide="ignore"):
-            quality = np.log(np.where(measured, widths, np.nan) / self.task.quality_ref_px)
+            quality = np.log(np.where(measured, widths, np.nan) / reference)
         # Unmeasured rows read as the worst quality, flagged by measured = 0.
         quality = np.where(measured, quality, QUALITY_LOG_RANGE[1])
         rows[:, layout["quality"]] = np.clip(quality, *QUALITY_LOG_RANGE)[:, None]

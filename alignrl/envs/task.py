@@ -30,6 +30,8 @@ __all__ = ["MEASURES", "TASKS", "Criterion", "SuccessRule", "Task", "get_task"]
 
 MEASURES = ("width", "directional", "wobble")
 DIRECTIONAL_BINS = 4  # edge-normal orientation bins of quality.directional_widths
+QUALITY_REFERENCES = ("fixed", "first")  # what quality observations are relative to
+REWARD_FORMS = ("difference", "log_ratio")  # how the final reward counts widths (rewards.py)
 
 
 @dataclass(frozen=True)
@@ -107,6 +109,8 @@ class Task:
     success: SuccessRule = field(default_factory=SuccessRule)
     out_of_bounds_penalty: float = 1.0  # reward -penalty for a step that hits an interval bound
     final_reward_scale: float = 1.0  # x (quality before - quality after), quality in px
+    # "log_ratio": x log(quality before / quality after) instead, unit-free (rewards.py)
+    final_reward_form: str = "difference"
     acquisition_cost: float = 0.0  # reward -cost per acquisition (the seed: none)
     success_bonus: float = 0.0  # optional shaping, off by default: + this when the spec is met
     # Pay the bonus only within this x the best width (tighter than the spec: a margin against
@@ -118,7 +122,10 @@ class Task:
     # evaluation session's verification does), not on the reading the aligner stopped at: a
     # lucky noisy reading then earns nothing. Costs one acquisition per episode.
     verify_final: bool = False
-    quality_ref_px: float = 2.5  # quality observations are log(width / this)
+    quality_ref_px: float = 2.5  # quality observations are log(width / this) ...
+    # ... or, "first", log(width / the episode's first measured width): unit-free readings,
+    # for policies that must run on any pixel scale (alignrl/envs/core.py)
+    quality_reference: str = "fixed"
     no_edges_px: float = 25.0  # a frame without edges counts as this wide in rewards
     measures: tuple[str, ...] = ("width",)  # what each step measures (see the module doc)
     directional_relative: float = 1.3  # success: every directional width within this x best
@@ -159,6 +166,16 @@ class Task:
             raise ValueError(f"task {self.name!r}: bonus_relative must be above 1 (x best width)")
         if not self.quality_ref_px > 0 or not self.no_edges_px > 0:
             raise ValueError(f"task {self.name!r}: quality_ref_px and no_edges_px must be > 0")
+        if self.final_reward_form not in REWARD_FORMS:
+            raise ValueError(
+                f"task {self.name!r}: final_reward_form must be one of "
+                f"{', '.join(REWARD_FORMS)}, got {self.final_reward_form!r}"
+            )
+        if self.quality_reference not in QUALITY_REFERENCES:
+            raise ValueError(
+                f"task {self.name!r}: quality_reference must be one of "
+                f"{', '.join(QUALITY_REFERENCES)}, got {self.quality_reference!r}"
+            )
         unknown = [name for name in self.measures if name not in MEASURES]
         if unknown or "width" not in self.measures or len(set(self.measures)) != len(self.measures):
             raise ValueError(

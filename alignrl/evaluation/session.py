@@ -142,8 +142,24 @@ class ScenarioResult:
         return None if self.final_wobble_px is None else math.hypot(*self.final_wobble_px)
 
 
+class AcquisitionStatistics:
+    """The median and 90th percentile of `acquisitions()` (one value per alignment): a
+    session's, or a set's pooled over its instruments."""
+
+    def acquisitions(self) -> np.ndarray:
+        raise NotImplementedError
+
+    @property
+    def median_acquisitions(self) -> float:
+        return float(np.median(self.acquisitions()))
+
+    @property
+    def p90_acquisitions(self) -> float:
+        return float(np.percentile(self.acquisitions(), 90))
+
+
 @dataclass(frozen=True)
-class SessionResult:
+class SessionResult(AcquisitionStatistics):
     """All alignments of a session and their summary statistics."""
 
     controller: str
@@ -174,14 +190,6 @@ class SessionResult:
 
     def acquisitions(self) -> np.ndarray:
         return np.array([record.acquisitions for record in self.records], dtype=np.float64)
-
-    @property
-    def median_acquisitions(self) -> float:
-        return float(np.median(self.acquisitions()))
-
-    @property
-    def p90_acquisitions(self) -> float:
-        return float(np.percentile(self.acquisitions(), 90))
 
     @property
     def budget_exhausted(self) -> int:

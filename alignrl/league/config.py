@@ -49,7 +49,8 @@ class MemberConfig(_Strict):
     init_from: str | None = Field(
         None,
         description="(aligners) start from a trained aligner: a training run, a league run "
-        "(its champion) or a member .pt file, relative to the working directory",
+        "(its champion), a member .pt file, relative to the working directory, or an export "
+        "or champion:NAME that ships its learner state",
     )
 
     init_replay: bool = Field(
@@ -219,6 +220,15 @@ class LeagueConfig(RunConfig):
     pbt: PBTConfig = Field(
         default_factory=PBTConfig, description="population-based training (exploit/explore)"
     )
+
+    def apparatus_specs(self) -> list[tuple[str, str, dict[str, Any]]]:
+        """The experiment's apparatus and every Ray worker's microscope."""
+        workers = [
+            (f"ray.workers[{number}].apparatus", worker.apparatus, worker.apparatus_args or {})
+            for number, worker in enumerate(self.ray.workers or [])
+            if worker.apparatus is not None
+        ]
+        return [*super().apparatus_specs(), *workers]
 
     def ray_workers(self) -> list[RayWorkerConfig]:
         """The Ray workers with every null filled in from the experiment (new objects)."""

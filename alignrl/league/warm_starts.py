@@ -36,9 +36,9 @@ def warm_starts(
     keys override the rest (a lower learning_rate for fine-tuning, say), and a key that
     shapes the networks must agree with the source's. A source is anything
     alignrl.runs.sources resolves, but it must bring its critics: an export or a shipped
-    champion (champion:NAME) holds its acting network alone, and a warm start with fresh
-    critics would train the policy on their noise, so it is refused. Every check is made
-    here, before the run directory is written."""
+    champion (champion:NAME) without a learner state holds its acting network alone, and a
+    warm start with fresh critics would train the policy on their noise, so it is refused.
+    Every check is made here, before the run directory is written."""
     from alignrl.runs.sources import ExportError, require_learner_state, resolve_source
 
     task = config.resolved_task()

@@ -7,10 +7,16 @@ align, evaluate, adapt and the league's warm starts all ask it.
 
 A league run gives its champion (the first of best/best.json) or a member by id, a training
 run its checkpoints/best.pt. An exported folder or a champion gives the member its card
-describes with the acting network's weights of its policy.safetensors: critics, optimizers
-and replay are not exported, so such a source acts and can be exported again, but it holds
-no learner state (`PolicySource.learner_state`). A graph export (ONNX, TorchScript) is run by
-alignrl.deploy.loading and holds no weights to load into a learner.
+describes with the acting network's weights of its policy.safetensors. Where the export was
+made with --with-learner-state, its learner.safetensors and learner.json (no pickle:
+alignrl.runs.learner_state) bring the critics, target critics, entropy coefficient and
+optimizers too, and it can be adapted and warm-started from as a run can; without them it
+acts and can be exported again, but holds no learner state (`PolicySource.learner_state`)
+and is refused where one is needed (`require_learner_state`). The replay is never exported.
+A graph export (ONNX, TorchScript) is run by alignrl.deploy.loading and holds no weights to
+load into a learner. A file of a safetensors export (its policy.safetensors, as an
+adaptation's config records its source, learner.safetensors, learner.json, card.json) names
+the export folder it lies in.
 
 A source is checked before it is handed out: only aligners (a misaligner's actions mean
 nothing to an instrument), and a member whose history and knobs fit its run's settings.
@@ -21,7 +27,6 @@ it too); `PolicySpecError` that of a spec that names nothing.
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 from dataclasses import dataclass
 from importlib import resources
@@ -33,6 +38,13 @@ from alignrl.agents.agent import MEMBER_FORMAT, POLICY_FORMAT, Agent, MemberSpec
 from alignrl.checkpoints import CheckpointError, load_checkpoint
 from alignrl.config import ConfigError, RunConfig, parse_config
 from alignrl.envs.task import Task
+from alignrl.runs.learner_state import (
+    LEARNER_FILE,
+    LearnerStateError,
+    file_sha256,
+    has_learner_state,
+    load_learner_state,
+)
 from alignrl.runs.state import CONFIG_FILE, checked_knobs, recorded_knobs, run_config_data
 
 __all__ = [
@@ -54,6 +66,9 @@ CHAMPION_PREFIX = "champion:"
 # The shipped champions, one folder each: package data, never a path from the source tree.
 CHAMPIONS: Traversable = resources.files("alignrl") / "champions"
 EXPORTED_KINDS = ("export", "champion")  # locations whose policy is a folder with card.json
+# Files of a safetensors export that name their folder when given as a spec (none of them
+# is a torch checkpoint).
+EXPORT_FILES = ("card.json", "policy.safetensors", "learner.safetensors", "learner.json")
 
 
 class ExportError(ValueError):
@@ -121,6 +136,8 @@ class PolicySource:
     # Per task knob, its interval on the training apparatus and max_step, as the run
     # recorded them (knobs.json) or the export's card lists them; None where neither does.
     knobs: list[dict[str, Any]] | None = None
+    # export, champion: the learner.safetensors loaded into the agent, where it ships one
+    learner_file: Path | None = None
 
     @property
     def task(self) -> Task:
@@ -128,9 +145,11 @@ class PolicySource:
 
     @property
     def learner_state(self) -> bool:
-        """Whether the agent holds its trained critics, optimizers and entropy coefficient;
-        an export brings its acting network alone (the rest is freshly initialised)."""
-        return self.kind not in EXPORTED_KINDS
+        """Whether the agent holds its trained critics, optimizers and entropy coefficient:
+        a run or a member file does; an export or a champion only where it ships its
+        learner state (`learner_file`), else it brings its acting network alone (the rest
+        freshly initialised)."""
+        return self.kind not in EXPORTED_KINDS or self.learner_file is not None
 
     @property
     def updates(self) -> int:
@@ -154,6 +173,7 @@ def require_learner_state(source: PolicySource, named: str, use: str, instead: s
         f"entropy coefficient, and {use} trains on from those; give the league run, training "
         "run or member .pt file it was exported from"
         + (f" (its card names {origin})" if origin else "")
+        + ", or an export of it made with --with-learner-state"
         + instead
     )
 
@@ -189,6 +209,14 @@ def champion_folder(name: str) -> Path:
     return folder
 
 
+def _shipped(folder: Path) -> bool:
+    """Whether `folder` is a shipped champion's (given by its path, as an adaptation's
+    config records its source)."""
+    if not isinstance(CHAMPIONS, Path) or folder.name not in shipped_champions():
+        return False
+    return folder.resolve() == (CHAMPIONS / folder.name).resolve()
+
+
 def locate_source(spec: str | Path, member: str | None = None) -> Location:
     """What `spec` names (see Location), without loading it. `member` picks a member of a
     league run. MissingSourceError where nothing is at the path, PolicySpecError where what
@@ -198,6 +226,8 @@ def locate_source(spec: str | Path, member: str | None = None) -> Location:
         kind, path = "champion", champion_folder(text[len(CHAMPION_PREFIX) :])
     else:
         path = Path(spec)
+        if path.is_file() and path.name in EXPORT_FILES and (path.parent / "card.json").is_file():
+            path = path.parent  # a file of a safetensors export: the export it lies in
         if not path.exists():
             raise MissingSourceError(
                 f"unknown policy {text!r}: {path} does not exist; give a league run "
@@ -211,7 +241,7 @@ def locate_source(spec: str | Path, member: str | None = None) -> Location:
         elif (path / "checkpoints" / "best.pt").exists():
             kind = "training"
         elif (path / "card.json").exists():
-            kind = "export"
+            kind = "champion" if _shipped(path) else "export"
         else:
             raise PolicySpecError(
                 f"{path} is neither a league run (no aligners.yaml), a training run with an "
@@ -467,7 +497,7 @@ def _exported_source(location: Location) -> PolicySource:
     if not weights_file.is_file():
         raise ExportError(f"policy file {weights_file} is missing")
     recorded = card.get("policy_sha256")
-    if recorded is not None and _sha256(weights_file) != recorded:
+    if recorded is not None and file_sha256(weights_file) != recorded:
         raise ExportError(
             f"{card_path}: policy_sha256 {recorded} is not the SHA-256 of {weights_file}: the "
             "card and the policy file are not of one export; export it again"
@@ -506,18 +536,25 @@ def _exported_source(location: Location) -> PolicySource:
         },
     }
     config = parse_config(RunConfig, settings, f"{card_path} (its training and task)")
+    learner_file = None
+    if has_learner_state(folder):  # critics, optimizers and counters: checked, then loaded
+        try:
+            load_learner_state(folder, agent, card)
+        except LearnerStateError as error:
+            raise ExportError(str(error)) from None
+        learner_file = folder / LEARNER_FILE
     chosen_as = "shipped champion" if location.kind == "champion" else "exported policy"
     return PolicySource(
-        agent, weights_file, location.kind, chosen_as, None, config, card_path, card=card
+        agent,
+        weights_file,
+        location.kind,
+        chosen_as,
+        None,
+        config,
+        card_path,
+        card=card,
+        learner_file=learner_file,
     )
-
-
-def _sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with path.open("rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def _check_shapes(source: PolicySource) -> None:

@@ -1,0 +1,475 @@
+"""The instrument family: a parametric focus column that can be any of the columns real
+microscopes are, drawn anew for every episode (docs/physics.md, "The instrument family").
+
+A `FocusFamily` is a box: every parameter is a point or a [low, high] range, read strictly
+from YAML (alignrl/apparatus/families/*.yaml for the boxes training samples,
+alignrl/apparatus/instruments/<set>/*.yaml for the single instruments judged on). A
+`FamilyColumn` draws one column from the box at each `reset(seed)` (`ColumnDraw`, seeded:
+the same seed, the same column) and is an Apparatus with one knob, `defocus`, in whatever
+units and interval the draw gave.
+
+The column (e = V_eff - V_opt, the focus error in the knob's units; W the interval's width):
+* the probe: sigma(e) = (sigma0^q + (g_side * max(0, |e| - f W))^q)^(1/q) px, with the gain
+  g = blur_px_per_interval / W split by the asymmetry a into g / sqrt(a) below focus and
+  g sqrt(a) above it, a flat bottom of half-width f W, and the curve's power q (2: the
+  hyperbola of design.md);
+* hysteresis (backlash): V_eff = V - h W s, s the sign of the last change of V, so the
+  setting that focuses depends on the side it is approached from;
+* drift: the optimum walks by N(0, (d W)^2) per acquisition;
+* analytic readings (`analytic=True`): the true width w = 2.563 sigma levels off at the
+  specimen's feature size, r = w_sat tanh(w / w_sat), and reads r exp(c z + n_rel e1) +
+  n_px e2 (z ~ N(0, 1) once per episode: the specimen reads wide or narrow; e1, e2 ~ N(0, 1)
+  per reading: multiplicative and additive noise); far from focus the frame has no edges
+  with probability 1 / (1 + exp(-(w - w_none) / (0.1 w_none))): NoEdgesError;
+* image readings (`analytic=False`): a specimen of the draw's kind (particles, grid, bars,
+  fibres, texture: alignrl/apparatus/specimens.py) blurred by the probe, with shot noise at
+  the draw's dose and detector noise, measured by `quality.edge_width`; a frame without
+  edges raises NoEdgesError as a real one does.
+
+`optimum()` and `best_quality()` are the simulator's secrets (KnowsOptimum, KnowsBestQuality):
+the setting that focuses from the side it is approached, and the width a frame in focus
+reads (analytic: r at sigma0; images: the median of three frames in focus, drawn from a
+stream of their own so that no reading changes).
+
+The family is open for more knobs: `FAMILY_KINDS` maps a family's `kind` to its model, and
+the stigmator and aperture parameters will come as kinds of their own.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from alignrl.apparatus.base import NoEdgesError, check_write
+from alignrl.apparatus.probe import logistic
+from alignrl.apparatus.quality import TEN_NINETY_PER_SIGMA, edge_width
+from alignrl.yaml_io import read_yaml_file
+
+__all__ = [
+    "FAMILY_DIR",
+    "FAMILY_KINDS",
+    "ColumnDraw",
+    "FamilyColumn",
+    "FocusFamily",
+    "family_digest",
+    "family_names",
+    "load_family",
+]
+
+FAMILY_DIR = Path(__file__).with_name("families")
+Pair = tuple[float, float]
+NO_EDGES_SPREAD = 0.1  # logistic spread of the no-edges limit, as a share of it
+BEST_QUALITY_FRAMES = 3  # frames in focus whose median reading is best_quality() (images)
+SHOWN_PROBLEMS = 8
+
+
+def _pair(value: Any) -> Any:
+    """A point x means the range [x, x]."""
+    if isinstance(value, int | float) and not isinstance(value, bool):
+        return (float(value), float(value))
+    return value
+
+
+# Parameters drawn on a log scale (positive, spanning decades); the rest uniformly.
+LOG_SCALE = (
+    "interval_width",
+    "blur_px_per_interval",
+    "floor_sigma_px",
+    "asymmetry",
+    "saturation_px",
+    "no_edges_px",
+    "dose_electrons_per_px",
+)
+
+
+PAIR_FIELDS = (
+    "interval_width",
+    "interval_centre",
+    "optimum_fraction",
+    "blur_px_per_interval",
+    "floor_sigma_px",
+    "curve_power",
+    "flat_fraction",
+    "asymmetry",
+    "reading_noise_rel",
+    "reading_noise_px",
+    "specimen_rel",
+    "saturation_px",
+    "no_edges_px",
+    "drift_fraction",
+    "hysteresis_fraction",
+    "dose_electrons_per_px",
+    "detector_noise",
+)
+BOUNDED = {
+    "optimum_fraction": (0.0, 1.0),
+    "curve_power": (1.0, 8.0),
+    "flat_fraction": (0.0, 0.2),
+    "reading_noise_rel": (0.0, 0.5),
+    "specimen_rel": (0.0, 0.5),
+    "drift_fraction": (0.0, 0.05),
+    "hysteresis_fraction": (0.0, 0.1),
+}
+
+
+class FocusFamily(BaseModel):
+    """A box of focus columns. Each parameter is a point or [low, high]; `LOG_SCALE` ones are
+    drawn log-uniformly, the others uniformly. Units: the knob's own (`unit`), px, or a
+    fraction of the knob's interval width W."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    kind: Literal["focus"] = Field("focus", description="which knobs the family moves")
+    name: str = Field("family", min_length=1, description="shown in sessions and reports")
+    description: str = Field("", description="what this box or instrument is, in words")
+    unit: str = Field("V", min_length=1, description="the defocus knob's unit, for people")
+    image_size_px: int = Field(256, ge=64, le=1024, description="square frame (image path), px")
+    interval_width: Pair = Field(
+        (40.0, 4000.0), description="W: width of the defocus interval, the knob's units"
+    )
+    interval_centre: Pair = Field(
+        (-2000.0, 2000.0), description="centre of the defocus interval, the knob's units"
+    )
+    optimum_fraction: Pair = Field(
+        (0.15, 0.85), description="where the optimum lies in the interval, 0 low .. 1 high"
+    )
+    blur_px_per_interval: Pair = Field(
+        (10.0, 100.0), description="probe sigma growth over a focus error of W, px (the gain)"
+    )
+    floor_sigma_px: Pair = Field((0.8, 2.5), description="sigma0: the probe in focus, px")
+    curve_power: Pair = Field(
+        (1.5, 3.0), description="q of the focus curve (2: hyperbola; 1: a V; high: a U)"
+    )
+    flat_fraction: Pair = Field(
+        (0.0, 0.01), description="half-width of the curve's flat bottom, fraction of W"
+    )
+    asymmetry: Pair = Field(
+        (0.67, 1.5), description="gain above focus / gain below focus (1: symmetric)"
+    )
+    reading_noise_rel: Pair = Field(
+        (0.005, 0.04), description="multiplicative noise: std of log(reading) (analytic)"
+    )
+    reading_noise_px: Pair = Field(
+        (0.0, 0.1), description="additive noise of a reading, px (analytic)"
+    )
+    specimen_rel: Pair = Field(
+        (0.0, 0.05), description="std of log(reading) between episodes: the specimen (analytic)"
+    )
+    saturation_px: Pair = Field(
+        (20.0, 80.0), description="w_sat: readings level off at the features' size, px (analytic)"
+    )
+    no_edges_px: Pair = Field(
+        (40.0, 150.0),
+        description="true width at which half the frames show no edges, px (analytic)",
+    )
+    drift_fraction: Pair = Field(
+        (0.0, 0.0005), description="std of the optimum's walk per acquisition, fraction of W"
+    )
+    hysteresis_fraction: Pair = Field(
+        (0.0, 0.005), description="backlash: V_eff lags V by this x W against the last change"
+    )
+    specimens: tuple[str, ...] = Field(
+        ("particles",), min_length=1, description="specimen kinds drawn from (image path)"
+    )
+    dose_electrons_per_px: Pair = Field(
+        (100.0, 400.0), description="primary electrons per pixel (image path)"
+    )
+    detector_noise: Pair = Field(
+        (0.005, 0.02), description="Gaussian detector noise, yield units (image path)"
+    )
+
+    @field_validator(*PAIR_FIELDS, mode="before")
+    @classmethod
+    def _points_are_ranges(cls, value: Any) -> Any:
+        return _pair(value)
+
+    @model_validator(mode="after")
+    def _check(self) -> FocusFamily:
+        from alignrl.apparatus.specimens import SPECIMENS
+
+        problems = []
+        for name in PAIR_FIELDS:
+            low, high = getattr(self, name)
+            if not (math.isfinite(low) and math.isfinite(high) and low <= high):
+                problems.append(f"{name}: need finite low <= high, got [{low:g}, {high:g}]")
+            elif name in LOG_SCALE and low <= 0:
+                problems.append(f"{name}: must be > 0, got [{low:g}, {high:g}]")
+            elif name not in ("interval_centre",) and low < 0:
+                problems.append(f"{name}: must be >= 0, got [{low:g}, {high:g}]")
+        for name, (lowest, highest) in BOUNDED.items():
+            low, high = getattr(self, name)
+            if low < lowest or high > highest:
+                problems.append(
+                    f"{name}: must lie in [{lowest:g}, {highest:g}], got [{low:g}, {high:g}]"
+                )
+        unknown = [kind for kind in self.specimens if kind not in SPECIMENS]
+        if unknown:
+            problems.append(
+                f"specimens: unknown {', '.join(unknown)} (known: {', '.join(SPECIMENS)})"
+            )
+        if problems:
+            raise ValueError("; ".join(problems))
+        return self
+
+
+FAMILY_KINDS: dict[str, type[FocusFamily]] = {"focus": FocusFamily}
+
+
+@dataclass(frozen=True)
+class ColumnDraw:
+    """One column of a family: every parameter a number (FocusFamily's names)."""
+
+    low: float
+    high: float
+    optimum: float
+    blur_px_per_interval: float
+    floor_sigma_px: float
+    curve_power: float
+    flat_fraction: float
+    asymmetry: float
+    reading_noise_rel: float
+    reading_noise_px: float
+    specimen_rel: float
+    saturation_px: float
+    no_edges_px: float
+    drift_fraction: float
+    hysteresis_fraction: float
+    specimen: str
+    dose_electrons_per_px: float
+    detector_noise: float
+
+    @property
+    def width(self) -> float:
+        return self.high - self.low
+
+
+def draw_column(family: FocusFamily, rng: np.random.Generator) -> ColumnDraw:
+    """A column from the box, every parameter in the order of PAIR_FIELDS (then the
+    specimen): one draw per parameter, a point drawn as well, so that narrowing one range
+    leaves the other parameters' draws as they were."""
+    values: dict[str, float] = {}
+    for name in PAIR_FIELDS:
+        low, high = getattr(family, name)
+        u = float(rng.random())
+        if name in LOG_SCALE:
+            values[name] = float(math.exp(math.log(low) + u * (math.log(high) - math.log(low))))
+        else:
+            values[name] = low + u * (high - low)
+    specimen = family.specimens[int(rng.integers(len(family.specimens)))]
+    width, centre = values.pop("interval_width"), values.pop("interval_centre")
+    low, high = centre - 0.5 * width, centre + 0.5 * width
+    optimum = low + values.pop("optimum_fraction") * width
+    return ColumnDraw(low=low, high=high, optimum=optimum, specimen=specimen, **values)
+
+
+class FamilyColumn:
+    """A focus column drawn from `family` at every reset (module docstring). `analytic`:
+    readings from the probe (fast, no images); otherwise rendered frames measured by
+    edge_width."""
+
+    def __init__(
+        self, family: FocusFamily | None = None, seed: int | None = None, analytic: bool = False
+    ) -> None:
+        self.family = family or FocusFamily()
+        self.analytic = bool(analytic)
+        self._seeds = np.random.SeedSequence(seed)
+        self.acquisitions = 0
+        self._last_image: np.ndarray | None = None
+        self.reset(seed)
+
+    # --- the Apparatus protocol ---------------------------------------------------------
+
+    def reset(self, seed: int | None = None) -> None:
+        """A new column and episode: the draw, the specimen, the setting at the interval's
+        centre, no hysteresis state."""
+        if seed is None:
+            seed = int(self._seeds.spawn(1)[0].generate_state(1)[0])
+        self._seed = int(seed)
+        self.draw = draw_column(self.family, np.random.default_rng([self._seed, 1]))
+        self._rng = np.random.default_rng([self._seed, 2])
+        self.knobs: Mapping[str, tuple[float, float]] = {"defocus": (self.draw.low, self.draw.high)}
+        self._optimum = self.draw.optimum
+        self._specimen_draw = float(self._rng.standard_normal())
+        self._setting = 0.5 * (self.draw.low + self.draw.high)
+        self._direction = 0.0
+        self._specimen_fft: np.ndarray | None = None
+        self._best: float | None = None
+        self._last_image = None
+
+    def read(self) -> dict[str, float]:
+        return {"defocus": self._setting}
+
+    def write(self, values: Mapping[str, float]) -> None:
+        check_write(self.knobs, values)
+        if "defocus" in values:
+            new = float(values["defocus"])
+            if new != self._setting:
+                self._direction = float(np.sign(new - self._setting))
+            self._setting = new
+
+    def measure(self) -> float:
+        """One acquisition: the edge width (px); NoEdgesError where the frame has none."""
+        sigma = self.probe_sigma_px()
+        self.acquisitions += 1
+        try:
+            if self.analytic:
+                self._last_image = None
+                return self._analytic_reading(sigma)
+            frame = self._render(sigma, self._rng)
+            self._last_image = frame
+            return float(edge_width(frame))
+        finally:
+            drift = self.draw.drift_fraction * self.draw.width
+            if drift > 0:
+                self._optimum += drift * float(self._rng.standard_normal())
+
+    def image(self) -> np.ndarray | None:
+        return self._last_image
+
+    # --- the simulator's secrets --------------------------------------------------------
+
+    def optimum(self) -> dict[str, float]:
+        """The setting that focuses if written now: V_opt + h W approached from below,
+        V_opt - h W from above, the nearer reachable one; the setting itself if in focus."""
+        lag = self.draw.hysteresis_fraction * self.draw.width
+        if abs(self.focus_error()) < 1e-9 * self.draw.width:
+            return {"defocus": self._setting}
+        candidates = [
+            target
+            for target, reachable in (
+                (self._optimum + lag, self._optimum + lag > self._setting),
+                (self._optimum - lag, self._optimum - lag < self._setting),
+            )
+            if reachable
+        ]
+        best = min(candidates, key=lambda target: abs(target - self._setting))
+        return {"defocus": float(np.clip(best, self.draw.low, self.draw.high))}
+
+    def best_quality(self) -> float:
+        """The width a frame in focus reads (px): analytic, the levelled-off width at sigma0;
+        images, the median of three frames in focus (their own random stream)."""
+        if self._best is None:
+            sigma0 = self.draw.floor_sigma_px
+            if self.analytic:
+                self._best = self._levelled(TEN_NINETY_PER_SIGMA * sigma0)
+            else:
+                rng = np.random.default_rng([self._seed, 3])
+                readings = []
+                for _ in range(BEST_QUALITY_FRAMES):
+                    try:
+                        readings.append(edge_width(self._render(sigma0, rng)))
+                    except NoEdgesError:
+                        continue
+                self._best = (
+                    float(np.median(readings)) if readings else TEN_NINETY_PER_SIGMA * sigma0
+                )
+        return float(self._best)
+
+    # --- physics ------------------------------------------------------------------------
+
+    def focus_error(self) -> float:
+        """V_eff - V_opt in the knob's units."""
+        lag = self.draw.hysteresis_fraction * self.draw.width
+        return self._setting - lag * self._direction - self._optimum
+
+    def probe_sigma_px(self, error: float | None = None) -> float:
+        """sigma(e) of the module docstring, px, at the present focus error or `error`."""
+        draw = self.draw
+        error = self.focus_error() if error is None else float(error)
+        gain = draw.blur_px_per_interval / draw.width
+        side = math.sqrt(draw.asymmetry) if error > 0 else 1.0 / math.sqrt(draw.asymmetry)
+        blur = gain * side * max(0.0, abs(error) - draw.flat_fraction * draw.width)
+        q = draw.curve_power
+        return float((draw.floor_sigma_px**q + blur**q) ** (1.0 / q))
+
+    def _levelled(self, width_px: float) -> float:
+        saturation = self.draw.saturation_px
+        return float(saturation * math.tanh(width_px / saturation))
+
+    def _analytic_reading(self, sigma: float) -> float:
+        draw = self.draw
+        true_px = TEN_NINETY_PER_SIGMA * sigma
+        if self._rng.random() < logistic(
+            true_px, draw.no_edges_px, NO_EDGES_SPREAD * draw.no_edges_px
+        ):
+            raise NoEdgesError(
+                f"no edges: a probe {true_px:.1f} px wide blurs the specimen into the noise "
+                f"(half of the frames lose them beyond {draw.no_edges_px:.3g} px)"
+            )
+        scatter = draw.specimen_rel * self._specimen_draw
+        noise = draw.reading_noise_rel * float(self._rng.standard_normal())
+        reading = self._levelled(true_px) * math.exp(scatter + noise)
+        reading += draw.reading_noise_px * float(self._rng.standard_normal())
+        return float(max(reading, 0.1 * true_px))
+
+    def _render(self, sigma: float, rng: np.random.Generator) -> np.ndarray:
+        from alignrl.apparatus.specimens import draw_specimen, render
+
+        size = self.family.image_size_px
+        if self._specimen_fft is None:
+            specimen_rng = np.random.default_rng([self._seed, 4])
+            self._specimen_fft = np.fft.rfft2(draw_specimen(self.draw.specimen, size, specimen_rng))
+        return render(
+            self._specimen_fft,
+            sigma,
+            size,
+            self.draw.dose_electrons_per_px,
+            self.draw.detector_noise,
+            rng,
+        )
+
+
+# --- presets ------------------------------------------------------------------------------
+
+
+def family_names() -> list[str]:
+    """The shipped boxes: alignrl/apparatus/families/*.yaml."""
+    return sorted(path.stem for path in FAMILY_DIR.glob("*.yaml"))
+
+
+def load_family(path: str | Path, **overrides: Any) -> FocusFamily:
+    """Read a family or instrument YAML file strictly (an unknown key, a bad range: a
+    ValueError naming the file and the keys)."""
+    path = Path(path)
+    try:
+        data = read_yaml_file(path)
+    except FileNotFoundError:
+        raise FileNotFoundError(f"instrument family {path} does not exist") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: expected a mapping of family parameters")
+    data.update(overrides)
+    kind = data.get("kind", "focus")
+    model = FAMILY_KINDS.get(kind) if isinstance(kind, str) else None
+    if model is None:
+        raise ValueError(f"{path}: kind {kind!r} is not a family kind ({', '.join(FAMILY_KINDS)})")
+    try:
+        return model(**data)
+    except ValidationError as error:
+        problems = []
+        for item in error.errors():
+            key = ".".join(str(part) for part in item["loc"]) or "(top)"
+            problems.append(f"{key[:200]}: {item['msg'][:400]}")
+        if len(problems) > SHOWN_PROBLEMS:
+            problems = [*problems[:SHOWN_PROBLEMS], f"and {len(problems) - SHOWN_PROBLEMS} more"]
+        raise ValueError(f"{path}: {'; '.join(problems)}") from None
+
+
+def family_digest(family: FocusFamily) -> str:
+    """A fingerprint of what a family simulates (its name and words left out): two files
+    that describe the same columns have the same digest, however they are named."""
+    data = family.model_dump(exclude={"name", "description"})
+    text = json.dumps(data, sort_keys=True, default=list)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def draw_as_dict(draw: ColumnDraw) -> dict[str, Any]:
+    """A column's parameters, for people and JSON."""
+    return asdict(draw)

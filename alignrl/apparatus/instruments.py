@@ -1,0 +1,197 @@
+"""Instrument sets: the single columns alignrl is judged and chosen on, and the wall that
+keeps the held-out ones out of training.
+
+alignrl/apparatus/instruments/<set>/<name>.yaml are instruments, each a `FocusFamily` whose
+parameters are points (only the optimum, the start and the noise vary between episodes):
+
+* `validation`: for choices, the checkpoints a training run keeps and the champions a league
+  ships (`eval_apparatus: set:validation`);
+* `heldout`: for reporting generalization only. No training run, league or checkpoint choice
+  may reach it: `held_out_reason` names how a spec would (the set, one of its instruments by
+  name, a copy of one under another name or path, or a training box that contains one whole),
+  and the run configs refuse such a spec (alignrl/config.py).
+
+Specs (alignrl/apparatus/registry.py): `instrument:NAME` one instrument, `set:NAME` a whole set
+as one apparatus that moves to the set's next instrument at every reset (`InstrumentSet`).
+`alignrl evaluate --set NAME` runs one session per instrument instead, one row each.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from alignrl.apparatus.family import (
+    FAMILY_DIR,
+    PAIR_FIELDS,
+    FamilyColumn,
+    FocusFamily,
+    family_digest,
+    load_family,
+)
+
+__all__ = [
+    "HELD_OUT_SET",
+    "INSTRUMENT_DIR",
+    "VALIDATION_SET",
+    "InstrumentSet",
+    "find_instrument",
+    "held_out_reason",
+    "instrument_names",
+    "load_set",
+    "set_names",
+]
+
+INSTRUMENT_DIR = Path(__file__).with_name("instruments")
+HELD_OUT_SET = "heldout"
+VALIDATION_SET = "validation"
+
+
+def set_names() -> list[str]:
+    """The shipped instrument sets: the folders of alignrl/apparatus/instruments/."""
+    if not INSTRUMENT_DIR.is_dir():  # an installation without its package data
+        return []
+    return sorted(path.name for path in INSTRUMENT_DIR.iterdir() if path.is_dir())
+
+
+def _set_paths(name: str) -> list[Path]:
+    if name not in set_names():
+        raise ValueError(f"no instrument set {name!r}; the sets are: {', '.join(set_names())}")
+    return sorted((INSTRUMENT_DIR / name).glob("*.yaml"))
+
+
+def instrument_names(set_name: str | None = None) -> dict[str, Path]:
+    """Instrument name -> its file, of one set or of all of them."""
+    sets = set_names() if set_name is None else [set_name]
+    return {path.stem: path for name in sets for path in _set_paths(name)}
+
+
+def find_instrument(name: str) -> Path:
+    """The file of instrument `name`; ValueError listing the instruments where none is."""
+    known = instrument_names()
+    if name not in known:
+        raise ValueError(
+            f"no instrument {name!r}; the instruments are: {', '.join(sorted(known))} "
+            "(alignrl/apparatus/instruments/)"
+        )
+    return known[name]
+
+
+def load_set(name: str) -> list[tuple[str, FocusFamily]]:
+    """(name, instrument) of every instrument of set `name`, in file-name order."""
+    return [(path.stem, load_family(path)) for path in _set_paths(name)]
+
+
+class InstrumentSet:
+    """A whole set as one apparatus: reset(seed) moves to instrument seed mod n of the set
+    and draws its episode; everything else is that instrument's (FamilyColumn)."""
+
+    def __init__(
+        self,
+        instruments: Sequence[FocusFamily],
+        seed: int | None = None,
+        analytic: bool = False,
+    ) -> None:
+        if not instruments:
+            raise ValueError("an instrument set needs at least one instrument")
+        self.columns = [FamilyColumn(family, seed, analytic) for family in instruments]
+        self._seeds = np.random.SeedSequence(seed)
+        self.current = self.columns[0]
+        self.reset(seed)
+
+    @property
+    def knobs(self) -> Mapping[str, tuple[float, float]]:
+        return self.current.knobs
+
+    @property
+    def acquisitions(self) -> int:
+        return sum(column.acquisitions for column in self.columns)
+
+    def reset(self, seed: int | None = None) -> None:
+        if seed is None:
+            seed = int(self._seeds.spawn(1)[0].generate_state(1)[0])
+        self.current = self.columns[int(seed) % len(self.columns)]
+        self.current.reset(seed)
+
+    def read(self) -> dict[str, float]:
+        return self.current.read()
+
+    def write(self, values: Mapping[str, float]) -> None:
+        self.current.write(values)
+
+    def measure(self) -> float:
+        return self.current.measure()
+
+    def image(self) -> np.ndarray | None:
+        return self.current.image()
+
+    def optimum(self) -> dict[str, float]:
+        return self.current.optimum()
+
+    def best_quality(self) -> float:
+        return self.current.best_quality()
+
+
+# --- the wall around the held-out set ------------------------------------------------------
+
+
+def _contains(box: FocusFamily, instrument: FocusFamily) -> bool:
+    """Whether every column of `instrument` is a column of `box` too."""
+    if box.kind != instrument.kind or not set(instrument.specimens) <= set(box.specimens):
+        return False
+    for name in PAIR_FIELDS:
+        low, high = getattr(box, name)
+        inner_low, inner_high = getattr(instrument, name)
+        if inner_low < low or inner_high > high:
+            return False
+    return True
+
+
+def _family_of(spec: str, args: Mapping[str, Any] | None) -> tuple[FocusFamily, Path] | None:
+    """The family a `family:` or `instrument:` spec simulates, with its file; None for
+    other specs or a file that cannot be read (the registry reports that when it opens)."""
+    overrides = {key: value for key, value in (args or {}).items() if key != "analytic"}
+    if spec.startswith("family:"):
+        target = spec[len("family:") :]
+        path = (
+            FAMILY_DIR / f"{target}.yaml"
+            if "/" not in target and not target.endswith((".yaml", ".yml"))
+            else Path(target)
+        )
+    elif spec.startswith("instrument:"):
+        try:
+            path = find_instrument(spec[len("instrument:") :])
+        except ValueError:
+            return None
+    else:
+        return None
+    try:
+        return load_family(path, **overrides), path
+    except (OSError, ValueError):
+        return None
+
+
+def held_out_reason(spec: str, args: Mapping[str, Any] | None = None) -> str | None:
+    """How `spec` (with `args`) reaches the held-out set, in words; None where it does not."""
+    if not isinstance(spec, str):
+        return None
+    if spec == f"set:{HELD_OUT_SET}":
+        return f"{spec} is the held-out set"
+    found = _family_of(spec, args)
+    if found is None:
+        return None
+    family, path = found
+    held_out = load_set(HELD_OUT_SET)
+    if path.resolve().parent == (INSTRUMENT_DIR / HELD_OUT_SET).resolve():
+        return f"{spec} is the held-out instrument {path.stem!r}"
+    digest = family_digest(family)
+    for name, instrument in held_out:
+        if family_digest(instrument) == digest:
+            return f"{spec} simulates the held-out instrument {name!r} (the same parameters)"
+    for name, instrument in held_out:
+        if _contains(family, instrument):
+            return f"{spec} contains the held-out instrument {name!r} whole (every parameter)"
+    return None

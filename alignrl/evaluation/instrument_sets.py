@@ -1,0 +1,297 @@
+"""A controller judged over a whole instrument set: one evaluation session per instrument of
+the set (alignrl/apparatus/instruments/<set>/*.yaml), one row each, and the total.
+
+The contract (what `alignrl evaluate --set` and `alignrl baselines --set` print):
+
+* every instrument of the set runs one `run_session` on `instrument:NAME`, in the set's order
+  (file-name order), each with the same `seed`: scenario i of every instrument is reset with
+  the same scenario seed, and two controllers evaluated with one seed meet the same columns,
+  optima and starts on each instrument;
+* `analytic` chooses the readings: the probe's analytic edge widths (fast, no images) or
+  rendered frames measured as images are (the default, as on a microscope);
+* every instrument keeps its own success threshold (relative to the best width that
+  instrument reaches, unless `spec_px` gives one absolute width for all of them);
+* the totals pool the alignments of all instruments: successes out of all alignments, the
+  median and 90th percentile of the acquisitions of every alignment, and the worst
+  instrument (the lowest share of successes; the first in set order on a tie), since one
+  column a policy cannot align is what a microscopist meets, whatever the mean says.
+
+Acquisitions count every image a controller took (the verification image not counted), as in
+alignrl.evaluation.session. Pure logic apart from the apparatus it opens: no printing.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from alignrl.apparatus.instruments import load_set, set_names
+from alignrl.apparatus.limits import ShieldOptions
+from alignrl.apparatus.registry import make_apparatus
+from alignrl.envs.task import Task
+from alignrl.evaluation.controllers import Controller, TaskController
+from alignrl.evaluation.report import session_summary
+from alignrl.evaluation.session import (
+    AcquisitionStatistics,
+    ScenarioResult,
+    SessionResult,
+    run_session,
+)
+
+__all__ = [
+    "SetResult",
+    "instrument_spec",
+    "run_set",
+    "set_heading",
+    "set_notes",
+    "set_summary",
+    "set_table",
+]
+
+
+def instrument_spec(name: str) -> str:
+    """The apparatus spec of one instrument of a set."""
+    return f"instrument:{name}"
+
+
+@dataclass(frozen=True)
+class SetResult(AcquisitionStatistics):
+    """The sessions of one controller on every instrument of a set, in set order, and their
+    totals (module docstring)."""
+
+    set_name: str
+    controller: str
+    task: Task
+    seed: int
+    analytic: bool
+    instruments: tuple[str, ...]
+    sessions: tuple[SessionResult, ...]
+    seconds: float  # wall time of all sessions
+
+    def __post_init__(self) -> None:
+        if not self.instruments:
+            raise ValueError(f"set {self.set_name!r}: a set result needs at least one instrument")
+        if len(self.instruments) != len(self.sessions):
+            raise ValueError(
+                f"set {self.set_name!r}: {len(self.instruments)} instruments but "
+                f"{len(self.sessions)} sessions; need one session per instrument"
+            )
+
+    def session(self, instrument: str) -> SessionResult:
+        """The session on `instrument`; ValueError naming the set's instruments otherwise."""
+        if instrument not in self.instruments:
+            raise ValueError(
+                f"set {self.set_name!r} has no instrument {instrument!r}; its instruments "
+                f"are: {', '.join(self.instruments)}"
+            )
+        return self.sessions[self.instruments.index(instrument)]
+
+    @property
+    def scenarios(self) -> int:
+        """Alignments per instrument (the same for every instrument of a run_set)."""
+        return self.sessions[0].scenarios
+
+    @property
+    def alignments(self) -> int:
+        """Alignments over all instruments."""
+        return sum(session.scenarios for session in self.sessions)
+
+    @property
+    def successes(self) -> int:
+        return sum(session.successes for session in self.sessions)
+
+    def acquisitions(self) -> np.ndarray:
+        """The acquisitions of every alignment, instrument after instrument."""
+        return np.concatenate([session.acquisitions() for session in self.sessions])
+
+    @property
+    def budget_exhausted(self) -> int:
+        return sum(session.budget_exhausted for session in self.sessions)
+
+    @property
+    def unmeasured(self) -> int:
+        """Verifications without edges, over all instruments."""
+        return sum(session.unmeasured for session in self.sessions)
+
+    @property
+    def worst(self) -> str:
+        """The instrument with the lowest share of successes (the first of a tie)."""
+        shares = [session.successes / session.scenarios for session in self.sessions]
+        return self.instruments[int(np.argmin(shares))]
+
+    @property
+    def worst_successes(self) -> int:
+        """Successes on the worst instrument."""
+        return self.session(self.worst).successes
+
+    def to_dict(self) -> dict[str, Any]:
+        """The JSON object of `alignrl evaluate --set --json` (keys in docs/cli.md): the set,
+        one session object per instrument in set order (`instruments`, each as `alignrl
+        evaluate --json` prints it, with `instrument` its name) and the pooled `total`."""
+        return {
+            "set": self.set_name,
+            "controller": self.controller,
+            "task": self.task.name,
+            "analytic": self.analytic,
+            "seed": self.seed,
+            "scenarios": self.scenarios,
+            "instruments": [
+                {**session_summary(session, instrument_spec(name)), "instrument": name}
+                for name, session in zip(self.instruments, self.sessions, strict=True)
+            ],
+            "total": {
+                "instruments": len(self.instruments),
+                "alignments": self.alignments,
+                "successes": self.successes,
+                "median_acquisitions": self.median_acquisitions,
+                "p90_acquisitions": round(self.p90_acquisitions, 2),
+                "budget_exhausted": self.budget_exhausted,
+                "unmeasured": self.unmeasured,
+                "worst_instrument": self.worst,
+                "worst_successes": self.worst_successes,
+            },
+            "seconds": round(self.seconds, 3),
+        }
+
+
+def run_set(
+    controller: Controller | TaskController,
+    set_name: str,
+    task: Task,
+    scenarios: int = 100,
+    seed: int = 0,
+    analytic: bool = False,
+    budget: int | None = None,
+    spec_px: float | None = None,
+    on_scenario: Callable[[ScenarioResult], None] | None = None,
+    on_instrument: Callable[[str], None] | None = None,
+    shield: ShieldOptions | None = None,
+) -> SetResult:
+    """One session of `controller` on every instrument of set `set_name` (module docstring).
+
+    `on_instrument(name)` is called as each instrument's session starts and `on_scenario`
+    after every alignment (progress). Every instrument is opened before the first session,
+    so that an unreadable instrument file is refused before any alignment. ValueError for an
+    unknown set (naming the sets), and whatever run_session refuses.
+    """
+    if set_name not in set_names():
+        raise ValueError(f"no instrument set {set_name!r}; the sets are: {', '.join(set_names())}")
+    names = tuple(name for name, _ in load_set(set_name))
+    if not names:
+        raise ValueError(f"instrument set {set_name!r} has no instruments (no YAML files)")
+    apparatuses = [
+        make_apparatus(instrument_spec(name), {"analytic": bool(analytic)}, shield=shield)
+        for name in names
+    ]
+    started = time.perf_counter()
+    sessions = []
+    for name, apparatus in zip(names, apparatuses, strict=True):
+        if on_instrument is not None:
+            on_instrument(name)
+        sessions.append(
+            run_session(
+                controller,
+                apparatus,
+                task,
+                scenarios=scenarios,
+                seed=seed,
+                spec_px=spec_px,
+                budget=budget,
+                on_scenario=on_scenario,
+            )
+        )
+    return SetResult(
+        set_name=set_name,
+        controller=controller.name,
+        task=task,
+        seed=seed,
+        analytic=bool(analytic),
+        instruments=names,
+        sessions=tuple(sessions),
+        seconds=time.perf_counter() - started,
+    )
+
+
+def _cell(successes: int, alignments: int, median: float) -> str:
+    return f"{successes}/{alignments} at {median:g}"
+
+
+def set_table(results: Sequence[SetResult]) -> list[str]:
+    """A Markdown table, padded for the terminal: one row per instrument and a final
+    **total** row, one column per controller with `successes/N at median acquisitions`.
+    Every result must cover the same instruments in the same order (ValueError otherwise)."""
+    if not results:
+        raise ValueError("set_table needs at least one set result")
+    instruments = results[0].instruments
+    for result in results[1:]:
+        if result.instruments != instruments:
+            raise ValueError(
+                f"set_table: {result.controller} ran on {', '.join(result.instruments)}, "
+                f"{results[0].controller} on {', '.join(instruments)}; a table needs the "
+                "same instruments for every controller"
+            )
+    rows = [["instrument", *(result.controller for result in results)]]
+    for index, name in enumerate(instruments):
+        cells = [result.sessions[index] for result in results]
+        rows.append(
+            [name, *(_cell(s.successes, s.scenarios, s.median_acquisitions) for s in cells)]
+        )
+    rows.append(
+        [
+            "**total**",
+            *(_cell(r.successes, r.alignments, r.median_acquisitions) for r in results),
+        ]
+    )
+    sizes = [max(len(row[column]) for row in rows) for column in range(len(rows[0]))]
+
+    def line(cells: Sequence[str]) -> str:
+        padded = [cells[0].ljust(sizes[0])] + [
+            cell.rjust(size) for cell, size in zip(cells[1:], sizes[1:], strict=True)
+        ]
+        return "| " + " | ".join(padded) + " |"
+
+    rule = "| " + " | ".join(["-" * sizes[0]] + ["-" * (size - 1) + ":" for size in sizes[1:]])
+    return [line(rows[0]), rule + " |", *(line(row) for row in rows[1:])]
+
+
+def set_heading(result: SetResult) -> str:
+    """What ran where: the set, its size, the readings, the scenarios and the seed."""
+    readings = "analytic readings" if result.analytic else "images"
+    return (
+        f"on set:{result.set_name} ({len(result.instruments)} instruments, {readings}): "
+        f"{result.scenarios} scenarios each, seed {result.seed}"
+    )
+
+
+def set_summary(result: SetResult) -> str:
+    """One line per controller: pooled successes and acquisitions, and the worst instrument."""
+    worst = result.session(result.worst)
+    return (
+        f"{result.controller}: {result.successes}/{result.alignments} aligned, acquisitions "
+        f"median {result.median_acquisitions:g} (p90 {result.p90_acquisitions:.1f}), worst "
+        f"{result.worst} {worst.successes}/{worst.scenarios}"
+    )
+
+
+def set_notes(results: Sequence[SetResult]) -> list[str]:
+    """What the table does not show, per controller and instrument: alignments stopped by
+    the budget, verification images without edges."""
+    notes = []
+    for result in results:
+        for name, session in zip(result.instruments, result.sessions, strict=True):
+            where = f"{result.controller} on {name}"
+            if session.budget_exhausted:
+                notes.append(
+                    f"{where}: {session.budget_exhausted} alignments spent their whole budget "
+                    f"of {session.budget} acquisitions and were stopped"
+                )
+            if session.unmeasured:
+                notes.append(
+                    f"{where}: {session.unmeasured} verification images had no edges "
+                    "(counted as failures)"
+                )
+    return notes
