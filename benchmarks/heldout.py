@@ -1,31 +1,38 @@
 """Aligners and classical autofocus on every instrument of a set, side by side: the held-out
 table of docs/benchmarks.md ("Champions on instruments they never saw", issue 21).
 
-    python -m benchmarks.heldout --policy champion:focus-v1 --policy champion:focus-v2
+    python -m benchmarks.heldout --policy champion:focus-v1 --policy champion:focus-v2 \
+        --out runs/heldout
 
 Every controller runs one session per instrument (alignrl.evaluation.instrument_sets) on the
-same seeded columns and starts; the table has one row per instrument and the total, and
-below it, per instrument, whether each policy met the issue's target there (at least 99/100
-at a median of at most 4 acquisitions, and fewer acquisitions than the hyperbola fit in the
-same session). Images unless --analytic. Not a test: minutes per policy on images.
+same seeded columns and starts. Each controller's result is written to OUT/NAME.json (the
+object of `alignrl evaluate --set --json`); with --reuse a controller whose file is there, of
+the same set, seed, scenarios and readings, is read instead of run again, so a new policy can
+join a table of old ones. The table has one row per instrument and the total, and below it,
+per instrument, whether each policy met the issue's target there: at least 99/100 at a median
+of at most 4 acquisitions, and fewer acquisitions than the hyperbola fit in the same session.
+Images unless --analytic. Not a test: minutes per controller on images.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
+from pathlib import Path
+from typing import Any
 
 from alignrl.envs.task import get_task
 from alignrl.evaluation.baselines import CLASSICAL
 from alignrl.evaluation.controllers import PolicyController
-from alignrl.evaluation.instrument_sets import SetResult, run_set, set_summary, set_table
+from alignrl.evaluation.instrument_sets import run_set, set_summary
 
 TARGET_SUCCESSES = 0.99  # share of a session's alignments (issue 21)
 TARGET_MEDIAN = 4.0  # acquisitions
 
 
-def _controller(spec: str):
+def _controller(spec: str) -> Any:
     if spec in CLASSICAL:
         return CLASSICAL[spec]()
     from alignrl.deploy.policy import load_deployable
@@ -34,20 +41,79 @@ def _controller(spec: str):
     return PolicyController(name=spec, act=policy.act, task=policy.task, history=policy.history)
 
 
-def _verdicts(results: list[SetResult], reference: SetResult | None) -> list[str]:
+def _file(out: Path, spec: str) -> Path:
+    return out / f"{spec.replace(':', '-').replace('/', '-')}.json"
+
+
+def _result(spec: str, args: argparse.Namespace) -> dict[str, Any]:
+    """The controller's set result as a dict: read from OUT with --reuse where it matches,
+    else run (and written to OUT)."""
+    path = _file(args.out, spec) if args.out else None
+    if args.reuse and path is not None and path.exists():
+        saved = json.loads(path.read_text())
+        same = (saved["set"], saved["seed"], saved["scenarios"], saved["analytic"])
+        if same == (args.set_name, args.seed, args.scenarios, args.analytic):
+            print(f"{spec}: read {path}", file=sys.stderr)
+            return saved
+    began = time.perf_counter()
+    result = run_set(
+        _controller(spec),
+        args.set_name,
+        get_task("focus"),
+        scenarios=args.scenarios,
+        seed=args.seed,
+        analytic=args.analytic,
+    )
+    print(f"{set_summary(result)} ({time.perf_counter() - began:.0f} s)", file=sys.stderr)
+    data = result.to_dict()
+    data["controller"] = spec
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(data, indent=1))
+    return data
+
+
+def _cell(session: dict[str, Any]) -> str:
+    return f"{session['successes']}/{session['scenarios']} at {session['median_acquisitions']:g}"
+
+
+def table(results: list[dict[str, Any]]) -> list[str]:
+    """One row per instrument and the total, one column per controller."""
+    names = [entry["instrument"] for entry in results[0]["instruments"]]
+    lines = [
+        "| instrument | " + " | ".join(r["controller"] for r in results) + " |",
+        "| --- |" + " --- |" * len(results),
+    ]
+    for position, name in enumerate(names):
+        cells = [_cell(r["instruments"][position]) for r in results]
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    totals = [
+        f"{r['total']['successes']}/{r['total']['alignments']} at "
+        f"{r['total']['median_acquisitions']:g}"
+        for r in results
+    ]
+    lines.append("| **total** | " + " | ".join(totals) + " |")
+    return lines
+
+
+def verdicts(results: list[dict[str, Any]]) -> list[str]:
+    """Per policy and instrument: the issue's target met or missed."""
+    reference = next((r for r in results if r["controller"] == "hyperbola"), None)
     lines = []
     for result in results:
-        if result.controller in CLASSICAL:
+        if result["controller"] in CLASSICAL:
             continue
         met = []
-        for position, name in enumerate(result.instruments):
-            session = result.sessions[position]
-            share = session.successes / session.scenarios
-            median = session.median_acquisitions
-            fewer = reference is None or median < reference.sessions[position].median_acquisitions
+        for position, session in enumerate(result["instruments"]):
+            share = session["successes"] / session["scenarios"]
+            median = session["median_acquisitions"]
+            fewer = (
+                reference is None
+                or median < reference["instruments"][position]["median_acquisitions"]
+            )
             ok = share >= TARGET_SUCCESSES and median <= TARGET_MEDIAN and fewer
-            met.append(f"{name} {'met' if ok else 'missed'}")
-        lines.append(f"{result.controller}: {', '.join(met)}")
+            met.append(f"{session['instrument']} {'met' if ok else 'missed'}")
+        lines.append(f"{result['controller']}: {', '.join(met)}")
     return lines
 
 
@@ -64,33 +130,21 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scenarios", type=int, default=100)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--analytic", action="store_true", help="analytic readings, no images")
+    parser.add_argument("--out", type=Path, help="write each controller's result here")
+    parser.add_argument("--reuse", action="store_true", help="read results OUT already holds")
     args = parser.parse_args(argv)
     classical = args.controller or ["hyperbola", "golden-section"]
-    task = get_task("focus")
-    results = []
     started = time.perf_counter()
-    for spec in [*args.policy, *classical]:
-        began = time.perf_counter()
-        result = run_set(
-            _controller(spec),
-            args.set_name,
-            task,
-            scenarios=args.scenarios,
-            seed=args.seed,
-            analytic=args.analytic,
-        )
-        results.append(result)
-        print(f"{set_summary(result)} ({time.perf_counter() - began:.0f} s)", file=sys.stderr)
+    results = [_result(spec, args) for spec in [*args.policy, *classical]]
     readings = "analytic readings" if args.analytic else "images"
     print(
         f"set:{args.set_name}, {args.scenarios} scenarios per instrument, seed {args.seed}, "
         f"{readings} ({time.perf_counter() - started:.0f} s)"
     )
     print()
-    print("\n".join(set_table(results)))
+    print("\n".join(table(results)))
     print()
-    reference = next((r for r in results if r.controller == "hyperbola"), None)
-    print("\n".join(_verdicts(results, reference)))
+    print("\n".join(verdicts(results)))
     return 0
 
 
