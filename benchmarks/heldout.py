@@ -8,9 +8,10 @@ Every controller runs one session per instrument (alignrl.evaluation.instrument_
 same seeded columns and starts. Each controller's result is written to OUT/NAME.json (the
 object of `alignrl evaluate --set --json`); with --reuse a controller whose file is there, of
 the same set, seed, scenarios and readings, is read instead of run again, so a new policy can
-join a table of old ones. The table has one row per instrument and the total, and below it,
-per instrument, whether each policy met the issue's target there: at least 99/100 at a median
-of at most 4 acquisitions, and fewer acquisitions than the hyperbola fit in the same session.
+join a table of old ones. The table (instrument_sets.set_table) has one row per instrument
+and the total, and below it, per instrument, whether each policy met the issue's target
+there: at least 99/100 at a median of at most 4 acquisitions, and fewer acquisitions than the
+hyperbola fit in the same session.
 Images unless --analytic. Not a test: minutes per controller on images.
 """
 
@@ -26,7 +27,7 @@ from typing import Any
 from alignrl.envs.task import get_task
 from alignrl.evaluation.baselines import CLASSICAL
 from alignrl.evaluation.controllers import PolicyController
-from alignrl.evaluation.instrument_sets import run_set, set_summary
+from alignrl.evaluation.instrument_sets import run_set, set_summary, set_table
 
 TARGET_SUCCESSES = 0.99  # share of a session's alignments (issue 21)
 TARGET_MEDIAN = 4.0  # acquisitions
@@ -71,29 +72,6 @@ def _result(spec: str, args: argparse.Namespace) -> dict[str, Any]:
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(json.dumps(data, indent=1))
     return data
-
-
-def _cell(session: dict[str, Any]) -> str:
-    return f"{session['successes']}/{session['scenarios']} at {session['median_acquisitions']:g}"
-
-
-def table(results: list[dict[str, Any]]) -> list[str]:
-    """One row per instrument and the total, one column per controller."""
-    names = [entry["instrument"] for entry in results[0]["instruments"]]
-    lines = [
-        "| instrument | " + " | ".join(r["controller"] for r in results) + " |",
-        "| --- |" + " --- |" * len(results),
-    ]
-    for position, name in enumerate(names):
-        cells = [_cell(r["instruments"][position]) for r in results]
-        lines.append(f"| {name} | " + " | ".join(cells) + " |")
-    totals = [
-        f"{r['total']['successes']}/{r['total']['alignments']} at "
-        f"{r['total']['median_acquisitions']:g}"
-        for r in results
-    ]
-    lines.append("| **total** | " + " | ".join(totals) + " |")
-    return lines
 
 
 def verdicts(results: list[dict[str, Any]]) -> list[str]:
@@ -142,7 +120,7 @@ def main(argv: list[str] | None = None) -> int:
         f"{readings} ({time.perf_counter() - started:.0f} s)"
     )
     print()
-    print("\n".join(table(results)))
+    print("\n".join(set_table(results)))
     print()
     print("\n".join(verdicts(results)))
     return 0

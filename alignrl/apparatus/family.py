@@ -41,7 +41,7 @@ import hashlib
 import json
 import math
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
@@ -61,6 +61,7 @@ __all__ = [
     "FocusFamily",
     "family_digest",
     "family_names",
+    "family_path",
     "load_family",
 ]
 
@@ -435,6 +436,19 @@ def family_names() -> list[str]:
     return sorted(path.stem for path in FAMILY_DIR.glob("*.yaml"))
 
 
+def family_path(target: str) -> Path:
+    """The file a family is named by: a shipped box's name (families/NAME.yaml), or a path
+    (ending in .yaml or .yml, or with a folder in it); ValueError for an unknown name."""
+    if target.endswith((".yaml", ".yml")) or "/" in target:
+        return Path(target)
+    if target not in family_names():
+        raise ValueError(
+            f"no instrument family {target!r}; the shipped families are: "
+            f"{', '.join(family_names())} (or give family:PATH.yaml)"
+        )
+    return FAMILY_DIR / f"{target}.yaml"
+
+
 def load_family(path: str | Path, **overrides: Any) -> FocusFamily:
     """Read a family or instrument YAML file strictly (an unknown key, a bad range: a
     ValueError naming the file and the keys)."""
@@ -468,8 +482,3 @@ def family_digest(family: FocusFamily) -> str:
     data = family.model_dump(exclude={"name", "description"})
     text = json.dumps(data, sort_keys=True, default=list)
     return hashlib.sha256(text.encode()).hexdigest()
-
-
-def draw_as_dict(draw: ColumnDraw) -> dict[str, Any]:
-    """A column's parameters, for people and JSON."""
-    return asdict(draw)

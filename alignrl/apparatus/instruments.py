@@ -25,11 +25,11 @@ from typing import Any
 import numpy as np
 
 from alignrl.apparatus.family import (
-    FAMILY_DIR,
     PAIR_FIELDS,
     FamilyColumn,
     FocusFamily,
     family_digest,
+    family_path,
     load_family,
 )
 
@@ -154,19 +154,15 @@ def _family_of(spec: str, args: Mapping[str, Any] | None) -> tuple[FocusFamily, 
     """The family a `family:` or `instrument:` spec simulates, with its file; None for
     other specs or a file that cannot be read (the registry reports that when it opens)."""
     overrides = {key: value for key, value in (args or {}).items() if key != "analytic"}
-    if spec.startswith("family:"):
-        target = spec[len("family:") :]
-        path = (
-            FAMILY_DIR / f"{target}.yaml"
-            if "/" not in target and not target.endswith((".yaml", ".yml"))
-            else Path(target)
-        )
-    elif spec.startswith("instrument:"):
-        try:
-            path = find_instrument(spec[len("instrument:") :])
-        except ValueError:
+    form, _, target = spec.partition(":")
+    try:
+        if form == "family":
+            path = family_path(target)
+        elif form == "instrument":
+            path = find_instrument(target)
+        else:
             return None
-    else:
+    except ValueError:  # names nothing: the registry says so when it opens the spec
         return None
     try:
         return load_family(path, **overrides), path

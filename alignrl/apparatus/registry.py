@@ -39,7 +39,7 @@ from pathlib import Path
 from typing import Any
 
 from alignrl.apparatus.base import APPARATUS_METHODS, Apparatus
-from alignrl.apparatus.family import FAMILY_DIR, FamilyColumn, family_names, load_family
+from alignrl.apparatus.family import FamilyColumn, family_path, load_family
 from alignrl.apparatus.guard import DEFAULT_CALL_TIMEOUT_S, construct_within
 from alignrl.apparatus.instruments import InstrumentSet, find_instrument, load_set
 from alignrl.apparatus.limits import ShieldOptions
@@ -188,24 +188,12 @@ def build_apparatus(
                 )
             return InstrumentSet([family for _, family in load_set(target)], seed, analytic)
         if form == "family":
-            return FamilyColumn(load_family(_family_path(target), **args), seed, analytic)
+            return FamilyColumn(load_family(family_path(target), **args), seed, analytic)
         if form == "instrument":
             return FamilyColumn(load_family(find_instrument(target), **args), seed, analytic)
         path = Path(target) if form == "sem" else PRESET_DIR / f"{spec}.yaml"
         return SyntheticSEM(load_sem_config(path, **args), seed=seed, analytic=analytic)
     return _import_driver(spec, args, call_timeout_s)
-
-
-def _family_path(target: str) -> Path:
-    """family:NAME names a shipped box, family:PATH.yaml a file."""
-    if target.endswith((".yaml", ".yml")) or "/" in target:
-        return Path(target)
-    if target not in family_names():
-        raise ValueError(
-            f"no instrument family {target!r}; the shipped families are: "
-            f"{', '.join(family_names())} (or give family:PATH.yaml)"
-        )
-    return FAMILY_DIR / f"{target}.yaml"
 
 
 def make_apparatus(

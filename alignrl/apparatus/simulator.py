@@ -43,7 +43,7 @@ import numpy as np
 
 from alignrl.apparatus.base import NoEdgesError, check_write
 from alignrl.apparatus.edge_profiles import TEN_NINETY_PER_SIGMA
-from alignrl.apparatus.family import FAMILY_DIR, FocusFamily, draw_column, family_names, load_family
+from alignrl.apparatus.family import FocusFamily, draw_column, family_path, load_family
 from alignrl.apparatus.scenarios import ScenarioSet, read_scenarios
 
 __all__ = [
@@ -161,11 +161,12 @@ def _family(value: object) -> FocusFamily:
     """randomize.family: a shipped family's name or a family file's path."""
     if not isinstance(value, str) or not value:
         raise ValueError(f"randomize.family must name a family or a file, got {_shown(value)}")
-    path = Path(value) if value.endswith((".yaml", ".yml")) else FAMILY_DIR / f"{value}.yaml"
+    try:
+        path = family_path(value)
+    except ValueError as error:
+        raise ValueError(f"randomize.family: no family {_shown(value)} ({error})") from None
     if not path.exists():
-        raise ValueError(
-            f"randomize.family: no family {_shown(value)} (shipped: {', '.join(family_names())})"
-        )
+        raise ValueError(f"randomize.family: no family file {_shown(value)}")
     return load_family(path)
 
 

@@ -172,6 +172,7 @@ class AlignmentEpisodes:
         self.high = np.ones((self.n, self.k))
         self.span = self.high - self.low
         self.max_step = np.zeros((self.n, self.k))  # largest change per action, its units
+        self._knobs_read: list[object] = [None] * self.n  # the knobs mapping each row came from
         self._read_intervals(np.arange(self.n))
         # Per knob, the farthest a start may be from the optimum (Task.start_reach; inf: any).
         self.start_reach = np.array([task.start_reach.get(k, np.inf) for k in task.knobs])
@@ -206,9 +207,13 @@ class AlignmentEpisodes:
 
     def _read_intervals(self, indices: np.ndarray) -> None:
         """Each knob's interval and largest step of `indices`, read from the apparatus: an
-        instrument family draws a column, with its own interval, at every reset."""
+        instrument family draws a column, with its own interval, at every reset (and a new
+        knobs mapping with it: a mapping read before is not read again)."""
         for index in indices:
             knobs = self.apparatus[index].knobs
+            if knobs is self._knobs_read[index]:
+                continue
+            self._knobs_read[index] = knobs
             self.low[index] = [float(knobs[k][0]) for k in self.task.knobs]
             self.high[index] = [float(knobs[k][1]) for k in self.task.knobs]
             self.max_step[index] = self.task.step_sizes(knobs)

@@ -23,7 +23,7 @@ alignrl.evaluation.session. Pure logic apart from the apparatus it opens: no pri
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -220,30 +220,36 @@ def _cell(successes: int, alignments: int, median: float) -> str:
     return f"{successes}/{alignments} at {median:g}"
 
 
-def set_table(results: Sequence[SetResult]) -> list[str]:
+def set_table(results: Sequence[SetResult | Mapping[str, Any]]) -> list[str]:
     """A Markdown table, padded for the terminal: one row per instrument and a final
     **total** row, one column per controller with `successes/N at median acquisitions`.
+    A result is a SetResult or its `to_dict()` (as benchmarks read them back from JSON).
     Every result must cover the same instruments in the same order (ValueError otherwise)."""
     if not results:
         raise ValueError("set_table needs at least one set result")
-    instruments = results[0].instruments
-    for result in results[1:]:
-        if result.instruments != instruments:
+    data = [r.to_dict() if isinstance(r, SetResult) else r for r in results]
+    names = [[entry["instrument"] for entry in d["instruments"]] for d in data]
+    for result, instruments in zip(data[1:], names[1:], strict=True):
+        if instruments != names[0]:
             raise ValueError(
-                f"set_table: {result.controller} ran on {', '.join(result.instruments)}, "
-                f"{results[0].controller} on {', '.join(instruments)}; a table needs the "
+                f"set_table: {result['controller']} ran on {', '.join(instruments)}, "
+                f"{data[0]['controller']} on {', '.join(names[0])}; a table needs the "
                 "same instruments for every controller"
             )
-    rows = [["instrument", *(result.controller for result in results)]]
-    for index, name in enumerate(instruments):
-        cells = [result.sessions[index] for result in results]
+    rows = [["instrument", *(d["controller"] for d in data)]]
+    for index, name in enumerate(names[0]):
+        cells = [d["instruments"][index] for d in data]
         rows.append(
-            [name, *(_cell(s.successes, s.scenarios, s.median_acquisitions) for s in cells)]
+            [
+                name,
+                *(_cell(c["successes"], c["scenarios"], c["median_acquisitions"]) for c in cells),
+            ]
         )
+    totals = [d["total"] for d in data]
     rows.append(
         [
             "**total**",
-            *(_cell(r.successes, r.alignments, r.median_acquisitions) for r in results),
+            *(_cell(t["successes"], t["alignments"], t["median_acquisitions"]) for t in totals),
         ]
     )
     sizes = [max(len(row[column]) for row in rows) for column in range(len(rows[0]))]
