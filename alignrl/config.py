@@ -410,6 +410,15 @@ class RunConfig(_Strict):
             self._refuse_held_out()
         return self
 
+    def misaligner_shape(self) -> tuple[tuple[int, int], int]:
+        """(input shape, action size) of this run's misaligners: one row [1, aligned settings
+        (k), complexity] answered with a start per knob (a league whose misaligners design
+        the instrument says otherwise: LeagueConfig)."""
+        from alignrl.envs.duel import misaligner_input_shape
+
+        knobs = len(self.resolved_task().knobs)
+        return misaligner_input_shape(knobs), knobs
+
     def apparatus_specs(self) -> list[tuple[str, str, dict[str, Any]]]:
         """(key, spec, arguments) of every apparatus this run trains or chooses on."""
         return [

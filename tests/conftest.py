@@ -10,6 +10,10 @@ and asserts the same results. Everything is written under the folder a test pass
 from __future__ import annotations
 
 import csv
+import os
+import signal
+import subprocess
+import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -134,3 +138,21 @@ def create_league(path: Path, runs: Path) -> League:
 def read_csv(path: Path) -> list[dict[str, str]]:
     with path.open(newline="") as handle:
         return list(csv.DictReader(handle))
+
+
+def kill_league_after(
+    command: list[str], run: Path, checkpoint: int, timeout_s: float = 180
+) -> int:
+    """Start the league `command` (alignrl league run ...), SIGKILL it once its run `run` has
+    checkpointed iteration `checkpoint` or later, and return the iteration LATEST names."""
+    process = subprocess.Popen(command, stderr=subprocess.PIPE)
+    latest = run / "checkpoints" / "LATEST"
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if latest.exists() and int(latest.read_text().split("-")[1]) >= checkpoint:
+            break
+        assert process.poll() is None, process.stderr.read() if process.stderr else ""
+        time.sleep(0.02)
+    os.kill(process.pid, signal.SIGKILL)
+    process.wait(timeout=30)
+    return int(latest.read_text().split("-")[1])

@@ -4,18 +4,23 @@ configs fail clearly, and the leaderboard reads a run."""
 from __future__ import annotations
 
 import json
-import os
-import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 import yaml
-from conftest import SMALL_SAC, create_league, quiet_schedule, read_csv, write_league, write_yaml
+from conftest import (
+    SMALL_SAC,
+    create_league,
+    kill_league_after,
+    quiet_schedule,
+    read_csv,
+    write_league,
+    write_yaml,
+)
 
 from alignrl.cli import main
 from alignrl.config import ConfigError
@@ -117,20 +122,9 @@ def test_kill_minus_nine_then_resume_loses_no_completed_iteration(tmp_path: Path
     )
     runs = tmp_path / "runs"
     run = runs / "tiny"
-    process = subprocess.Popen(
-        [*_league_command("run", str(config), "--runs-dir", str(runs), "--quiet")],
-        stderr=subprocess.PIPE,
+    killed_at = kill_league_after(
+        _league_command("run", str(config), "--runs-dir", str(runs), "--quiet"), run, 4
     )
-    latest = run / "checkpoints" / "LATEST"
-    deadline = time.monotonic() + 180
-    while time.monotonic() < deadline:
-        if latest.exists() and int(latest.read_text().split("-")[1]) >= 4:
-            break
-        assert process.poll() is None, process.stderr.read() if process.stderr else ""
-        time.sleep(0.02)
-    os.kill(process.pid, signal.SIGKILL)
-    process.wait(timeout=30)
-    killed_at = int(latest.read_text().split("-")[1])
     assert 4 <= killed_at < 14
     resumed = subprocess.run(
         [*_league_command("resume", str(run), "--quiet", "--json")],

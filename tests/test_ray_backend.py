@@ -244,3 +244,25 @@ def test_ray_config_errors_name_the_file_and_the_key(
     path = write_league(tmp_path, backend="ray", ray=ray_settings)
     with pytest.raises(ConfigError, match=message):
         load_league(path)
+
+
+def test_designers_play_on_the_workers_exactly_as_in_process(tmp_path: Path) -> None:
+    from test_designers import DESIGN_LEAGUE
+
+    path = write_league(tmp_path, backend="ray", ray=RAY, **DESIGN_LEAGUE)
+    config, aligners, misaligners = load_league(path)
+    league = League.create(config, aligners, misaligners, tmp_path / "runs")
+    try:
+        aligner, designer = league.members["a-sac"], league.members["m-sac"]
+        on_ray, here = (
+            backend.play(aligner, designer, 8, np.random.default_rng(3), set(), deterministic=True)
+            for backend in (league.backend, InProcessBackend(config))
+        )
+        assert on_ray.matches == 8
+        assert sorted(zip(on_ray.payoffs, on_ray.rated, strict=True)) == sorted(
+            zip(here.payoffs, here.rated, strict=True)
+        )
+        assert sorted(map(tuple, on_ray.designs)) == sorted(map(tuple, here.designs))
+        assert len({tuple(d) for d in here.designs}) == 8  # its draws vary the columns
+    finally:
+        league.close()

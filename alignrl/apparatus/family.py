@@ -37,6 +37,7 @@ the stigmator and aperture parameters will come as kinds of their own.
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import json
 import math
@@ -59,6 +60,10 @@ __all__ = [
     "ColumnDraw",
     "FamilyColumn",
     "FocusFamily",
+    "column_at",
+    "design_names",
+    "draw_column",
+    "draw_fractions",
     "family_digest",
     "family_names",
     "family_path",
@@ -252,23 +257,56 @@ class ColumnDraw:
         return self.high - self.low
 
 
-def draw_column(family: FocusFamily, rng: np.random.Generator) -> ColumnDraw:
-    """A column from the box, every parameter in the order of PAIR_FIELDS (then the
-    specimen): one draw per parameter, a point drawn as well, so that narrowing one range
-    leaves the other parameters' draws as they were."""
+def draw_fractions(family: FocusFamily, rng: np.random.Generator) -> tuple[dict[str, float], int]:
+    """One uniform draw per parameter, in the order of PAIR_FIELDS (a point drawn as well, so
+    that narrowing one range leaves the other parameters' draws as they were), then the
+    specimen's index: where in the box a column lies (`column_at`)."""
+    fractions = {name: float(rng.random()) for name in PAIR_FIELDS}
+    return fractions, int(rng.integers(len(family.specimens)))
+
+
+def column_at(family: FocusFamily, fractions: Mapping[str, float], specimen: int) -> ColumnDraw:
+    """The column at `fractions` of the box (0 its low end, 1 its high end; `LOG_SCALE`
+    parameters on a log scale), with specimen number `specimen` of the family's list."""
     values: dict[str, float] = {}
     for name in PAIR_FIELDS:
         low, high = getattr(family, name)
-        u = float(rng.random())
+        u = float(fractions[name])
         if name in LOG_SCALE:
             values[name] = float(math.exp(math.log(low) + u * (math.log(high) - math.log(low))))
         else:
             values[name] = low + u * (high - low)
-    specimen = family.specimens[int(rng.integers(len(family.specimens)))]
     width, centre = values.pop("interval_width"), values.pop("interval_centre")
     low, high = centre - 0.5 * width, centre + 0.5 * width
     optimum = low + values.pop("optimum_fraction") * width
-    return ColumnDraw(low=low, high=high, optimum=optimum, specimen=specimen, **values)
+    return ColumnDraw(low=low, high=high, optimum=optimum, specimen=family.specimens[specimen],
+                      **values)  # fmt: skip
+
+
+def draw_column(family: FocusFamily, rng: np.random.Generator) -> ColumnDraw:
+    """A column from the box, drawn uniformly (log-uniformly on `LOG_SCALE`)."""
+    return column_at(family, *draw_fractions(family, rng))
+
+
+# What only one reading path uses: a designer is offered the parameters its path reads.
+ANALYTIC_ONLY = ("reading_noise_rel", "reading_noise_px", "specimen_rel", "saturation_px",
+                 "no_edges_px")  # fmt: skip
+IMAGE_ONLY = ("dose_electrons_per_px", "detector_noise")
+
+
+def design_names(family: FocusFamily, analytic: bool) -> tuple[str, ...]:
+    """The parameters a designer of `family` chooses (issue 22): every one that is a range
+    in the box and that its reading path uses, then `specimen` where images are rendered
+    and the family has more than one."""
+    skip = IMAGE_ONLY if analytic else ANALYTIC_ONLY
+    names = [
+        name
+        for name in PAIR_FIELDS
+        if name not in skip and getattr(family, name)[0] < getattr(family, name)[1]
+    ]
+    if not analytic and len(family.specimens) > 1:
+        names.append("specimen")
+    return tuple(names)
 
 
 class FamilyColumn:
@@ -294,16 +332,73 @@ class FamilyColumn:
         if seed is None:
             seed = int(self._seeds.spawn(1)[0].generate_state(1)[0])
         self._seed = int(seed)
-        self.draw = draw_column(self.family, np.random.default_rng([self._seed, 1]))
+        self._fractions, self._specimen_index = draw_fractions(
+            self.family, np.random.default_rng([self._seed, 1])
+        )
+        self._begin(column_at(self.family, self._fractions, self._specimen_index))
+
+    def _begin(self, draw: ColumnDraw) -> None:
+        """The episode of this seed on column `draw`: nothing read yet."""
+        self.draw = draw
         self._rng = np.random.default_rng([self._seed, 2])
-        self.knobs: Mapping[str, tuple[float, float]] = {"defocus": (self.draw.low, self.draw.high)}
-        self._optimum = self.draw.optimum
+        self.knobs: Mapping[str, tuple[float, float]] = {"defocus": (draw.low, draw.high)}
+        self._optimum = draw.optimum
         self._specimen_draw = float(self._rng.standard_normal())
-        self._setting = 0.5 * (self.draw.low + self.draw.high)
+        self._setting = 0.5 * (draw.low + draw.high)
         self._direction = 0.0
         self._specimen_fft: np.ndarray | None = None
         self._best: float | None = None
         self._last_image = None
+
+    # --- designing the column (issue 22: misaligners that design the instrument) ---------
+
+    def design_names(self) -> tuple[str, ...]:
+        """The parameters `design` sets (`design_names` of the family and reading path)."""
+        return design_names(self.family, self.analytic)
+
+    def design_draw(self) -> np.ndarray:
+        """Where this episode's uniform draw put each designed parameter, as fractions of
+        its range in [0, 1] (the specimen: the middle of its share)."""
+        count = len(self.family.specimens)
+        return np.array(
+            [
+                (self._specimen_index + 0.5) / count
+                if name == "specimen"
+                else self._fractions[name]
+                for name in self.design_names()
+            ]
+        )
+
+    def design(self, fractions: np.ndarray) -> None:
+        """This episode's column with each designed parameter at its fraction of the box (one
+        per `design_names`, clipped to [0, 1]; 0 the low end, 1 the high end, on a log scale
+        where the box draws log-uniformly) and the others as drawn; the episode begins again
+        on it, with its seed's noise (nothing read before is kept)."""
+        names = self.design_names()
+        fractions = np.asarray(fractions, float).reshape(-1)
+        if fractions.size != len(names) or not np.all(np.isfinite(fractions)):
+            raise ValueError(
+                f"a design of {self.family.name} takes {len(names)} finite fractions "
+                f"({', '.join(names)}), got {fractions.tolist()}"
+            )
+        chosen = dict(self._fractions)
+        specimen = self._specimen_index
+        for name, fraction in zip(names, np.clip(fractions, 0.0, 1.0), strict=True):
+            if name == "specimen":
+                specimen = min(
+                    int(fraction * len(self.family.specimens)), len(self.family.specimens) - 1
+                )
+            else:
+                chosen[name] = float(fraction)
+        self._begin(column_at(self.family, chosen, specimen))
+
+    def twin(self) -> FamilyColumn:
+        """An independent copy in this very state, its noise stream included: what a
+        reference plays the same column on, with common random numbers (issue 22)."""
+        other = copy.copy(self)
+        other._rng = copy.deepcopy(self._rng)
+        other.knobs = dict(self.knobs)
+        return other
 
     def read(self) -> dict[str, float]:
         return {"defocus": self._setting}

@@ -56,15 +56,17 @@ def aligner_spaces(n_knobs: int, history: int, extras: int = 0) -> tuple[spaces.
     return observation, spaces.Box(-1.0, 1.0, (n_knobs + 1,), dtype=np.float32)
 
 
-def misaligner_spaces(n_knobs: int) -> tuple[spaces.Box, spaces.Box]:
+def misaligner_spaces(n_knobs: int, n_design: int = 0) -> tuple[spaces.Box, spaces.Box]:
     """(observation, action) spaces of a misaligner: aligned settings and the complexity in,
-    a place in the complexity window per knob out."""
+    a place in the complexity window per knob out; a designer (`n_design` parameters,
+    alignrl.envs.design) reads its draw and the complexity and also answers with a design."""
+    leading = n_design if n_design else n_knobs
     observation = spaces.Box(
-        np.append(np.full(n_knobs, -1.0), 0.0).astype(np.float32),
-        np.ones(n_knobs + 1, np.float32),
+        np.append(np.full(leading, -1.0), 0.0).astype(np.float32),
+        np.ones(leading + 1, np.float32),
         dtype=np.float32,
     )
-    return observation, spaces.Box(-1.0, 1.0, (n_knobs,), dtype=np.float32)
+    return observation, spaces.Box(-1.0, 1.0, (n_knobs + n_design,), dtype=np.float32)
 
 
 def single_episode(

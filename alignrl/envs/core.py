@@ -234,6 +234,21 @@ class AlignmentEpisodes:
         for index, seed in zip(indices, seeds, strict=True):
             self.apparatus[index].reset(seed)
             align_others(self.apparatus[index], self.task.knobs, self.task.context, seed)
+        self._settle(indices)
+
+    def design(self, indices: np.ndarray, fractions: np.ndarray) -> None:
+        """Make each apparatus of `indices` the column its row of `fractions` designs (one
+        fraction of the family's box per designed parameter: alignrl.envs.design), then read
+        its intervals, optimum, best width and thresholds again: between `begin` and
+        `misalign`, where a designing misaligner moves."""
+        indices = np.asarray(indices, dtype=np.int64)
+        for index, row in zip(indices, np.asarray(fractions, float), strict=True):
+            self.apparatus[index].design(row)  # type: ignore[attr-defined]
+        self._settle(indices)
+
+    def _settle(self, indices: np.ndarray) -> None:
+        """What `begin` learns of the columns of `indices` as they now are: intervals, the
+        aligned settings, the success thresholds; the episodes are cleared."""
         self._read_intervals(indices)
         self._reset_quality_ref(indices)
         best = np.full(len(indices), np.nan)

@@ -11,13 +11,18 @@ Card
   A league member reads it as a one-row history, [1, observation] (`misaligner_inputs`).
 * Misaligner action: Box(-1, 1)^k: where in the complexity window around the aligned state
   each knob starts.
+* A designing misaligner (`design=True`, an instrument family: alignrl.envs.design) reads
+  Box(d + 1), its draw of the d design parameters and the complexity, and answers with
+  Box(-1, 1)^(k + d): the start, then the column inside the family's box.
 * Aligner observation/action: as in AlignmentEnv (history of settings, quality, actions;
   knob changes plus a stop component).
 * Rewards, zero-sum at every step: at the misaligner's move it scores the misalignment it
   created, scale x (start width - best width), and the aligner is charged as much; then the
   aligner earns the seed's rewards (0 in the interval, -penalty at a bound, the final
   improvement of the edge width) and the misaligner the negative of each. The misaligner's
-  total is what the aligner did not recover (alignrl.envs.rewards).
+  total is what the aligner did not recover (alignrl.envs.rewards). With `payoff="regret"`
+  the move scores instead what a reference earns on a twin of the column from the same start
+  (alignrl.envs.design): the misaligner's total is the aligner's regret.
 * Termination: both agents at the end of the alignment. info as in AlignmentEnv.
 * Seeding: only through `self.np_random` (reset(seed=...)).
 
@@ -37,9 +42,19 @@ from gymnasium import spaces
 from pettingzoo import AECEnv
 from pettingzoo.utils import wrappers
 
-from alignrl.apparatus.base import Apparatus
+from alignrl.apparatus.base import Apparatus, ApparatusError, knows_optimum
 from alignrl.envs.alignment import aligner_spaces, episode_info, misaligner_spaces, single_episode
 from alignrl.envs.core import AlignmentEpisodes
+from alignrl.envs.design import (
+    PAYOFFS,
+    Reference,
+    designer_input_shape,
+    designs_columns,
+    fractions_of,
+    rated_scores,
+    reference_returns,
+    twin_of,
+)
 from alignrl.envs.task import Task
 
 __all__ = [
@@ -80,10 +95,47 @@ class DuelBatch:
     each; `rewards` (that step's, zero-sum) and `terminations` are arrays indexed by slot.
     No info dicts are built on the way: `info(slot)` builds one where it is wanted."""
 
-    def __init__(self, episodes: AlignmentEpisodes) -> None:
+    def __init__(
+        self,
+        episodes: AlignmentEpisodes,
+        design: bool = False,
+        payoff: str = "improvement",
+        reference: Reference | None = None,
+    ) -> None:
+        if payoff not in PAYOFFS:
+            raise ValueError(f"payoff must be one of {', '.join(PAYOFFS)}, got {payoff!r}")
+        units = episodes.apparatus
+        if payoff == "regret":
+            if reference is None:
+                raise ValueError("the regret payoff needs a reference to measure it against")
+            if not all(knows_optimum(unit) for unit in units):
+                raise ValueError(
+                    "the regret payoff plays a twin of each column: it needs simulated "
+                    "apparatus (a real microscope has no twin)"
+                )
+        self.design_names: tuple[str, ...] = ()
+        if design:
+            if not all(designs_columns(unit) for unit in units):
+                raise ValueError(
+                    "a designing misaligner needs an apparatus whose column it can choose: an "
+                    "instrument family with ranges to design (family:NAME)"
+                )
+            names = {unit.design_names() for unit in units}  # type: ignore[attr-defined]
+            if len(names) > 1:
+                raise ValueError("every apparatus of a designing duel must offer the same design")
+            self.design_names = names.pop()
         self.possible_agents = list(AGENTS)
         self.episodes = episodes
         self.n = episodes.n
+        self.design, self.payoff, self.reference = bool(design), payoff, reference
+        d, k = len(self.design_names), episodes.k
+        self.misaligner_shape = (
+            (designer_input_shape(d), k + d) if design else (misaligner_input_shape(k), k)
+        )
+        self.designs = np.full((self.n, d), np.nan)  # fractions of the box each slot got
+        self.reference_cost = np.full(self.n, np.nan)  # px where the reference left it
+        self.reference_acquisitions = np.zeros(self.n, np.int64)
+        self.reference_success = np.zeros(self.n, bool)
         self.slots = np.arange(0)  # the slots of this round
         self.active = np.arange(0)  # the slots the selected agent acts for
         self.agent_selection = MISALIGNER
@@ -116,6 +168,10 @@ class DuelBatch:
         """What `agent` reads in `slots` (default: the active ones): (n, k + 1) for the
         misaligner, (n, H, F) histories for the aligner; fresh arrays."""
         slots = self.active if slots is None else slots
+        if agent == MISALIGNER and self.design:
+            draws = [2.0 * self.episodes.apparatus[int(i)].design_draw() - 1.0 for i in slots]  # type: ignore[attr-defined]
+            level = np.full((len(slots), 1), self.episodes.complexity)
+            return np.concatenate([np.stack(draws), level], axis=1).astype(np.float32)
         if agent == MISALIGNER:
             return np.stack([self.episodes.misaligner_observation(int(i)) for i in slots])
         return self.episodes.history[slots]
@@ -132,8 +188,7 @@ class DuelBatch:
         for agent in AGENTS:
             self.rewards[agent][:] = 0.0
         if self.agent_selection == MISALIGNER:
-            self.episodes.misalign(self.slots, actions)
-            score = self.episodes.misalignment_scores(self.slots)
+            score = self._misalign(np.asarray(actions, float).reshape(len(self.slots), -1))
             self.rewards[MISALIGNER][self.slots] = score
             self.rewards[ALIGNER][self.slots] = -score
             self.agent_selection = ALIGNER
@@ -146,6 +201,37 @@ class DuelBatch:
         for agent in AGENTS:
             self.terminations[agent][active[done]] = True
         self.active = active[~done]
+
+    def _misalign(self, actions: np.ndarray) -> np.ndarray:
+        """The misaligner's move on the round's slots (its design first, where it designs);
+        returns what each move scores."""
+        slots, episodes, k = self.slots, self.episodes, self.episodes.k
+        if self.design:
+            self.designs[slots] = fractions_of(actions[:, k:])
+            episodes.design(slots, self.designs[slots])
+        twins = [twin_of(episodes.apparatus[i]) for i in slots] if self.payoff == "regret" else []
+        episodes.misalign(slots, actions[:, :k])
+        if self.payoff != "regret":
+            return episodes.misalignment_scores(slots)
+        assert self.reference is not None
+        for twin, slot in zip(twins, slots, strict=True):
+            twin.write(dict(zip(episodes.task.knobs, episodes.setting[slot].tolist(), strict=True)))
+            try:
+                cost, images = self.reference.align(twin, episodes.task)
+            except ApparatusError:  # a fault of the twin: the reference failed there
+                cost, images = float("nan"), 0
+            self.reference_cost[slot], self.reference_acquisitions[slot] = cost, images
+        cost = self.reference_cost[slots]
+        self.reference_success[slots] = np.isfinite(cost) & (cost <= episodes.threshold[slots])
+        return reference_returns(
+            episodes.cost_before[slots], cost, self.reference_acquisitions[slots], episodes.task
+        )
+
+    def rated(self) -> np.ndarray:
+        """(n,) the aligner's rated score per slot of the round (alignrl.envs.design): its
+        success, or under the regret payoff how it fared against the reference."""
+        theirs = self.reference_success[self.slots] if self.payoff == "regret" else None
+        return rated_scores(self.successes(), theirs)
 
     def info(self, slot: int) -> dict[str, Any]:
         """DuelEnv's info of `slot` (success and the width before once it has ended)."""
@@ -172,13 +258,16 @@ class raw_env(AECEnv):
         history: int = 8,
         complexity: float = 1.0,
         apparatus_args: dict | None = None,
+        design: bool = False,
+        payoff: str = "improvement",
+        reference: Reference | None = None,
     ) -> None:
         super().__init__()
         self.episodes = single_episode(apparatus, task, history, complexity, apparatus_args)
-        self.batch = DuelBatch(self.episodes)
+        self.batch = DuelBatch(self.episodes, design, payoff, reference)
         self.task, self.apparatus = self.episodes.task, self.episodes.apparatus[0]
         spaces_of = {
-            MISALIGNER: misaligner_spaces(self.episodes.k),
+            MISALIGNER: misaligner_spaces(self.episodes.k, len(self.batch.design_names)),
             ALIGNER: aligner_spaces(self.episodes.k, history, self.episodes.n_extra),
         }
         self._observation_spaces = {agent: pair[0] for agent, pair in spaces_of.items()}

@@ -15,13 +15,13 @@ from alignrl.agents.agent import Agent
 from alignrl.config import ConfigError
 from alignrl.envs import make_apparatus_copies
 from alignrl.envs.core import AlignmentEpisodes
-from alignrl.envs.duel import DuelBatch
 from alignrl.league.config import LeagueConfig
 from alignrl.league.matches import (
     AlignerSteps,
     Chooser,
     MatchResult,
     learn_from_starts,
+    make_duel,
     play_round,
 )
 
@@ -60,7 +60,7 @@ class InProcessBackend:
         apparatus = make_apparatus_copies(config.apparatus, config.apparatus_args, config.envs)
         self.task = config.resolved_task()
         self.episodes = AlignmentEpisodes(apparatus, self.task, config.history)
-        self.duel = DuelBatch(self.episodes)
+        self.duel = make_duel(self.episodes, config.design, config.payoff, config.reference)
         self.duel.set_complexity(config.complexity)
 
     @property
@@ -120,6 +120,8 @@ class InProcessBackend:
                     played.acquisitions[slot],
                     played.returns[slot],
                     payoff,
+                    played.rated[slot],
+                    played.designs[slot],
                 )
                 if on_episode:
                     on_episode(bool(played.successes[slot]))

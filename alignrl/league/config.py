@@ -91,6 +91,12 @@ class Roster(_Strict):
 
 class ScheduleConfig(_Strict):
     iterations: Count = Field(200, ge=1, description="league iterations to run")
+    aligner_steps: Count | None = Field(
+        None,
+        ge=1,
+        description="also stop after the iteration in which an active aligner has taken this "
+        "many steps (comparisons at equal aligner env steps); null: iterations alone",
+    )
     matches: Count = Field(32, ge=1, description="matches (alignment episodes) per iteration")
     snapshot_every: Count = Field(25, ge=1, description="iterations between frozen snapshots")
     pbt_every: Count = Field(50, ge=1, description="iterations between exploit/explore steps")
@@ -220,6 +226,48 @@ class LeagueConfig(RunConfig):
     pbt: PBTConfig = Field(
         default_factory=PBTConfig, description="population-based training (exploit/explore)"
     )
+    design: bool = Field(
+        False,
+        description="misaligners design the instrument inside the family's box as well as the "
+        "start (an apparatus family:NAME; alignrl.envs.design)",
+    )
+    payoff: Literal["improvement", "regret"] = Field(
+        "improvement",
+        description="what a misaligner's move scores: what the aligner did not recover (the "
+        "seed's), or the aligner's regret against the reference on a twin of the column",
+    )
+    reference: Literal["hyperbola", "golden-section"] = Field(
+        "hyperbola", description="the controller the regret payoff is measured against"
+    )
+
+    def design_names(self) -> tuple[str, ...]:
+        """What a designing misaligner chooses (alignrl.envs.design), read from one apparatus
+        of the spec; () where the misaligners place starts only."""
+        if not self.design:
+            return ()
+        from alignrl.apparatus.registry import make_apparatus
+        from alignrl.envs.design import designs_columns
+
+        try:
+            unit = make_apparatus(self.apparatus, self.apparatus_args)
+        except (OSError, ValueError, TypeError) as error:
+            raise ConfigError(f"apparatus {self.apparatus}: {error}") from None
+        if not designs_columns(unit):
+            raise ConfigError(
+                f"design: true needs an apparatus whose column a misaligner can choose, an "
+                f"instrument family with ranges (family:NAME); {self.apparatus} is not one"
+            )
+        return unit.design_names()
+
+    def misaligner_shape(self) -> tuple[tuple[int, int], int]:
+        """As RunConfig's; with `design`, a designer's [1, draw (d), complexity] answered with
+        a start per knob and d design values."""
+        if not self.design:
+            return super().misaligner_shape()
+        from alignrl.envs.design import designer_input_shape
+
+        names = self.design_names()
+        return designer_input_shape(len(names)), len(self.resolved_task().knobs) + len(names)
 
     def apparatus_specs(self) -> list[tuple[str, str, dict[str, Any]]]:
         """The experiment's apparatus and every Ray worker's microscope."""

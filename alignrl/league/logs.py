@@ -5,6 +5,8 @@
     metrics/lineage.csv                     one row per copy population-based training made
     metrics/members/<id>/updates.csv        a member's learner figures, a few rows per iteration
     metrics/members/<id>/episodes.csv       an aligner's matches as training episodes
+    metrics/designs.csv                     where designing misaligners put each column
+                                            (fractions of the family's box), per match
     tensorboard/                            the league's and the ratings' curves
 
 A resumed league cuts every file back to its checkpoint (`cut_back`) and writes the rows after
@@ -16,6 +18,8 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from pathlib import Path
+
+import numpy as np
 
 from alignrl.agents.agent import Agent
 from alignrl.league.matches import MatchResult
@@ -50,6 +54,42 @@ class LeagueLogs:
         self.lineage = CsvLog(metrics / "lineage.csv", list(LINEAGE_COLUMNS), key="iteration")
         self.tensorboard = TensorBoardLog(run_dir / "tensorboard")
         self._members: dict[str, tuple[CsvLog, CsvLog]] = {}
+        self.designs: CsvLog | None = None
+
+    def write_designs(
+        self,
+        iteration: int,
+        aligner: str,
+        misaligner: str,
+        result: MatchResult,
+        names: tuple[str, ...],
+    ) -> None:
+        """Where the misaligner of `iteration` designed each column, one row per match, with
+        the aligner's payoff and success there; a TensorBoard histogram per parameter."""
+        if not names or not result.designs:
+            return
+        if self.designs is None:
+            fields = ["iteration", "aligner", "misaligner", "match", "aligner_payoff",
+                      "success", *names]  # fmt: skip
+            self.designs = CsvLog(self.run_dir / "metrics" / "designs.csv", fields, "iteration")
+        rows = []
+        for match, (design, payoff, success) in enumerate(
+            zip(result.designs, result.payoffs, result.successes, strict=True)
+        ):
+            row = {
+                "iteration": iteration,
+                "aligner": aligner,
+                "misaligner": misaligner,
+                "match": match,
+                "aligner_payoff": round(payoff, 5),
+                "success": int(success),
+            }
+            row.update({name: round(float(v), 5) for name, v in zip(names, design, strict=True)})
+            rows.append(row)
+        self.designs.write(rows)
+        stacked = np.stack(result.designs)
+        for column, name in enumerate(names):
+            self.tensorboard.add_histogram(f"design/{name}", stacked[:, column], iteration)
 
     def member(self, member: str, metric_names: list[str]) -> tuple[CsvLog, CsvLog]:
         """The updates and episodes logs of `member` (made on first use)."""
@@ -117,6 +157,9 @@ class LeagueLogs:
         checkpoint made: it comes back), and TensorBoard events."""
         for log in (self.iterations, self.evaluations, self.lineage):
             log.truncate_after(iteration)
+        designs = self.run_dir / "metrics" / "designs.csv"
+        if designs.exists():
+            truncate_csv(designs, "iteration", iteration)
         for path in sorted((self.run_dir / "metrics" / "members").glob("*/*.csv")):
             truncate_csv(path, "env_steps", env_steps)
         self.tensorboard.resume_after(iteration)

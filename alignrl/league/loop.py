@@ -122,7 +122,8 @@ class League:
                 agent = Agent(member_spec(member, team, config), config.envs, config.device)
                 self._add_member(agent)
         knobs = len(config.resolved_task().knobs)
-        self.uniform_starts = UniformStarts.for_knobs(knobs)
+        self.uniform_starts = UniformStarts.for_shape(*config.misaligner_shape(), knobs)
+        self.design_names = config.design_names()  # what a designing misaligner chooses
         self.curriculum = Curriculum.from_config(config.curriculum)
         if self.curriculum:
             self.backend.set_complexity(self.curriculum.level)
@@ -305,13 +306,18 @@ class League:
         self.env_steps += sum(played.acquisitions)  # every image of every match
         self.iteration += 1
         # Ratings, payoffs and the success rate logged: the rated matches, the misaligner's.
-        self.ratings.update(pairing.aligner, pairing.misaligner, result.success_rate)
-        self.payoff.add(pairing.aligner, pairing.misaligner, result.matches, sum(result.successes))
+        # The aligner's rated score: its success, or under the regret payoff how it fared
+        # against the reference (alignrl.envs.design).
+        self.ratings.update(pairing.aligner, pairing.misaligner, result.score_rate)
+        self.payoff.add(pairing.aligner, pairing.misaligner, result.matches, sum(result.rated))
         self.ratings.record(self.iteration)
         self.payoff.record(self.iteration)
         first_episode = (self.iteration - 1) * self.config.schedule.matches + 1
         self.logs.write_members(
             played, self.members, aligner.id, self.env_steps, first_episode, complexity
+        )
+        self.logs.write_designs(
+            self.iteration, aligner.id, misaligner.id, result, self.design_names
         )
         row = {
             "iteration": self.iteration,
@@ -467,6 +473,17 @@ class League:
 
     # --- the loop -----------------------------------------------------------------------
 
+    def finished(self) -> bool:
+        """Whether the schedule is done: every iteration played, or an active aligner has
+        taken `schedule.aligner_steps` steps."""
+        schedule = self.config.schedule
+        if self.iteration >= schedule.iterations:
+            return True
+        if schedule.aligner_steps is None:
+            return False
+        steps = [self.members[m].steps_seen for m in self.pool.active("aligner")]
+        return max(steps, default=0) >= schedule.aligner_steps
+
     def run(self, progress: bool = True, log: Callable[[str], None] | None = None) -> None:
         from tqdm import tqdm
 
@@ -480,13 +497,13 @@ class League:
             dynamic_ncols=True,
         )
         matches_done, started = 0, time.perf_counter()
-        while self.iteration < schedule.iterations:
+        while not self.finished():
             row = self.step()
             matches_done += row["matches"]
             rate = matches_done / max(time.perf_counter() - started, 1e-9)
             bar.update(1)
             bar.set_postfix(matches_per_s=f"{rate:.1f}", success=f"{row['success_rate']:.2f}")
-            it = self.iteration
+            it, last = self.iteration, self.finished()
             if it % schedule.snapshot_every == 0:
                 self.snapshot()
             if self.config.pbt.enabled and it % schedule.pbt_every == 0:
@@ -496,7 +513,7 @@ class League:
                             f"iteration {it}: {change['member']} copies {change['parent']}, "
                             f"replacing {change['replaced']}"
                         )
-            if it % schedule.evaluate_every == 0 or it == schedule.iterations:
+            if it % schedule.evaluate_every == 0 or last:
                 for evaluation in self.evaluate():
                     if log:
                         log(
@@ -504,7 +521,7 @@ class League:
                             f"{evaluation['successes']}/{evaluation['scenarios']} held-out, "
                             f"median {evaluation['median_acquisitions']:g} acquisitions"
                         )
-            if it % schedule.checkpoint_every == 0 or it == schedule.iterations:
+            if it % schedule.checkpoint_every == 0 or last:
                 folder = self.checkpoint()
                 if log:
                     log(f"checkpoint {folder.name}")

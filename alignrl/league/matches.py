@@ -27,6 +27,8 @@ from typing import Any
 import numpy as np
 
 from alignrl.agents.agent import Agent, MemberSpec
+from alignrl.config import ConfigError
+from alignrl.envs.core import AlignmentEpisodes
 from alignrl.envs.duel import (
     ALIGNER,
     MISALIGNER,
@@ -47,6 +49,7 @@ __all__ = [
     "exploration_generator",
     "learn_from_matches",
     "learn_from_starts",
+    "make_duel",
     "play_round",
     "record_matches",
 ]
@@ -77,8 +80,14 @@ class UniformStarts:
     @classmethod
     def for_knobs(cls, knobs: int) -> UniformStarts:
         """The stand-in for a task of `knobs` knobs, shaped as the league's misaligners."""
-        shape = misaligner_input_shape(knobs)
-        return cls(MemberSpec(cls.ID, "misaligner", "sac", shape, knobs, knobs))
+        return cls.for_shape(misaligner_input_shape(knobs), knobs, knobs)
+
+    @classmethod
+    def for_shape(cls, shape: tuple[int, int], actions: int, knobs: int) -> UniformStarts:
+        """The stand-in for misaligners that read `shape` and answer with `actions` values
+        (a designer's too: its uniform actions are the family's uniform draw, domain
+        randomization)."""
+        return cls(MemberSpec(cls.ID, "misaligner", "sac", shape, actions, knobs))
 
     @property
     def id(self) -> str:
@@ -114,14 +123,28 @@ class MatchResult:
         self.acquisitions: list[int] = []
         self.returns: list[float] = []
         self.payoffs: list[float] = []
+        self.rated: list[float] = []  # the aligner's rated score per match (envs.design)
+        self.designs: list[np.ndarray] = []  # the box fractions a designer chose, per match
         self.updates: dict[str, list[dict[str, float]]] = {}
 
-    def add(self, success: bool, acquisitions: int, aligner_return: float, payoff: float) -> None:
-        """One finished match."""
+    def add(
+        self,
+        success: bool,
+        acquisitions: int,
+        aligner_return: float,
+        payoff: float,
+        rated: float | None = None,
+        design: np.ndarray | None = None,
+    ) -> None:
+        """One finished match (`rated`: its success unless given; `design`: where the
+        misaligner designed the column)."""
         self.successes.append(bool(success))
         self.acquisitions.append(int(acquisitions))
         self.returns.append(float(aligner_return))
         self.payoffs.append(float(payoff))
+        self.rated.append(float(success) if rated is None else float(rated))
+        if design is not None and np.size(design):
+            self.designs.append(np.asarray(design, float))
 
     @property
     def matches(self) -> int:
@@ -131,10 +154,15 @@ class MatchResult:
     def success_rate(self) -> float:
         return float(np.mean(self.successes)) if self.successes else 0.0
 
+    @property
+    def score_rate(self) -> float:
+        """The aligner's mean rated score: its success rate under the improvement payoff."""
+        return float(np.mean(self.rated)) if self.rated else 0.0
+
     def joined(self, other: MatchResult) -> MatchResult:
         """These matches, then `other`'s (a batch played in two parts)."""
         both = MatchResult()
-        for name in ("successes", "acquisitions", "returns", "payoffs"):
+        for name in ("successes", "acquisitions", "returns", "payoffs", "rated", "designs"):
             setattr(both, name, getattr(self, name) + getattr(other, name))
         both.updates = {m: list(rows) for m, rows in self.updates.items()}
         for member, rows in other.updates.items():
@@ -170,6 +198,8 @@ class Round:
     successes: np.ndarray  # (n,) bool, the final image within the threshold
     acquisitions: np.ndarray  # (n,) images acquired
     finish_order: list[int]  # slots in the order their matches ended
+    rated: np.ndarray  # (n,) the aligner's rated score (its success, or against the reference)
+    designs: np.ndarray  # (n, d) box fractions a designer chose (d = 0: it places starts only)
 
 
 @dataclass
@@ -186,11 +216,26 @@ class MatchTrajectory:
     success: bool
     acquisitions: int
     steps: AlignerSteps  # from the first step to the last
+    rated: float  # the aligner's rated score
+    design: np.ndarray  # (d,) the box fractions the designer chose (empty: starts only)
 
     @property
     def payoff(self) -> float:
         """The aligner's payoff; the misaligner's is the negative."""
         return self.aligner_return - self.score
+
+
+def make_duel(episodes: AlignmentEpisodes, design: bool, payoff: str, reference: str) -> DuelBatch:
+    """The duels a league plays over `episodes`: its misaligners designing the column or
+    placing starts, paid by `payoff` (the regret measured against the classical controller
+    `reference`: alignrl.evaluation.references); ConfigError where the apparatus cannot."""
+    from alignrl.evaluation.references import make_reference
+
+    try:
+        against = make_reference(reference, episodes.task) if payoff == "regret" else None
+        return DuelBatch(episodes, design, payoff, against)
+    except ValueError as error:
+        raise ConfigError(f"design: {design}, payoff: {payoff}: {error}") from None
 
 
 def play_round(
@@ -240,6 +285,8 @@ def play_round(
         duel.successes(),
         duel.acquisitions(),
         finish_order,
+        duel.rated(),
+        duel.designs[slots].copy(),
     )
 
 
@@ -355,6 +402,8 @@ def record_matches(
                     success=bool(played.successes[slot]),
                     acquisitions=int(played.acquisitions[slot]),
                     steps=_per_match(steps, slot),
+                    rated=float(played.rated[slot]),
+                    design=played.designs[slot],
                 )
             )
     return trajectories
@@ -374,7 +423,14 @@ def learn_from_matches(
     result = MatchResult()
     result.updates = {member.id: [] for member in (aligner, misaligner)}
     for match in trajectories:
-        result.add(match.success, match.acquisitions, match.aligner_return, match.payoff)
+        result.add(
+            match.success,
+            match.acquisitions,
+            match.aligner_return,
+            match.payoff,
+            match.rated,
+            match.design,
+        )
         if on_episode:
             on_episode(match.success)
         if aligner.id in learning:

@@ -54,7 +54,6 @@ from ray.exceptions import (
 from alignrl.agents.agent import Agent, MemberSpec
 from alignrl.envs import make_apparatus_copies
 from alignrl.envs.core import AlignmentEpisodes
-from alignrl.envs.duel import DuelBatch
 from alignrl.envs.task import Task
 from alignrl.league.config import LeagueConfig, RayWorkerConfig
 from alignrl.league.matches import (
@@ -65,6 +64,7 @@ from alignrl.league.matches import (
     UniformStarts,
     WorkerFailedError,
     learn_from_matches,
+    make_duel,
     record_matches,
 )
 
@@ -100,12 +100,13 @@ class MatchWorker:
         task: Task,
         history: int,
         threads: int,
+        duel: tuple[bool, str, str] = (False, "improvement", "hyperbola"),
     ) -> None:
         torch.set_num_threads(threads)
         self.index, self.apparatus = index, apparatus
         units = make_apparatus_copies(apparatus, apparatus_args, envs)
         self.episodes = AlignmentEpisodes(units, task, history)
-        self.duel = DuelBatch(self.episodes)
+        self.duel = make_duel(self.episodes, *duel)  # (design, payoff, reference)
         self._members: dict[str, Agent] = {}  # team -> acting copy, reused while the spec holds
         self._steps_to_failure: int | None = None
 
@@ -257,6 +258,7 @@ class RayBackend:
             self.task,
             self.config.history,
             self.config.threads,
+            (self.config.design, self.config.payoff, self.config.reference),
         )
 
     def fail_after(self, worker: int, steps: int) -> None:

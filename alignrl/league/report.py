@@ -35,6 +35,7 @@ from alignrl.league.report_figures import (
     LEAGUE_FIGURES,
     PayoffGrid,
     curriculum_figure,
+    designs_figure,
     evaluations_figure,
     member_teams,
     payoff_figure,
@@ -99,6 +100,8 @@ def _league_figures(run: LeagueRun) -> tuple[dict[str, Figure], dict[str, str]]:
         built["evaluations.png"] = evaluations_figure(run.evaluations)
     else:
         skipped["evaluations.png"] = run.why_empty("metrics/evaluations.csv")
+    if run.designs is not None:  # (only a league whose misaligners design the column)
+        built["designs.png"] = designs_figure(run.designs)
     return built, skipped
 
 

@@ -52,6 +52,7 @@ class LeagueRun:
     replaced: dict[str, int]  # replaced member -> the iteration it was replaced at
     checkpoint: Checkpoint | None  # None before the first checkpoint
     warm_starts: dict[str, str] = field(default_factory=dict)  # aligner -> init_from
+    designs: pd.DataFrame | None = None  # metrics/designs.csv, where misaligners design
 
     def why_empty(self, relative: str) -> str:
         """Why the CSV at `relative` has no rows, for the reader."""
@@ -119,4 +120,15 @@ def read_league_run(run_dir: Path) -> LeagueRun:
         },
         checkpoint=_last_checkpoint(run_dir),
         warm_starts=warm_starts,
+        designs=_designs(metrics / "designs.csv"),
     )
+
+
+def _designs(path: Path) -> pd.DataFrame | None:
+    """metrics/designs.csv (its parameter columns are the family's), None where absent."""
+    import pandas as pd
+
+    if not path.exists():
+        return None
+    frame = pd.read_csv(path)
+    return frame if len(frame) else None

@@ -9,6 +9,7 @@ Matplotlib is imported only inside functions (alignrl.plots draws on the Agg can
 
 from __future__ import annotations
 
+import math
 from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -28,6 +29,7 @@ __all__ = [
     "LEAGUE_FIGURES",
     "PayoffGrid",
     "curriculum_figure",
+    "designs_figure",
     "evaluations_figure",
     "member_teams",
     "payoff_figure",
@@ -67,7 +69,17 @@ LEAGUE_FIGURES: dict[str, tuple[str, str]] = {
         "Successes per 100 held-out scenarios of the aligners evaluated at each evaluation "
         "session (the best rated ones at the time).",
     ),
+    "designs.png": (
+        "Where the designers put the column",
+        "For each parameter the designing misaligners choose, the share of the matches of "
+        "each tenth of the league (columns) whose column lay in each tenth of the family's "
+        "range (rows, 0 its low end, 1 its high end, on a log scale where the box draws "
+        "log-uniformly): a uniform designer fills every row alike, one that collapses "
+        "darkens a single row.",
+    ),
 }
+DESIGN_COLUMNS = ("iteration", "aligner", "misaligner", "match", "aligner_payoff", "success")
+DESIGN_BINS = 10
 
 
 # --- what the figures show, as plain data -----------------------------------------------
@@ -278,4 +290,34 @@ def evaluations_figure(evaluations: pd.DataFrame) -> Figure:
     _label_iterations(axes, LEAGUE_FIGURES["evaluations.png"][0], "successes per 100 scenarios")
     if _legend(axes):
         figure.set_size_inches(8.5, figure.get_size_inches()[1])
+    return figure
+
+
+def designs_figure(designs: pd.DataFrame) -> Figure:
+    """One panel per design parameter: the share of each tenth of the league's matches whose
+    column lay in each tenth of the parameter's range (metrics/designs.csv)."""
+    parameters = [name for name in designs.columns if name not in DESIGN_COLUMNS]
+    columns = min(5, len(parameters))
+    figure, axes = new_figure(len(parameters), columns)
+    figure.set_size_inches(2.6 * columns, 2.3 * math.ceil(len(parameters) / columns))
+    last = max(int(designs["iteration"].max()), 1)
+    stage = np.minimum((DESIGN_BINS * (designs["iteration"] - 1)) // last, DESIGN_BINS - 1)
+    for panel, name in zip(axes, parameters, strict=True):
+        share = np.zeros((DESIGN_BINS, DESIGN_BINS))
+        row = np.minimum((designs[name].to_numpy() * DESIGN_BINS).astype(int), DESIGN_BINS - 1)
+        np.add.at(share, (row, stage.to_numpy().astype(int)), 1.0)
+        share /= np.maximum(share.sum(axis=0, keepdims=True), 1.0)
+        panel.imshow(
+            share,
+            origin="lower",
+            aspect="auto",
+            extent=(0, last, 0, 1),
+            cmap="Blues",
+            vmin=0,
+            vmax=1,
+        )
+        panel.set_title(name, fontsize=8)
+        panel.tick_params(labelsize=7)
+    axes[0].set_ylabel("fraction of range", fontsize=7)
+    axes[-1].set_xlabel(ITERATION_LABEL, fontsize=7)
     return figure

@@ -109,12 +109,18 @@ class TensorBoardLog:
             raise RuntimeError(f"{self.folder}: resume_after must come before the first event")
         self.purge_step = step + 1
 
-    def add_scalar(self, tag: str, value: float, step: int) -> None:
+    def _open(self) -> SummaryWriter:
         if self._writer is None:
             from torch.utils.tensorboard import SummaryWriter
 
             self._writer = SummaryWriter(str(self.folder), purge_step=self.purge_step)
-        self._writer.add_scalar(tag, value, step)
+        return self._writer
+
+    def add_scalar(self, tag: str, value: float, step: int) -> None:
+        self._open().add_scalar(tag, value, step)
+
+    def add_histogram(self, tag: str, values: np.ndarray, step: int) -> None:
+        self._open().add_histogram(tag, np.asarray(values, float), step)
 
     def flush(self) -> None:
         """The events so far on disk (before a checkpoint: they are what it has seen)."""

@@ -12,7 +12,6 @@ from alignrl.agents.agent import Agent, MemberSpec
 from alignrl.checkpoints import load_checkpoint
 from alignrl.config import ExperimentConfig, LearnerConfig, RunConfig, parse_experiment
 from alignrl.envs.alignment import aligner_spaces
-from alignrl.envs.duel import misaligner_input_shape
 from alignrl.runs.state import config_of_checkpoint
 
 __all__ = ["load_policy", "member_spec", "team_spec"]
@@ -21,16 +20,17 @@ __all__ = ["load_policy", "member_spec", "team_spec"]
 def team_spec(member_id: str, team: str, learner: LearnerConfig, config: RunConfig) -> MemberSpec:
     """A member of either team, its shapes from the task and the history alone (no apparatus
     is opened): an aligner reads the history (aligner_spaces); a misaligner reads one row
-    [1, aligned settings (k), complexity] (misaligner_input_shape) and answers with a start
-    in the window per knob. The one place a member's shapes are decided: the trainer, the
-    league and the league's warm starts all build their members here."""
+    [1, aligned settings (k), complexity] and answers with a start in the window per knob, or
+    designs the instrument as well (RunConfig.misaligner_shape). The one place a member's
+    shapes are decided: the trainer, the league and the league's warm starts all build their
+    members here."""
     task = config.resolved_task()
     knobs = len(task.knobs)
     if team == "aligner":
         observation_space, action_space = aligner_spaces(knobs, config.history, task.extra_features)
         shape, actions = observation_space.shape, action_space.shape[0]
     else:
-        shape, actions = misaligner_input_shape(knobs), knobs
+        shape, actions = config.misaligner_shape()
     return MemberSpec(
         id=member_id,
         team=team,
