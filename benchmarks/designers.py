@@ -16,8 +16,8 @@ seed 0, the same sessions for every aligner and for the hyperbola fit): successe
 95 % Wilson interval, median and p90 acquisitions, the mean of the worst 10 % of final width
 / best width (a failed verification counts as the no-edges width), and exploitability: a
 fresh regret-paid designer trained for --exploit-matches matches against the frozen aligner
-(alignrl.league.exploit), the largest mean regret it finds (log-ratio units: 1.0 is a final
-width e = 2.7 times the hyperbola fit's).
+(alignrl.league.exploit; one per --exploit-seeds), the largest mean regret any of them finds
+(log-ratio units: 1.0 is a final width e = 2.7 times the hyperbola fit's).
 
 Runs go to OUT/runs/ (OUT/configs/ the files they were made from, OUT/logs/ their output),
 --jobs at a time, each niced; a run that finished (OUT/done/NAME) is not run again, and a
@@ -249,8 +249,6 @@ def judge(out: Path, name: str, args: argparse.Namespace) -> dict[str, Any]:
     from alignrl.envs.task import get_task
     from alignrl.evaluation.controllers import PolicyController
     from alignrl.evaluation.instrument_sets import run_set
-    from alignrl.league.exploit import exploit
-    from alignrl.runs.sources import resolve_source
 
     cached = out / "judged" / f"{name}.json"
     if cached.exists():
@@ -269,27 +267,41 @@ def judge(out: Path, name: str, args: argparse.Namespace) -> dict[str, Any]:
         seed=0,
         analytic=not args.images,
     )
-    figures = set_figures(result)
-    agent = resolve_source(str(run)).agent
+    figures = {"name": name, **set_figures(result)}
+    figures["seconds"] = round(time.perf_counter() - began, 1)
+    cached.parent.mkdir(parents=True, exist_ok=True)
+    cached.write_text(json.dumps(figures, indent=1))
+    print(f"{name}: {figures['successes']}/{figures['alignments']} held-out", file=sys.stderr)
+    return figures
+
+
+def exploitability(out: Path, name: str, seed: int, args: argparse.Namespace) -> dict[str, Any]:
+    """What a fresh regret-paid designer (its own seed) finds against one run's chosen
+    aligner in --exploit-matches matches (cached per budget and seed)."""
+    from alignrl.league.exploit import exploit
+    from alignrl.runs.sources import resolve_source
+
+    cached = out / "exploit" / f"{name}-m{args.exploit_matches}-s{seed}.json"
+    if cached.exists():
+        return json.loads(cached.read_text())
+    began = time.perf_counter()
+    agent = resolve_source(str(out / "runs" / name)).agent
     found = exploit(
-        agent,
-        exploit_config(args.exploit_seed),
-        args.exploit_matches,
-        evaluate=args.exploit_evaluate,
-        seed=args.exploit_seed,
+        agent, exploit_config(seed), args.exploit_matches, evaluate=args.exploit_evaluate, seed=seed
     )
-    figures.update(
-        name=name,
-        largest_regret=round(found.largest_regret, 4),
-        final_regret=round(found.mean_regret, 4),
-        exploit_curve=[[m, round(v, 4)] for m, v in found.curve],
-        seconds=round(time.perf_counter() - began, 1),
-    )
+    figures = {
+        "name": name,
+        "seed": seed,
+        "matches": args.exploit_matches,
+        "largest_regret": round(found.largest_regret, 4),
+        "final_regret": round(found.mean_regret, 4),
+        "curve": [[m, round(v, 4)] for m, v in found.curve],
+        "seconds": round(time.perf_counter() - began, 1),
+    }
     cached.parent.mkdir(parents=True, exist_ok=True)
     cached.write_text(json.dumps(figures, indent=1))
     print(
-        f"{name}: {figures['successes']}/{figures['alignments']} held-out, exploitability "
-        f"{figures['largest_regret']:.3f}",
+        f"{name}: exploitability {figures['largest_regret']:.3f} (designer seed {seed})",
         file=sys.stderr,
     )
     return figures
@@ -408,9 +420,10 @@ def plot_designs(out: Path, names: list[str]) -> Path | None:
             ):
                 values = chosen[share][parameter]
                 counts, _ = np.histogram(values, bins)
+                shares = counts / max(1, counts.sum())
                 axis.step(
-                    bins[:-1],
-                    counts / max(1, counts.sum()),
+                    bins,
+                    np.append(shares, shares[-1]),
                     where="post",
                     color=colour,
                     linestyle=style,
@@ -462,7 +475,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--images", action="store_true", help="judge on images (slow)")
     parser.add_argument("--exploit-matches", type=int, default=1024)
     parser.add_argument("--exploit-evaluate", type=int, default=256)
-    parser.add_argument("--exploit-seed", type=int, default=100)
+    parser.add_argument(
+        "--exploit-seeds",
+        type=int,
+        nargs="+",
+        default=[100],
+        help="one fresh designer per seed; the largest regret of any counts",
+    )
     args = parser.parse_args(argv)
     pairs = [(c, s) for s in args.seeds for c in args.conditions]
     began = time.perf_counter()
@@ -479,8 +498,11 @@ def main(argv: list[str] | None = None) -> int:
     rows: dict[str, list[dict[str, Any]]] = {c: [] for c in args.conditions}
     with ThreadPoolExecutor(args.jobs) as pool:
         judged = list(pool.map(lambda pair: judge(args.out, run_name(*pair), args), pairs))
+        tries = [(run_name(*pair), seed) for pair in pairs for seed in args.exploit_seeds]
+        found = list(pool.map(lambda t: exploitability(args.out, *t, args), tries))
     for (condition, _), figures in zip(pairs, judged, strict=True):
-        rows[condition].append(figures)
+        mine = [f["largest_regret"] for f in found if f["name"] == figures["name"]]
+        rows[condition].append({**figures, "largest_regret": max(mine)})
     reference = hyperbola(args.out, args)
     names = [run_name(c, s) for c, s in pairs]
     steps = {name: aligner_steps(args.out, name) for name in names}

@@ -395,3 +395,26 @@ def test_a_designer_league_stops_at_its_aligner_steps(tmp_path: Path) -> None:
     steps = max(league.members[m].steps_seen for m in ("a-sac", "a-ppo"))
     assert steps >= 60
     assert (tmp_path / "runs" / "tiny" / "checkpoints" / "LATEST").exists()  # the last one
+
+
+def test_the_experiments_runs_are_valid_experiments(tmp_path: Path) -> None:
+    from alignrl.config import load_experiment
+    from benchmarks.designers import CONDITIONS, wilson, write_config
+
+    for condition in CONDITIONS:
+        path, verb = write_config(tmp_path, condition, 1, 20000)
+        if verb == "train":
+            assert load_experiment(path).budget.env_steps == 20000
+            continue
+        config, aligners, _ = load_league(path)
+        assert (config.design, config.payoff, config.schedule.aligner_steps) == (
+            True,
+            condition,
+            20000,
+        )
+        assert (
+            aligners.members[0].learner
+            == load_experiment(write_config(tmp_path, "uniform", 1, 20000)[0]).learner
+        )  # the same aligner in every condition
+    low, high = wilson(42, 100)
+    assert low < 0.42 < high and 0.3 < low and high < 0.53
