@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numbers
 import re
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Annotated, Any, Literal, TypeVar
 
@@ -27,7 +28,7 @@ from pydantic import (
 from alignrl.agents.learners import LEARNERS, learner_defaults
 from alignrl.apparatus.shield import DEFAULT_CALL_TIMEOUT_S
 from alignrl.envs.hindsight import HINDSIGHT_OPTIMA, HindsightOptimum  # noqa: F401 (re-exported)
-from alignrl.overlays import Layers, OverlayError
+from alignrl.overlays import Layers, OverlayError, apply_overrides
 from alignrl.overlays import resolve as resolve_overlays
 from alignrl.yaml_io import YAMLInputError, read_yaml_file
 
@@ -38,10 +39,12 @@ __all__ = [
     "CurriculumConfig",
     "ExperimentConfig",
     "LearnerConfig",
+    "Provenance",
     "RunConfig",
     "TaskOptions",
     "check_file_name",
     "load_experiment",
+    "overridden",
 ]
 
 
@@ -343,6 +346,21 @@ class BudgetConfig(_Strict):
     checkpoint_every: Count = Field(5000, ge=1, description="env steps between checkpoints")
 
 
+class Provenance(_Strict):
+    """How a run was started, as the command that started it wrote it (not a setting: a
+    resumed run keeps it, a file that gives it is recorded as given)."""
+
+    command: str = Field("", description="the command line that started the run")
+    overrides: list[str] = Field(
+        default_factory=list, description="its --set key.path=value assignments, in order"
+    )
+    git_commit: str | None = Field(
+        None,
+        description="the commit of the alignrl checkout that ran it, +dirty with changes not "
+        "committed; null where alignrl is not a git checkout",
+    )
+
+
 class RunConfig(_Strict):
     """What every run names: where it lives, its seed, the apparatus it trains and is judged
     on, the task, the history, and the torch settings. Training experiments and leagues add
@@ -351,6 +369,11 @@ class RunConfig(_Strict):
     name: str = Field("experiment", min_length=1, description="run name (runs/<name>/)")
     seed: Count = Field(
         0, ge=0, lt=SEED_LIMIT, description="seeds everything: networks, envs, sampling"
+    )
+    provenance: Provenance | None = Field(
+        None,
+        description="how the run was started: command line, --set overrides, git commit "
+        "(written by alignrl train, league run and adapt)",
     )
     apparatus: str = Field("csv:default", description="apparatus spec trained on")
     apparatus_args: dict[str, Any] = Field(
@@ -564,11 +587,27 @@ def parse_experiment(data: Any, source: str = "config") -> ExperimentConfig:
     return parse_config(ExperimentConfig, data, source)
 
 
-def load_experiment(path: str | Path) -> ExperimentConfig:
+def overridden(data: Any, source: str, overrides: Sequence[str]) -> tuple[Any, str]:
+    """A config's data with the command line's `--set key.path=value` assignments applied
+    (alignrl.overlays.apply_overrides), and its source as messages name it."""
+    if not overrides:
+        return data, source
+    if not isinstance(data, dict):
+        return data, source  # parse_config says what is wrong with it
+    try:
+        data = apply_overrides(data, list(overrides))
+    except OverlayError as error:
+        raise ConfigError(f"{source}: {error}") from None
+    return data, f"{source} with --set {' '.join(overrides)}"
+
+
+def load_experiment(path: str | Path, overrides: Sequence[str] = ()) -> ExperimentConfig:
     """Read an experiment YAML strictly (unknown keys are errors), its `base:` chain merged
-    in, to run it on this machine (its device must be one this machine has)."""
+    in and the command line's `overrides` applied, to run it on this machine (its device
+    must be one this machine has)."""
     layers = read_layered(Path(path), "experiment config")
-    return parse_config(ExperimentConfig, layers.data, layers.source, check_device=True)
+    data, source = overridden(layers.data, layers.source, overrides)
+    return parse_config(ExperimentConfig, data, source, check_device=True)
 
 
 def dump_experiment(config: ExperimentConfig) -> str:

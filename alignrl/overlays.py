@@ -22,7 +22,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-__all__ = ["BASE_KEY", "Layers", "OverlayError", "merge", "resolve"]
+__all__ = ["BASE_KEY", "Layers", "OverlayError", "apply_overrides", "merge", "parse_override",
+           "resolve"]  # fmt: skip
 
 BASE_KEY = "base"  # the top-level key that makes a file an overlay
 
@@ -112,3 +113,68 @@ def resolve(path: str | Path, read: Callable[[Path], Any]) -> Layers:
     for layer in reversed(layers[:-1]):
         merged = merge(merged, layer)
     return Layers(data=merged, files=tuple(files))
+
+
+# --- command-line overrides: --set key.path=value -----------------------------------------
+
+
+def parse_override(assignment: str) -> tuple[list[str], Any]:
+    """`key.path=value` as (the key path, the value read as YAML: 3, 1e-4, true, null, [1, 2],
+    {a: 1}; anything else a string). OverlayError for a malformed assignment."""
+    import yaml
+
+    key, equals, text = assignment.partition("=")
+    path = key.strip().split(".")
+    if not equals or not all(part.strip() for part in path):
+        raise OverlayError(
+            f"--set {assignment!r}: expected key.path=value, e.g. budget.env_steps=2000"
+        )
+    try:
+        value = yaml.safe_load(text) if text.strip() else ""
+    except yaml.YAMLError as error:
+        raise OverlayError(f"--set {assignment!r}: the value is not YAML ({error})") from None
+    return [part.strip() for part in path], value
+
+
+def _index(node: list[Any], part: str) -> int | None:
+    return int(part) if part.isdigit() and int(part) < len(node) else None
+
+
+def apply_overrides(data: Mapping[str, Any], assignments: list[str]) -> dict[str, Any]:
+    """`data` with each `key.path=value` of `assignments` set, in order (a later one wins):
+    a mapping on the way is entered (made where missing), a list by its index. What comes out
+    is checked by the same strict models as a file, so an unknown key or a value out of range
+    is refused with its key path. OverlayError where the path runs through anything else.
+    `data` is not changed (every container on the path is copied)."""
+    result = merge({}, data)
+    for assignment in assignments:
+        path, value = parse_override(assignment)
+        node: Any = result
+        for depth, part in enumerate(path):
+            where = ".".join(path[:depth]) or "the config"
+            if isinstance(node, list):
+                key: Any = _index(node, part)
+                if key is None:
+                    raise OverlayError(
+                        f"--set {assignment!r}: {where} is a list of {len(node)}; {part} is "
+                        "not one of its indices"
+                    )
+            elif isinstance(node, dict):
+                key = part
+            else:
+                raise OverlayError(
+                    f"--set {assignment!r}: {where} is {node!r}, not a mapping to set {part} in"
+                )
+            if depth == len(path) - 1:
+                node[key] = value
+                break
+            child = node[key] if isinstance(node, list) else node.get(key)
+            if child is None:
+                child = {}
+            elif isinstance(child, Mapping):
+                child = dict(child)
+            elif isinstance(child, list):
+                child = list(child)
+            node[key] = child
+            node = child
+    return result

@@ -155,7 +155,7 @@ class Trainer:
         if (run_dir / "checkpoints" / "last.pt").exists() or (run_dir / CONFIG_FILE).exists():
             raise FileExistsError(
                 f"{run_dir} already holds a run: continue it with `alignrl train --resume "
-                f"{run_dir}` or choose another --name"
+                f"{run_dir}`, choose another --name, or replace it with --force"
             )
         trainer = cls(config, run_dir)  # bad apparatus or shield settings fail before any file
         # config.yaml last: a start killed before it is no run, and starts afresh.

@@ -191,7 +191,7 @@ def _allowed(key: str, field: FieldInfo) -> str:
         text = "non-empty text" if bounds.get("min_length", 0) >= 1 else "text"
     elif origin is dict:
         text = "mapping"
-    elif origin is tuple and args[-1] is Ellipsis:
+    elif (origin is tuple and args[-1] is Ellipsis) or origin is list:
         text = f"list of {_noun(key, args[0])}"
     elif origin is tuple:
         text = f"list of {len(args)} {_noun(key, args[0])}"

@@ -39,6 +39,7 @@ LAYERS = {
     "alignrl.training": 5,
     "alignrl.adaptation": 5,
     "alignrl.cli": 6,
+    "alignrl.__main__": 6,  # `python -m alignrl`: the command itself
 }
 
 

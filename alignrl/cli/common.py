@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from collections.abc import Sequence
 from typing import Any
 
@@ -210,3 +211,48 @@ def _add_session_options(parser: argparse.ArgumentParser, apparatus_required: bo
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.add_argument("--json", action="store_true", help="machine-readable summary")
     _add_shield_options(parser)
+
+
+def _add_override_options(parser: argparse.ArgumentParser, seed: bool = True) -> None:
+    """--set KEY.PATH=VALUE (repeatable) and, where `seed`, --seed N: the config changed from
+    the command line, checked by the same strict models as a file."""
+    parser.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="KEY.PATH=VALUE",
+        help="change one key of the config, e.g. budget.env_steps=2000 (repeatable; the value "
+        "is read as YAML)",
+    )
+    if seed:
+        parser.add_argument(
+            "--seed", dest="override_seed", type=_seed, help="the run's seed (as --set seed=N)"
+        )
+
+
+def _overrides(args: argparse.Namespace) -> list[str]:
+    """The --set assignments, then --seed as one more."""
+    given = list(getattr(args, "overrides", []) or [])
+    if getattr(args, "override_seed", None) is not None:
+        given.append(f"seed={args.override_seed}")
+    return given
+
+
+def _replace_run(run_dir: Any, force: bool, resume: str) -> None:
+    """With --force, remove the run already in `run_dir` (only a run: a folder with a
+    config.yaml or checkpoints), saying so; without it, leave it to the create step, which
+    refuses it."""
+    import shutil
+    from pathlib import Path
+
+    run_dir = Path(run_dir)
+    if not force or not run_dir.exists():
+        return
+    if not ((run_dir / "config.yaml").exists() or (run_dir / "checkpoints").is_dir()):
+        raise CommandError(
+            f"--force replaces a run, and {run_dir} is not one (no config.yaml, no "
+            "checkpoints/): choose another --name or remove it yourself"
+        )
+    shutil.rmtree(run_dir)
+    print(f"--force: removed the run in {run_dir} (not resumed with `{resume}`)", file=sys.stderr)

@@ -14,9 +14,12 @@ from alignrl.apparatus.shield import ShieldStop
 from alignrl.cli.common import (
     EXIT_INTERRUPTED,
     CommandError,
+    _add_override_options,
     _checkpoint_kept,
     _emit,
+    _overrides,
     _renamed,
+    _replace_run,
 )
 
 
@@ -112,9 +115,14 @@ def cmd_league_run(args: argparse.Namespace) -> int:
     from alignrl.league.config import load_league
     from alignrl.league.loop import League
 
-    config, aligners, misaligners = load_league(args.config)
+    overrides = _overrides(args)
+    config, aligners, misaligners = load_league(args.config, overrides)
     if args.name is not None:
         config = _renamed(config, args.name)
+    from alignrl.runs.state import with_provenance
+
+    config = with_provenance(config, overrides, args.argv)
+    _replace_run(Path(args.runs_dir) / config.name, args.force, "alignrl league resume")
     return _run_league(League.create(config, aligners, misaligners, args.runs_dir), args)
 
 
@@ -173,6 +181,10 @@ def add_league_parsers(verbs: argparse._SubParsersAction[argparse.ArgumentParser
     league_run.add_argument("config", help="league experiment YAML, e.g. experiments/X.yaml")
     league_run.add_argument("--name", help="run name (default: the config's name)")
     league_run.add_argument("--runs-dir", default="runs", help="where run directories go")
+    _add_override_options(league_run)
+    league_run.add_argument(
+        "--force", action="store_true", help="replace a run of the same name (it is removed)"
+    )
     league_resume = league_verbs.add_parser("resume", help="continue a league from its checkpoint")
     league_resume.add_argument("run", metavar="RUN", help="a league run directory")
     for parser_ in (league_run, league_resume):

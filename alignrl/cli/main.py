@@ -46,6 +46,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    args.argv = list(sys.argv[1:] if argv is None else argv)  # recorded in a run's config
     # Ctrl-C must reach the recorder's handler as KeyboardInterrupt, also under `make`.
     signal.signal(signal.SIGINT, signal.default_int_handler)
     try:

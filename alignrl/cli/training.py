@@ -15,11 +15,14 @@ from alignrl.cli.common import (
     EXIT_INTERRUPTED,
     CommandError,
     _add_apparatus_options,
+    _add_override_options,
     _add_shield_options,
     _checkpoint_kept,
     _emit,
     _json_object,
+    _overrides,
     _renamed,
+    _replace_run,
     _seed,
     _updates_per_step,
 )
@@ -29,20 +32,34 @@ def cmd_train(args: argparse.Namespace) -> int:
     from alignrl.config import load_experiment
     from alignrl.training import Trainer
 
+    overrides = _overrides(args)
     if args.resume:
-        if args.config or args.name is not None:
-            given = "an experiment config" if args.config else "--name"
+        given = [
+            what
+            for what, there in (
+                ("an experiment config", args.config),
+                ("--name", args.name is not None),
+                ("--set or --seed", overrides),
+                ("--force", args.force),
+            )
+            if there
+        ]
+        if given:
             raise CommandError(
-                f"--resume RUN continues RUN with its own config and name: give {given} or "
+                f"--resume RUN continues RUN with its own config and name: give {given[0]} or "
                 "--resume, not both"
             )
         trainer = Trainer.resume(args.resume)
     else:
         if not args.config:
             raise CommandError("give an experiment config (experiments/X.yaml) or --resume RUN")
-        config = load_experiment(args.config)
+        config = load_experiment(args.config, overrides)
         if args.name is not None:
             config = _renamed(config, args.name)
+        from alignrl.runs.state import with_provenance
+
+        config = with_provenance(config, overrides, args.argv)
+        _replace_run(Path(args.runs_dir) / config.name, args.force, "alignrl train --resume")
         if config.adaptation is not None:
             # An adaptation written as a YAML (e.g. a copy of a run's config.yaml with other
             # settings): it starts from its source, as `alignrl adapt` does, never from scratch.
@@ -162,6 +179,15 @@ def cmd_adapt(args: argparse.Namespace) -> int:
         hindsight_secrets=args.hindsight_secrets,
         hindsight_optimum=args.hindsight_optimum,
     )
+    overrides = _overrides(args)
+    if overrides:  # the strict model checks the changed config, key paths named
+        from alignrl.config import ExperimentConfig, overridden, parse_config
+
+        data, where = overridden(config.model_dump(mode="json"), "alignrl adapt", overrides)
+        config = parse_config(ExperimentConfig, data, where, check_device=True)
+    from alignrl.runs.state import with_provenance
+
+    config = with_provenance(config, overrides, args.argv)
     try:
         trainer = start_adaptation(config, source, args.runs_dir)
     except ShieldStop as error:
@@ -204,6 +230,10 @@ def add_training_parsers(verbs: argparse._SubParsersAction[argparse.ArgumentPars
     train.add_argument("--name", help="run name (default: the config's name)")
     train.add_argument("--runs-dir", default="runs", help="where run directories go")
     train.add_argument("--resume", metavar="RUN", help="continue runs/NAME from its checkpoint")
+    _add_override_options(train)
+    train.add_argument(
+        "--force", action="store_true", help="replace a run of the same name (it is removed)"
+    )
     train.add_argument("--quiet", action="store_true", help="no progress bar")
     train.add_argument("--json", action="store_true", help="machine-readable summary")
     train.set_defaults(handler=cmd_train)
@@ -272,6 +302,7 @@ def add_training_parsers(verbs: argparse._SubParsersAction[argparse.ArgumentPars
         "on the column's pooled focus curve (default), or the setting of its sharpest reading",
     )
     adapt.add_argument("--resume", metavar="RUN", help="continue an adaptation run")
+    _add_override_options(adapt, seed=False)
     adapt.add_argument("--quiet", action="store_true", help="no progress bar")
     adapt.add_argument("--json", action="store_true", help="machine-readable summary")
     adapt.set_defaults(handler=cmd_adapt)

@@ -9,6 +9,7 @@ key path and what was expected.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -22,6 +23,7 @@ from alignrl.config import (
     RunConfig,
     _Strict,
     check_file_name,
+    overridden,
     parse_config,
     read_layered,
     read_yaml,
@@ -311,13 +313,16 @@ def parse_league(data: Any, source: str = "league config") -> LeagueConfig:
     return parse_config(LeagueConfig, data, source)
 
 
-def load_league(path: str | Path) -> tuple[LeagueConfig, Roster, Roster]:
+def load_league(
+    path: str | Path, overrides: Sequence[str] = ()
+) -> tuple[LeagueConfig, Roster, Roster]:
     """A league experiment (its `base:` chain merged in) and its two rosters. Roster paths
     are read relative to the working directory first, then to the parent of the folder of
     the chain's first experiment, the one without a base (experiments/ -> the repo): an
     overlay names rosters as its base does."""
     layers = read_layered(Path(path), "league config")
-    config = parse_config(LeagueConfig, layers.data, layers.source, check_device=True)
+    data, source = overridden(layers.data, layers.source, overrides)  # --set key.path=value
+    config = parse_config(LeagueConfig, data, source, check_device=True)
     rosters = []
     for team, name in (("aligner", config.aligners), ("misaligner", config.misaligners)):
         candidate = Path(name)

@@ -175,7 +175,7 @@ class League:
         if (run_dir / CONFIG_FILE).exists():
             raise FileExistsError(
                 f"{run_dir} already holds a run: continue it with `alignrl league resume "
-                f"{run_dir}` or choose another --name"
+                f"{run_dir}`, choose another --name, or replace it with --force"
             )
         aligners, sources = warm_starts(config, aligners)
         knobs = _training_knobs(config)

@@ -44,6 +44,8 @@ __all__ = [
     "restore_rng",
     "rng_state",
     "run_config_data",
+    "run_provenance",
+    "with_provenance",
 ]
 
 CONFIG_FILE = "config.yaml"
@@ -231,3 +233,55 @@ def checked_knobs(knobs: Any, task: Task, where: str) -> list[dict[str, Any]]:
             )
         checked.append({"name": name, **values})
     return checked
+
+
+# --- provenance ---------------------------------------------------------------------------
+
+
+GIT_TIMEOUT_S = 5.0
+
+
+def git_commit(folder: Path | None = None) -> str | None:
+    """The commit of the git checkout `folder` (default: alignrl's own) is in, `+dirty` with
+    uncommitted changes; None where it is not one, or git is missing or slow."""
+    import subprocess
+
+    folder = folder or Path(__file__).resolve().parents[1]
+    try:
+        head = subprocess.run(
+            ["git", "-C", str(folder), "rev-parse", "HEAD"],
+            capture_output=True,
+            text=True,
+            timeout=GIT_TIMEOUT_S,
+            check=False,
+        )
+        if head.returncode != 0:
+            return None
+        changes = subprocess.run(
+            ["git", "-C", str(folder), "status", "--porcelain", "--untracked-files=no"],
+            capture_output=True,
+            text=True,
+            timeout=GIT_TIMEOUT_S,
+            check=False,
+        )
+    except (OSError, subprocess.SubprocessError):
+        return None
+    commit = head.stdout.strip()
+    return f"{commit}+dirty" if changes.stdout.strip() else commit
+
+
+def run_provenance(overrides: list[str], argv: list[str] | None = None) -> dict[str, Any]:
+    """How this process was started, for a run's config.yaml (alignrl.config.Provenance)."""
+    import shlex
+    import sys
+
+    words = ["alignrl", *(sys.argv[1:] if argv is None else argv)]
+    return {"command": shlex.join(words), "overrides": list(overrides), "git_commit": git_commit()}
+
+
+def with_provenance(config: Any, overrides: list[str], argv: list[str] | None = None) -> Any:
+    """`config` (a RunConfig) recording how its run was started."""
+    from alignrl.config import Provenance
+
+    provenance = Provenance(**run_provenance(overrides, argv))
+    return config.model_copy(update={"provenance": provenance})
