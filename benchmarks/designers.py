@@ -16,8 +16,9 @@ seed 0, the same sessions for every aligner and for the hyperbola fit): successe
 95 % Wilson interval, median and p90 acquisitions, the mean of the worst 10 % of final width
 / best width (a failed verification counts as the no-edges width), and exploitability: a
 fresh regret-paid designer trained for --exploit-matches matches against the frozen aligner
-(alignrl.league.exploit; one per --exploit-seeds), the largest mean regret any of them finds
-(log-ratio units: 1.0 is a final width e = 2.7 times the hyperbola fit's).
+(alignrl.league.exploit; one per --exploit-seeds), the mean regret the strongest of them reaches
+in matches it did not learn from (log-ratio units: 1.0 is a final width e = 2.7 times the
+hyperbola fit's).
 
 Runs go to OUT/runs/ (OUT/configs/ the files they were made from, OUT/logs/ their output),
 --jobs at a time, each niced; a run that finished (OUT/done/NAME) is not run again, and a
@@ -43,6 +44,8 @@ from typing import Any
 import numpy as np
 import yaml
 
+from alignrl.league.exploit import DESIGNER as EXPLOIT_DESIGNER
+
 CONDITIONS = ("uniform", "improvement", "regret")
 TASK_OPTIONS = {
     "success_bonus": 5.0,
@@ -61,15 +64,8 @@ LEARNER = {
     "random_steps": 2000,
     "buffer_size": 200000,
 }
-DESIGNER = {
-    "algorithm": "sac",
-    "encoder": "mlp",
-    "encoder_kwargs": {"hidden": [64]},
-    "hidden": [64, 64],
-    "batch_size": 64,
-    "learning_starts": 64,
-    "random_steps": 128,
-}
+# The designers are those of alignrl.league.exploit: one SAC, as the default roster's.
+DESIGNER = EXPLOIT_DESIGNER.model_dump(mode="json", exclude_unset=True)
 COMMON = {
     "apparatus": "family:focus",
     "apparatus_args": {"analytic": True},
@@ -244,7 +240,7 @@ def exploit_config(seed: int) -> Any:
 
 
 def judge(out: Path, name: str, args: argparse.Namespace) -> dict[str, Any]:
-    """One run's chosen aligner on the held-out set and its exploitability (cached)."""
+    """One run's chosen aligner on the held-out set (cached)."""
     from alignrl.deploy.policy import load_deployable
     from alignrl.envs.task import get_task
     from alignrl.evaluation.controllers import PolicyController
@@ -293,7 +289,6 @@ def exploitability(out: Path, name: str, seed: int, args: argparse.Namespace) ->
         "name": name,
         "seed": seed,
         "matches": args.exploit_matches,
-        "largest_regret": round(found.largest_regret, 4),
         "final_regret": round(found.mean_regret, 4),
         "curve": [[m, round(v, 4)] for m, v in found.curve],
         "seconds": round(time.perf_counter() - began, 1),
@@ -301,7 +296,7 @@ def exploitability(out: Path, name: str, seed: int, args: argparse.Namespace) ->
     cached.parent.mkdir(parents=True, exist_ok=True)
     cached.write_text(json.dumps(figures, indent=1))
     print(
-        f"{name}: exploitability {figures['largest_regret']:.3f} (designer seed {seed})",
+        f"{name}: exploitability {figures['final_regret']:.3f} (designer seed {seed})",
         file=sys.stderr,
     )
     return figures
@@ -342,7 +337,7 @@ def aligner_steps(out: Path, name: str) -> int:
 def table(rows: dict[str, list[dict[str, Any]]], reference: dict[str, Any]) -> list[str]:
     lines = [
         "| training | seeds | held-out successes (95 % interval) | median / p90 acquisitions "
-        "| worst 10 % final/best width | exploitability (largest regret) |",
+        "| worst 10 % final/best width | exploitability (regret of the strongest designer) |",
         "| --- | --- | --- | --- | --- | --- |",
     ]
     for condition, judged in rows.items():
@@ -358,8 +353,8 @@ def table(rows: dict[str, list[dict[str, Any]]], reference: dict[str, Any]) -> l
             f"{np.mean([r['median_acquisitions'] for r in judged]):.1f} / "
             f"{np.mean([r['p90_acquisitions'] for r in judged]):.1f} | "
             f"{np.mean([r['worst_decile_ratio'] for r in judged]):.2f} | "
-            f"{np.mean([r['largest_regret'] for r in judged]):.3f} (per seed "
-            f"{', '.join(format(r['largest_regret'], '.2f') for r in judged)}) |"
+            f"{np.mean([r['exploitability'] for r in judged]):.3f} (per seed "
+            f"{', '.join(format(r['exploitability'], '.2f') for r in judged)}) |"
         )
     low, high = wilson(reference["successes"], reference["alignments"])
     lines.append(
@@ -480,7 +475,7 @@ def main(argv: list[str] | None = None) -> int:
         type=int,
         nargs="+",
         default=[100],
-        help="one fresh designer per seed; the largest regret of any counts",
+        help="one fresh designer per seed; the strongest of them counts",
     )
     args = parser.parse_args(argv)
     pairs = [(c, s) for s in args.seeds for c in args.conditions]
@@ -501,8 +496,8 @@ def main(argv: list[str] | None = None) -> int:
         tries = [(run_name(*pair), seed) for pair in pairs for seed in args.exploit_seeds]
         found = list(pool.map(lambda t: exploitability(args.out, *t, args), tries))
     for (condition, _), figures in zip(pairs, judged, strict=True):
-        mine = [f["largest_regret"] for f in found if f["name"] == figures["name"]]
-        rows[condition].append({**figures, "largest_regret": max(mine)})
+        mine = [f["final_regret"] for f in found if f["name"] == figures["name"]]
+        rows[condition].append({**figures, "exploitability": max(mine)})
     reference = hyperbola(args.out, args)
     names = [run_name(c, s) for c, s in pairs]
     steps = {name: aligner_steps(args.out, name) for name in names}

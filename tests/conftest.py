@@ -156,3 +156,10 @@ def kill_league_after(
     os.kill(process.pid, signal.SIGKILL)
     process.wait(timeout=30)
     return int(latest.read_text().split("-")[1])
+
+
+def iteration_outcomes(run: Path) -> list[tuple[str, ...]]:
+    """A league run's metrics/iterations.csv rows without their wall times: what two runs
+    that played alike agree on."""
+    rows = read_csv(run / "metrics" / "iterations.csv")
+    return [tuple(v for k, v in row.items() if k != "seconds") for row in rows]

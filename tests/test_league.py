@@ -15,6 +15,7 @@ import yaml
 from conftest import (
     SMALL_SAC,
     create_league,
+    iteration_outcomes,
     kill_league_after,
     quiet_schedule,
     read_csv,
@@ -223,11 +224,6 @@ def test_cli_league_run_prints_the_leaderboard_and_refuses_a_second_start(
     assert "league resume" in capsys.readouterr().err
 
 
-def _outcomes(run: Path) -> list[tuple[str, ...]]:
-    rows = read_csv(run / "metrics" / "iterations.csv")
-    return [tuple(v for k, v in row.items() if k != "seconds") for row in rows]
-
-
 def test_a_resumed_league_plays_exactly_as_one_never_stopped(tmp_path: Path) -> None:
     schedule = {
         "iterations": 6,
@@ -248,7 +244,7 @@ def test_a_resumed_league_plays_exactly_as_one_never_stopped(tmp_path: Path) -> 
     config = (run / "config.yaml").read_text().replace("iterations: 3", "iterations: 6")
     (run / "config.yaml").write_text(config)
     League.resume(run).run(progress=False)
-    assert _outcomes(run) == _outcomes(tmp_path / "a" / "runs" / "tiny")
+    assert iteration_outcomes(run) == iteration_outcomes(tmp_path / "a" / "runs" / "tiny")
 
 
 def test_pbt_copies_the_strongest_and_perturbs_its_learning_rate(tmp_path: Path) -> None:

@@ -9,6 +9,8 @@ key path and what was expected.
 
 from __future__ import annotations
 
+import functools
+import json
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -244,22 +246,11 @@ class LeagueConfig(RunConfig):
 
     def design_names(self) -> tuple[str, ...]:
         """What a designing misaligner chooses (alignrl.envs.design), read from one apparatus
-        of the spec; () where the misaligners place starts only."""
+        of the spec (once per spec: every member's shape asks); () where the misaligners place
+        starts only."""
         if not self.design:
             return ()
-        from alignrl.apparatus.registry import make_apparatus
-        from alignrl.envs.design import designs_columns
-
-        try:
-            unit = make_apparatus(self.apparatus, self.apparatus_args)
-        except (OSError, ValueError, TypeError) as error:
-            raise ConfigError(f"apparatus {self.apparatus}: {error}") from None
-        if not designs_columns(unit):
-            raise ConfigError(
-                f"design: true needs an apparatus whose column a misaligner can choose, an "
-                f"instrument family with ranges (family:NAME); {self.apparatus} is not one"
-            )
-        return unit.design_names()
+        return _design_names(self.apparatus, json.dumps(self.apparatus_args, sort_keys=True))
 
     def misaligner_shape(self) -> tuple[tuple[int, int], int]:
         """As RunConfig's; with `design`, a designer's [1, draw (d), complexity] answered with
@@ -298,6 +289,23 @@ class LeagueConfig(RunConfig):
                 )
             )
         return resolved
+
+
+@functools.lru_cache(maxsize=16)
+def _design_names(spec: str, arguments: str) -> tuple[str, ...]:
+    from alignrl.apparatus.registry import make_apparatus
+    from alignrl.envs.design import designs_columns
+
+    try:
+        unit = make_apparatus(spec, json.loads(arguments))
+    except (OSError, ValueError, TypeError) as error:
+        raise ConfigError(f"apparatus {spec}: {error}") from None
+    if not designs_columns(unit):
+        raise ConfigError(
+            f"design: true needs an apparatus whose column a misaligner can choose, an "
+            f"instrument family with ranges (family:NAME); {spec} is not one"
+        )
+    return unit.design_names()
 
 
 def load_roster(path: str | Path, team: str | None = None) -> Roster:
