@@ -9,6 +9,7 @@ driver by import path (`test_shield:RecordingDriver`) for the command-line tests
 
 from __future__ import annotations
 
+import contextlib
 import math
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any, ClassVar
@@ -17,6 +18,7 @@ import numpy as np
 import pytest
 
 from alignrl.apparatus import ApparatusError, NoEdgesError
+from alignrl.apparatus.guard import Aborted
 from alignrl.apparatus.registry import make_apparatus
 from alignrl.apparatus.shield import (
     KnobLimits,
@@ -577,3 +579,48 @@ def test_directional_measures_count_and_log() -> None:
     assert (width, list(widths)) == (column.measure_directional()[0], list(widths))
     assert shield.acquisitions == 1
     assert audit.entries[-1]["directional_px"] == pytest.approx(list(widths))
+
+
+def test_a_family_column_brings_its_own_interval_at_every_reset_and_the_shield_follows() -> None:
+    """An instrument family draws a column, with its own interval, at every reset: the
+    training shield resolves its limits again against each one (an adaptation across the
+    family wrote into the first column's interval before, and died at the first new one),
+    and still refuses every write outside the interval of the column now in place."""
+    from alignrl.apparatus.limits import ShieldOptions
+    from alignrl.apparatus.shield import shield_apparatus
+
+    column = make_apparatus("family:focus", {"analytic": True})
+    shielded = shield_apparatus(column, ShieldOptions(simulators=True, max_step={"defocus": 5.0}))
+    seen = set()
+    for seed in range(6):
+        shielded.reset(seed)
+        low, high = column.knobs["defocus"]
+        assert shielded.knobs["defocus"] == (low, high)
+        seen.add((low, high))
+        assert shielded.limits["defocus"].low == low and shielded.limits["defocus"].high == high
+        assert shielded.limits["defocus"].max_step == 5.0  # the options hold on every column
+        shielded.write({"defocus": high + 0.25 * (high - low)})  # the start: clamped, no step
+        assert column.read()["defocus"] == high
+        with contextlib.suppress(NoEdgesError):  # far from focus a frame may have none
+            shielded.measure()
+        shielded.write({"defocus": low})  # the aligner's: clamped to the maximum step
+        assert column.read()["defocus"] == pytest.approx(high - 5.0)
+    assert len(seen) == 6
+
+
+def test_site_limits_that_a_new_column_does_not_hold_stop_before_any_write() -> None:
+    from alignrl.apparatus.limits import ShieldOptions
+    from alignrl.apparatus.shield import shield_apparatus
+
+    column = make_apparatus("family:focus", {"analytic": True})
+    column.reset(0)
+    low, high = column.knobs["defocus"]
+    limits = {"defocus": [low + 0.1 * (high - low), high - 0.1 * (high - low)]}
+    shielded = shield_apparatus(column, ShieldOptions(simulators=True, site_limits=limits))
+    seed = next(s for s in range(1, 50) if column.reset(s) or column.knobs["defocus"][0] > low)
+    with pytest.raises(ShieldConfigError, match="do not fit the limits"):
+        shielded.reset(seed)
+    assert shielded.aborted and shielded.writes == 0
+    with pytest.raises(Aborted):
+        shielded.write({"defocus": sum(column.knobs["defocus"]) / 2})
+    assert shielded.writes == 0

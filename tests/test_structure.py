@@ -27,6 +27,7 @@ LAYERS = {
     "alignrl.checkpoints": 0,
     "alignrl.metrics": 0,
     "alignrl.overlays": 0,
+    "alignrl.intervals": 0,
     "alignrl.apparatus": 1,
     "alignrl.envs": 2,
     "alignrl.agents": 3,

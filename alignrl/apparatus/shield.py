@@ -473,13 +473,15 @@ class TrainingShield(ShieldedApparatus):
         audit: AuditSink,
         unit: str = "0",
         call_timeout_s: float | None = DEFAULT_CALL_TIMEOUT_S,
+        options: ShieldOptions | None = None,
     ) -> None:
         super().__init__(apparatus, limits, audit, call_timeout_s=call_timeout_s)
         self.unit = unit  # which apparatus of the run: every record names it
-        self._start_limits = {
-            name: KnobLimits(knob.low, knob.high, knob.low_rule, knob.high_rule, None)
-            for name, knob in self.limits.items()
-        }
+        # The site limits and maximum steps the limits were resolved from: a new scenario
+        # may bring a new interval (an instrument family draws a column per reset), and the
+        # limits are then resolved again against it.
+        self._options = options or ShieldOptions()
+        self._start_limits = self._without_max_step(self.limits)
         self._starting = False
         # A simulated instrument's secret (the optimum, the best edge width) passes through,
         # bounded like every call, for the critics and for relative success thresholds; so do
@@ -502,6 +504,14 @@ class TrainingShield(ShieldedApparatus):
         """A scenario simulator's recorded scenario `row` (evaluation sessions)."""
         self._new_scenario(lambda: self.inner.reset_to(row, seed), seed=seed, row=row)  # type: ignore[attr-defined]
 
+    @staticmethod
+    def _without_max_step(limits: Mapping[str, KnobLimits]) -> dict[str, KnobLimits]:
+        """The limits a scenario's start obeys: the same intervals, no maximum step."""
+        return {
+            name: KnobLimits(knob.low, knob.high, knob.low_rule, knob.high_rule, None)
+            for name, knob in limits.items()
+        }
+
     def _new_scenario(self, start: Callable[[], None], **fields: Any) -> None:
         self._stop_if_due("reset", None, **fields)
         try:
@@ -510,10 +520,29 @@ class TrainingShield(ShieldedApparatus):
             self.log("reset", sent=True, error=str(error), **fields)
             raise DriverFailure(f"the driver failed to start a new scenario: {error}") from None
         self.log("reset", sent=True, **fields)
+        self._follow_intervals()
         self.watchdog.start()
         self.start = self.read()
         self.setting = dict(self.start)
         self._starting = True
+
+    def _follow_intervals(self) -> None:
+        """After a reset: where the apparatus now gives other intervals (an instrument
+        family's new column), resolve the limits again against them, site limits and maximum
+        steps as given; a site limit the new interval does not hold stops the work
+        (ShieldConfigError), before anything is written to the new column."""
+        knobs = {name: (float(low), float(high)) for name, (low, high) in self.inner.knobs.items()}
+        if knobs == dict(self.knobs):
+            return
+        try:
+            limits = resolve_limits(knobs, self._options.site_limits, self._options.max_step)
+        except ShieldConfigError as error:
+            self.log("limits", sent=False, error=str(error))
+            self.abort_reason = f"the new scenario's intervals do not fit the limits: {error}"
+            raise ShieldConfigError(self.abort_reason) from None
+        self.knobs, self.limits = knobs, limits
+        self._start_limits = self._without_max_step(limits)
+        self.log("limits", intervals={name: list(bounds) for name, bounds in knobs.items()})
 
     def write(self, values: Mapping[str, float]) -> None:
         if self.setting is None and not self.aborted:
@@ -541,5 +570,10 @@ def shield_apparatus(apparatus: Apparatus, options: ShieldOptions | None = None)
     limits = resolve_limits(apparatus.knobs, options.site_limits, options.max_step)
     audit = options.audit if options.audit is not None else MemoryAudit(MEMORY_AUDIT_RECORDS)
     return TrainingShield(  # type: ignore[return-value]
-        apparatus, limits, audit, unit=options.unit, call_timeout_s=options.call_timeout_s
+        apparatus,
+        limits,
+        audit,
+        unit=options.unit,
+        call_timeout_s=options.call_timeout_s,
+        options=options,
     )
