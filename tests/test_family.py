@@ -388,3 +388,45 @@ def test_every_instrument_can_be_aligned_by_an_oracle(name: str) -> None:
         unit.write({"defocus": unit.knobs["defocus"][0]})
         unit.write({"defocus": unit.optimum()["defocus"]})
         assert unit.measure() <= 1.15 * unit.best_quality(), seed
+
+
+def test_edge_sampling_stays_in_the_box_and_meets_its_edges_more_often() -> None:
+    """`sampling: edges` draws every parameter from the arcsine law: inside the same box,
+    seeded, with about 29 % of a parameter's draws in the outer tenth of its range where the
+    uniform draw puts 10 %; the wall still sees the box (a family of the shipped box with
+    edge sampling is no way around the held-out set)."""
+    from alignrl.apparatus.instruments import held_out_reason
+    from alignrl.apparatus.registry import make_apparatus
+
+    uniform = make_apparatus("family:focus", {"analytic": True})
+    edges = make_apparatus("family:focus", {"analytic": True, "sampling": "edges"})
+    box = uniform.family
+
+    def outer_tenth(unit) -> float:
+        near = 0
+        for seed in range(400):
+            unit.reset(seed)
+            fraction = (unit.draw.optimum - unit.draw.low) / unit.draw.width
+            low, high = box.optimum_fraction
+            assert low - 1e-9 <= fraction <= high + 1e-9
+            position = (fraction - low) / (high - low)
+            near += position < 0.05 or position > 0.95
+            assert box.hysteresis_fraction[0] <= unit.draw.hysteresis_fraction
+            assert unit.draw.hysteresis_fraction <= box.hysteresis_fraction[1]
+        return near / 400
+
+    assert outer_tenth(uniform) < 0.15
+    assert 0.22 < outer_tenth(edges) < 0.36
+    edges.reset(7)
+    again = make_apparatus("family:focus", {"analytic": True, "sampling": "edges"})
+    again.reset(7)
+    assert again.draw == edges.draw
+    with pytest.raises(ValueError, match="sampling must be one of uniform, edges"):
+        make_apparatus("family:focus", {"sampling": "corners"})
+    wide = {"sampling": "edges", "optimum_fraction": [0.0, 1.0], "hysteresis_fraction": [0, 0.02],
+            "drift_fraction": [0, 0.003], "curve_power": [1.5, 4], "flat_fraction": [0, 0.02],
+            "asymmetry": [0.5, 2.0], "blur_px_per_interval": [5, 200],
+            "interval_width": [10, 30000], "interval_centre": [-2000, 2000],
+            "specimens": ["particles", "grid", "bars", "texture", "fibres"],
+            "dose_electrons_per_px": [20, 400]}  # fmt: skip
+    assert "contains the held-out instrument" in held_out_reason("family:focus", wide)

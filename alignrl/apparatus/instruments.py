@@ -153,7 +153,10 @@ def _contains(box: FocusFamily, instrument: FocusFamily) -> bool:
 def _family_of(spec: str, args: Mapping[str, Any] | None) -> tuple[FocusFamily, Path] | None:
     """The family a `family:` or `instrument:` spec simulates, with its file; None for
     other specs or a file that cannot be read (the registry reports that when it opens)."""
-    overrides = {key: value for key, value in (args or {}).items() if key != "analytic"}
+    # The reading path and how a family samples its box change no parameter of the box.
+    overrides = {
+        key: value for key, value in (args or {}).items() if key not in ("analytic", "sampling")
+    }
     form, _, target = spec.partition(":")
     try:
         if form == "family":

@@ -16,7 +16,9 @@ For presets, `sem:`, `family:`, `instrument:` and `csv:` the same arguments over
 instrument or simulator settings (for example `{"dose_electrons_per_px": 50}` or
 `{"noise": 0.02, "split": "test"}`). For presets, `sem:`, `family:`, `instrument:` and `set:`
 (which takes no other argument) the argument `analytic` (true or false) switches to the
-analytic mode: readings computed from the probe, without images (docs/physics.md).
+analytic mode: readings computed from the probe, without images (docs/physics.md). `family:`
+also takes `sampling`, how the column draws from its box: `uniform` (the default) or `edges`
+(each parameter from the arcsine law, the box's edges as often as its middle).
 
 A driver is a real instrument: `make_apparatus` returns it behind the safety shield
 (alignrl/apparatus/shield.py: intervals, site limits, maximum steps, finite values, bounded
@@ -39,7 +41,7 @@ from pathlib import Path
 from typing import Any
 
 from alignrl.apparatus.base import APPARATUS_METHODS, Apparatus
-from alignrl.apparatus.family import FamilyColumn, family_path, load_family
+from alignrl.apparatus.family import SAMPLINGS, FamilyColumn, family_path, load_family
 from alignrl.apparatus.guard import DEFAULT_CALL_TIMEOUT_S, construct_within
 from alignrl.apparatus.instruments import InstrumentSet, find_instrument, load_set
 from alignrl.apparatus.limits import ShieldOptions
@@ -188,7 +190,15 @@ def build_apparatus(
                 )
             return InstrumentSet([family for _, family in load_set(target)], seed, analytic)
         if form == "family":
-            return FamilyColumn(load_family(family_path(target), **args), seed, analytic)
+            # How the column draws from its box (family.SAMPLINGS): the box itself is the same.
+            sampling = args.pop("sampling", "uniform")
+            if sampling not in SAMPLINGS:
+                raise ValueError(
+                    f"apparatus {spec!r}: sampling must be one of {', '.join(SAMPLINGS)}, "
+                    f"got {sampling!r}"
+                )
+            family = load_family(family_path(target), **args)
+            return FamilyColumn(family, seed, analytic, sampling)
         if form == "instrument":
             return FamilyColumn(load_family(find_instrument(target), **args), seed, analytic)
         path = Path(target) if form == "sem" else PRESET_DIR / f"{spec}.yaml"
