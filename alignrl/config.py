@@ -341,8 +341,12 @@ class CurriculumConfig(_Strict):
 
 class BudgetConfig(_Strict):
     env_steps: Count = Field(30_000, ge=1, description="environment steps (acquisitions) to train")
-    eval_every: Count = Field(5000, ge=1, description="env steps between evaluation sessions")
-    eval_scenarios: Count = Field(100, ge=1, description="alignments per evaluation session")
+    eval_every: Count = Field(5000, ge=1, description="env steps between validation sessions")
+    eval_scenarios: Count = Field(100, ge=1, description="alignments per validation session")
+    test_scenarios: Count | None = Field(
+        None, ge=0, description="alignments of the test session of best.pt at the end (another "
+        "seed, never used for a choice); null: eval_scenarios; 0: none"
+    )  # fmt: skip
     checkpoint_every: Count = Field(5000, ge=1, description="env steps between checkpoints")
 
 

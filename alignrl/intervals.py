@@ -57,7 +57,10 @@ def wilson(successes: int, total: int, confidence: float = CONFIDENCE) -> tuple[
     denominator = 1.0 + z * z / total
     centre = (rate + z * z / (2 * total)) / denominator
     half = z * math.sqrt(rate * (1 - rate) / total + z * z / (4 * total * total)) / denominator
-    return max(0.0, centre - half), min(1.0, centre + half)
+    # At 0/n and n/n the bound on that side is exactly 0 or 1 (the formula leaves rounding).
+    low = 0.0 if successes == 0 else max(0.0, centre - half)
+    high = 1.0 if successes == total else min(1.0, centre + half)
+    return low, high
 
 
 def success_interval(
@@ -77,9 +80,11 @@ def success_interval(
 
 
 def success_text(successes: int, total: int, confidence: float = CONFIDENCE) -> str:
-    """`30/50 (46-72 %)`: the count and its interval in whole percent."""
+    """`30/50 (46-72 %)`: the count and its interval in whole percent, or in tenths where
+    whole percent would show both ends alike (`3830/3840 (99.5-99.9 %)`)."""
     low, high = wilson(successes, total, confidence)
-    return f"{int(successes)}/{int(total)} ({100 * low:.0f}-{100 * high:.0f} %)"
+    digits = 0 if round(100 * low) != round(100 * high) else 1
+    return f"{int(successes)}/{int(total)} ({100 * low:.{digits}f}-{100 * high:.{digits}f} %)"
 
 
 def iqm(values: Sequence[float] | np.ndarray) -> float:

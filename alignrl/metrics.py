@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from alignrl.checkpoints import atomic_write_text
+from alignrl.intervals import wilson
 
 __all__ = [
     "EPISODE_COLUMNS",
@@ -16,17 +17,36 @@ __all__ = [
     "LEAGUE_EVALUATION_COLUMNS",
     "LEAGUE_ITERATION_COLUMNS",
     "LINEAGE_COLUMNS",
+    "TEST_COLUMNS",
     "CsvLog",
+    "session_figures",
     "truncate_csv",
 ]
 
 # metrics/episodes.csv: one row per finished training episode (alignrl train, league members)
 EPISODE_COLUMNS = ("env_steps", "episode", "return", "success", "acquisitions", "complexity")
-# metrics/evaluations.csv of `alignrl train`: one row per held-out evaluation session
+# metrics/evaluations.csv of `alignrl train`: one row per validation session (the sessions
+# that choose checkpoints/best.pt), at the env steps it was held
 EVALUATION_COLUMNS = (
     "env_steps",
     "successes",
     "scenarios",
+    "median_acquisitions",
+    "p90_acquisitions",
+    "median_final_px",
+    "seconds",
+)
+# metrics/test.csv of `alignrl train`: the test session of best.pt at the end of the run (at
+# env_steps), another seed than the validation sessions', never used for a choice; the
+# successes' 95 % Wilson interval as rates
+TEST_COLUMNS = (
+    "env_steps",
+    "checkpoint_env_steps",
+    "seed",
+    "successes",
+    "scenarios",
+    "success_rate_low",
+    "success_rate_high",
     "median_acquisitions",
     "p90_acquisitions",
     "median_final_px",
@@ -118,3 +138,22 @@ class CsvLog:
                 csv.DictWriter(handle, self.fields).writerows(rows)
         except OSError as error:  # a full disk: say which file
             raise _named(error, self.path) from None
+
+
+def session_figures(row: dict[str, Any]) -> dict[str, float | None]:
+    """The figures of an evaluation session's row (of a training run's evaluations.csv or
+    test.csv, or a league's evaluations.csv) as TensorBoard shows them: its successes, their
+    rate with its 95 % Wilson interval, its acquisitions and, where the row has it, the median
+    final edge width (None: not measured)."""
+    successes, scenarios = int(row["successes"]), int(row["scenarios"])
+    low, high = wilson(successes, scenarios)
+    final = row.get("median_final_px")
+    return {
+        "successes": successes,
+        "success_rate": successes / scenarios,
+        "success_rate_low": low,
+        "success_rate_high": high,
+        "median_acquisitions": float(row["median_acquisitions"]),
+        "p90_acquisitions": float(row["p90_acquisitions"]),
+        "median_final_px": None if final in (None, "") else float(final),
+    }

@@ -1,22 +1,22 @@
-"""Training figures and the Markdown report of one run directory (`alignrl report RUN`).
+"""Training figures of one run directory: what `alignrl report RUN` draws, and what a league
+report draws for each member.
 
 Reads runs/<name>/metrics/*.csv as alignrl/training.py writes them and draws the seed's
 training figures (6.1.1 return, 6.1.2-6.1.7 losses, entropy and α) with the success rate,
 acquisitions and curriculum complexity beside them, all against env steps (one env step is
-one image acquisition). Three layers, so that a league leaderboard can reuse the lower two:
-`draw_*` puts one run on an Axes (call it again to overlay another run), `panel_figure` and
-`losses_figure` build a Figure, `training_figures` and `write_run_report` write files.
-Matplotlib is imported only inside functions and draws on the Agg canvas, never through
-pyplot's global state.
+one image acquisition). Every success figure of a session (validation points, the test
+session, a classical reference) carries its 95 % Wilson interval, and the training success
+curve the interval of its window. Three layers, so that a league report can reuse the lower
+two: `draw_*` puts one run on an Axes in one colour (call it again to overlay another run),
+`panel_figure` and `losses_figure` build a Figure, `write_figures` writes the PNGs (the
+documents around them: alignrl.runs.report, alignrl.league.report). Matplotlib is imported
+only inside functions and draws on the Agg canvas, never through pyplot's global state.
 """
 
 from __future__ import annotations
 
-import csv
-import io
-import json
 import math
-from collections.abc import Callable, Collection, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -24,7 +24,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from alignrl.metrics import EPISODE_COLUMNS, EVALUATION_COLUMNS
+from alignrl.intervals import success_text, wilson
+from alignrl.run_tables import RunMetrics, update_metric_columns
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -32,36 +33,35 @@ if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
 __all__ = [
-    "ReportError",
-    "RunMetrics",
-    "RunReport",
+    "FIGURES",
+    "Reference",
     "TrainingFigures",
+    "draw_acquisition_references",
     "draw_acquisitions",
     "draw_complexity",
     "draw_return",
+    "draw_session_points",
     "draw_success",
+    "draw_success_references",
     "draw_update_metric",
     "losses_figure",
     "new_figure",
     "panel_figure",
-    "read_metrics_csv",
-    "read_metrics_folder",
-    "read_run_metrics",
-    "read_yaml_mapping",
+    "place_legend",
     "rolling_mean",
+    "rolling_success_interval",
     "save_png",
-    "training_figures",
-    "update_metric_columns",
+    "success_points",
     "write_figures",
-    "write_run_report",
 ]
 
 EPISODE_WINDOW = 100  # training episodes per point of a curve, as in seed fig. 6.1.1
 UPDATE_WINDOW = 10  # rows of updates.csv per smoothed point (SAC logs a row per 50 updates)
 DPI = 120
 ENV_STEPS_LABEL = "env steps (image acquisitions)"
+LEGEND_INSIDE_MAX = 6  # a legend with more entries goes beside the axes, not over the lines
+LEGEND_BESIDE_WIDTH = 8.5  # inches: a figure with its legend beside widens to at least this
 
-UPDATE_COUNTERS = ("env_steps", "updates")  # the columns of updates.csv that are not plotted
 
 # Title and y-axis label of the updates.csv columns we know; any other column is plotted
 # under its own name, so a new learner's metrics need no change here.
@@ -91,12 +91,17 @@ FIGURES: dict[str, tuple[str, str]] = {
     "success.png": (
         "Success rate",
         f"Training episodes that ended within spec, over the last {EPISODE_WINDOW} episodes "
-        "(line), and held-out evaluation sessions (points).",
+        "(line; the band is its 95 % Wilson interval), and the validation sessions (points) "
+        "with their 95 % Wilson intervals. Where the report has them, the test session (a "
+        "star at the env steps of the checkpoint it tested) and classical controllers "
+        "(horizontal lines, each labelled with the session it comes from).",
     ),
     "acquisitions.png": (
         "Acquisitions per alignment",
         f"Images per training episode, mean of the last {EPISODE_WINDOW} (line); median and "
-        "90th percentile of each held-out evaluation session (points).",
+        "90th percentile of each validation session (points). Where the report has them, the "
+        "test session's median (a star) and each classical controller's median (horizontal "
+        "lines, labelled with their session).",
     ),
     "complexity.png": (
         "Curriculum complexity",
@@ -105,131 +110,20 @@ FIGURES: dict[str, tuple[str, str]] = {
 }
 
 
-class ReportError(ValueError):
-    """A run directory or metrics file that cannot be reported on; the message names it."""
-
-
-# --- reading a run ------------------------------------------------------------------------
-
-
-def _number(cell: str, blank_allowed: bool) -> float:
-    if cell == "" and blank_allowed:
-        return math.nan  # e.g. median_final_px of a session whose images all lacked edges
-    try:
-        value = float(cell)
-    except ValueError:
-        raise ValueError(f"{cell!r} is not a number") from None
-    if not math.isfinite(value):
-        raise ValueError(f"{cell!r} is not a finite number")
-    return value
-
-
-def read_metrics_csv(
-    path: Path,
-    required: Sequence[str],
-    blank_allowed: Collection[str] = (),
-    text_columns: Collection[str] = (),
-) -> pd.DataFrame:
-    """A metrics CSV as float64 columns, read strictly: every column must hold numbers (blank
-    cells only in `blank_allowed`, as NaN), except `text_columns`, kept as strings (the
-    member ids of a league's CSVs). A missing or empty file gives zero rows, because a run
-    killed before its first update or evaluation is a run, not an error; so is a last line
-    without its line break, the row a kill cut short (left out: the resumed run rewrites it)."""
-    import pandas as pd
-
-    try:
-        text = path.read_text(encoding="utf-8") if path.exists() else ""
-        text = text[: text.rfind("\n") + 1]
-        header, *rows = csv.reader(io.StringIO(text, newline="")) if text else [[]]
-    except (UnicodeDecodeError, csv.Error) as error:
-        raise ReportError(f"{path}: not a CSV text file ({error})") from None
-    if not header:
-        return pd.DataFrame(
-            {name: np.empty(0, object if name in text_columns else float) for name in required}
-        )
-    missing = [name for name in required if name not in header]
-    if missing:
-        raise ReportError(f"{path}: no column {missing[0]!r} (the header is {','.join(header)})")
-    if len(set(header)) < len(header):
-        raise ReportError(f"{path}: a column name appears twice in the header")
-    values = np.full((len(rows), len(header)), np.nan)
-    blank = [name in blank_allowed for name in header]
-    numeric = [name not in text_columns for name in header]
-    for index, row in enumerate(rows):
-        line = index + 2  # the trainer never quotes a line break, so rows and lines agree
-        if len(row) != len(header):
-            raise ReportError(
-                f"{path}, line {line}: {len(row)} fields, the header has {len(header)}"
-            )
-        for column, cell in enumerate(row):
-            if not numeric[column]:
-                continue
-            try:
-                values[index, column] = _number(cell, blank[column])
-            except ValueError as problem:
-                raise ReportError(
-                    f"{path}, line {line}, column {header[column]}: {problem}"
-                ) from None
-    frame = pd.DataFrame(values, columns=header)
-    for column, name in enumerate(header):
-        if not numeric[column]:
-            frame[name] = [row[column] for row in rows]
-    return frame
+REFERENCE_STYLES = (":", "-.", (0, (5, 2, 1, 2, 1, 2)), (0, (1, 3)))  # one a controller
+REFERENCE_COLOUR = "0.25"  # dark grey: no member's colour (alignrl.league.report_figures)
 
 
 @dataclass(frozen=True)
-class RunMetrics:
-    """The three metrics tables of a run, or of a league member; a table whose file is
-    missing has zero rows."""
+class Reference:
+    """A classical controller's figures on one session, drawn across a learner's success and
+    acquisitions plots as a horizontal line: what no learning achieves."""
 
-    run_dir: Path
-    updates: pd.DataFrame
-    episodes: pd.DataFrame
-    evaluations: pd.DataFrame
-    folder: str = "metrics"  # where the CSVs are, relative to run_dir
-
-    def why_empty(self, table: str) -> str:
-        """Why `table` ('updates', 'episodes' or 'evaluations') has no rows, for the reader."""
-        path = self.run_dir / self.folder / f"{table}.csv"
-        state = "is missing" if not path.exists() else "has no rows yet"
-        return f"{self.folder}/{table}.csv {state}"
-
-
-def _check_run_dir(run_dir: Path) -> None:
-    if not run_dir.is_dir():
-        raise ReportError(f"run directory {run_dir} does not exist")
-    for needed in ("config.yaml", "metrics"):
-        if not (run_dir / needed).exists():
-            raise ReportError(
-                f"{run_dir} is not a run directory (no {needed}): give runs/<name> as "
-                "written by `alignrl train`"
-            )
-
-
-def read_metrics_folder(run_dir: Path, folder: str = "metrics") -> RunMetrics:
-    """The updates, episodes and evaluations CSVs in run_dir/folder. A training run keeps
-    them in metrics/; a league keeps each member's first two in metrics/members/<id>/."""
-    metrics = run_dir / folder
-    return RunMetrics(
-        run_dir=run_dir,
-        updates=read_metrics_csv(metrics / "updates.csv", UPDATE_COUNTERS),
-        episodes=read_metrics_csv(metrics / "episodes.csv", EPISODE_COLUMNS),
-        evaluations=read_metrics_csv(
-            metrics / "evaluations.csv", EVALUATION_COLUMNS, blank_allowed={"median_final_px"}
-        ),
-        folder=folder,
-    )
-
-
-def read_run_metrics(run_dir: Path) -> RunMetrics:
-    """The metrics of a run directory, after checking that it is one."""
-    _check_run_dir(run_dir)
-    return read_metrics_folder(run_dir)
-
-
-def update_metric_columns(updates: pd.DataFrame) -> list[str]:
-    """The columns of updates.csv to plot: all but the step counters, in file order."""
-    return [name for name in updates.columns if name not in UPDATE_COUNTERS]
+    name: str  # e.g. "hyperbola"
+    session: str  # the session the figures come from, in words ("test session, seed 2000000")
+    successes: int
+    scenarios: int
+    median_acquisitions: float
 
 
 # --- the maths ----------------------------------------------------------------------------
@@ -247,11 +141,62 @@ def rolling_mean(values: ArrayLike, window: int) -> np.ndarray:
     return (sums[ends] - sums[ends - counts]) / counts
 
 
+def rolling_success_interval(
+    successes: ArrayLike, window: int, trials: ArrayLike | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """The 95 % Wilson interval (low, high, as rates) of the successes among the trials of the
+    last `window` values at each point: `successes` of `trials` each (default one trial a
+    value, an episode that succeeded or not: the interval of rolling_mean(successes,
+    window))."""
+    successes = np.asarray(successes, dtype=np.int64)
+    trials = np.ones_like(successes) if trials is None else np.asarray(trials, dtype=np.int64)
+    ends = np.arange(1, len(successes) + 1)
+    starts = ends - np.minimum(ends, window)
+
+    def in_window(values: np.ndarray) -> list[int]:
+        sums = np.concatenate(([0], np.cumsum(values)))
+        return (sums[ends] - sums[starts]).tolist()
+
+    pairs = list(zip(in_window(successes), in_window(trials), strict=True))
+    bounds = {pair: wilson(*pair) for pair in set(pairs)}  # few distinct pairs: cached
+    low_high = np.array([bounds[pair] for pair in pairs], dtype=np.float64).reshape(-1, 2)
+    return low_high[:, 0], low_high[:, 1]
+
+
+def success_points(successes: ArrayLike, scenarios: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
+    """Sessions' success figures as Axes.errorbar takes them: the rates in percent, and the
+    distances (2, n) from each down and up to the ends of its 95 % Wilson interval."""
+    successes = np.asarray(successes).astype(int).reshape(-1)
+    scenarios = np.asarray(scenarios).astype(int).reshape(-1)
+    rates = 100.0 * successes / scenarios
+    pairs = zip(successes.tolist(), scenarios.tolist(), strict=True)
+    bounds = 100.0 * np.array([wilson(k, n) for k, n in pairs], dtype=np.float64).reshape(-1, 2)
+    return rates, np.vstack([rates - bounds[:, 0], bounds[:, 1] - rates])
+
+
 # --- one run on an Axes -------------------------------------------------------------------
 
 
 def _legend(run: str | None, what: str) -> str:
     return what if run is None else f"{run}: {what}"
+
+
+def place_legend(axes: Axes, handles: list[Any] | None = None) -> bool:
+    """A legend inside the axes, or beside them when it is long (the figure then widens);
+    True if beside."""
+    entries = len(handles if handles is not None else axes.get_legend_handles_labels()[0])
+    beside = entries > LEGEND_INSIDE_MAX
+    options: dict[str, Any] = (
+        {"loc": "upper left", "bbox_to_anchor": (1.02, 1.0), "ncols": 1 + entries // 25}
+        if beside
+        else {"loc": "best"}
+    )
+    axes.legend(handles=handles, fontsize="small", **options)
+    if beside:
+        figure = axes.get_figure()
+        width, height = figure.get_size_inches()
+        figure.set_size_inches(max(width, LEGEND_BESIDE_WIDTH), height)
+    return beside
 
 
 def _steps_tick(value: float, _position: int) -> str:
@@ -272,89 +217,199 @@ def _finish(axes: Axes, title: str, y_label: str) -> None:
     axes.grid(True, alpha=0.3)
 
 
-def draw_return(axes: Axes, episodes: pd.DataFrame, run: str | None = None) -> None:
+def draw_return(
+    axes: Axes, episodes: pd.DataFrame, run: str | None = None, colour: Any = None
+) -> None:
     """Seed fig. 6.1.1: the return of the last 100 training episodes."""
-    axes.plot(episodes["env_steps"], rolling_mean(episodes["return"], EPISODE_WINDOW), label=run)
+    returns = rolling_mean(episodes["return"], EPISODE_WINDOW)
+    axes.plot(episodes["env_steps"], returns, color=colour, label=run)
     _finish(axes, FIGURES["reward.png"][0], f"return, mean of last {EPISODE_WINDOW} episodes")
 
 
 def draw_update_metric(
-    axes: Axes, updates: pd.DataFrame, column: str, run: str | None = None
+    axes: Axes, updates: pd.DataFrame, column: str, run: str | None = None, colour: Any = None
 ) -> None:
     """One column of updates.csv: faint as logged, bold smoothed (the logged values of a
     minibatch loss are too noisy to read a trend from)."""
     (smoothed,) = axes.plot(
-        updates["env_steps"], rolling_mean(updates[column], UPDATE_WINDOW), lw=1.6, label=run
+        updates["env_steps"],
+        rolling_mean(updates[column], UPDATE_WINDOW),
+        lw=1.6,
+        color=colour,
+        label=run,
     )
     axes.plot(updates["env_steps"], updates[column], color=smoothed.get_color(), lw=0.6, alpha=0.35)
     title, y_label = UPDATE_METRICS.get(column, (column, column))
     _finish(axes, title, y_label)
 
 
+def draw_session_points(
+    axes: Axes,
+    x: ArrayLike,
+    successes: ArrayLike,
+    scenarios: ArrayLike,
+    label: str,
+    colour: Any = None,
+    **style: Any,
+) -> Any:
+    """Sessions' successes per 100 at `x`, each with its 95 % Wilson interval as an error
+    bar, in `style` (Axes.errorbar's); returns the colour drawn."""
+    rates, errors = success_points(successes, scenarios)
+    points = axes.errorbar(x, rates, yerr=errors, color=colour, label=label, **style)
+    return points.lines[0].get_color()
+
+
 def draw_success(
-    axes: Axes, episodes: pd.DataFrame, evaluations: pd.DataFrame, run: str | None = None
+    axes: Axes,
+    episodes: pd.DataFrame,
+    evaluations: pd.DataFrame,
+    run: str | None = None,
+    colour: Any = None,
+    test: pd.DataFrame | None = None,
 ) -> None:
-    """Training success rate (line) and held-out sessions (points), in percent."""
-    color = None
+    """Training success rate (line, its window's interval a band), validation sessions
+    (points) and the test session of `test` (test.csv rows: a star at the env steps of the
+    checkpoint it tested), in percent, the sessions with their 95 % Wilson intervals."""
     if len(episodes):
+        steps = episodes["env_steps"]
         (line,) = axes.plot(
-            episodes["env_steps"],
+            steps,
             100.0 * rolling_mean(episodes["success"], EPISODE_WINDOW),
+            color=colour,
             label=_legend(run, f"training, last {EPISODE_WINDOW} episodes"),
         )
-        color = line.get_color()
+        colour = line.get_color()
+        low, high = rolling_success_interval(episodes["success"], EPISODE_WINDOW)
+        axes.fill_between(steps, 100.0 * low, 100.0 * high, color=colour, alpha=0.15, lw=0)
     if len(evaluations):
-        axes.plot(
+        colour = draw_session_points(
+            axes,
             evaluations["env_steps"],
-            100.0 * evaluations["successes"] / evaluations["scenarios"],
-            "o",
-            color=color,
+            evaluations["successes"],
+            evaluations["scenarios"],
+            _legend(run, "validation sessions (95 % interval)"),
+            colour,
+            fmt="o",
             markeredgecolor="black",  # visible where the training line passes through it
+            capsize=3,
             zorder=3,
-            label=_legend(run, "held-out evaluation"),
+        )
+    if test is not None and len(test):
+        draw_session_points(
+            axes,
+            test["checkpoint_env_steps"],
+            test["successes"],
+            test["scenarios"],
+            _legend(run, f"test session, seed {int(test['seed'].iloc[0])} (95 % interval)"),
+            colour,
+            fmt="*",
+            markersize=13,
+            markeredgecolor="black",
+            capsize=4,
+            zorder=4,
         )
     axes.set_ylim(-3, 103)
-    axes.legend(loc="lower right")
+    place_legend(axes)
     _finish(axes, FIGURES["success.png"][0], "alignments within spec (%)")
 
 
 def draw_acquisitions(
-    axes: Axes, episodes: pd.DataFrame, evaluations: pd.DataFrame, run: str | None = None
+    axes: Axes,
+    episodes: pd.DataFrame,
+    evaluations: pd.DataFrame,
+    run: str | None = None,
+    colour: Any = None,
+    test: pd.DataFrame | None = None,
 ) -> None:
-    """Images per training episode (line) and per held-out alignment (median and p90)."""
-    color = None
+    """Images per training episode (line), per validation alignment (median and p90) and the
+    test session's median (a star at the env steps of the checkpoint it tested)."""
     if len(episodes):
         (line,) = axes.plot(
             episodes["env_steps"],
             rolling_mean(episodes["acquisitions"], EPISODE_WINDOW),
+            color=colour,
             label=_legend(run, f"training, mean of last {EPISODE_WINDOW} episodes"),
         )
-        color = line.get_color()
+        colour = line.get_color()
     if len(evaluations):
         (median,) = axes.plot(
             evaluations["env_steps"],
             evaluations["median_acquisitions"],
             "o",
-            color=color,
-            label=_legend(run, "held-out median"),
+            color=colour,
+            label=_legend(run, "validation median"),
         )
+        colour = median.get_color()
         axes.plot(
             evaluations["env_steps"],
             evaluations["p90_acquisitions"],
             "^",
-            color=median.get_color(),
+            color=colour,
             mfc="none",
-            label=_legend(run, "held-out 90th percentile"),
+            label=_legend(run, "validation 90th percentile"),
+        )
+    if test is not None and len(test):
+        axes.plot(
+            test["checkpoint_env_steps"],
+            test["median_acquisitions"],
+            "*",
+            markersize=13,
+            color=colour,
+            markeredgecolor="black",
+            zorder=4,
+            label=_legend(run, "test session median"),
         )
     axes.set_ylim(bottom=0)
-    axes.legend(loc="upper right")
+    place_legend(axes)
     _finish(axes, FIGURES["acquisitions.png"][0], "acquisitions per alignment (images)")
 
 
-def draw_complexity(axes: Axes, episodes: pd.DataFrame, run: str | None = None) -> None:
-    axes.plot(episodes["env_steps"], episodes["complexity"], drawstyle="steps-post", label=run)
+def draw_complexity(
+    axes: Axes, episodes: pd.DataFrame, run: str | None = None, colour: Any = None
+) -> None:
+    axes.plot(
+        episodes["env_steps"],
+        episodes["complexity"],
+        drawstyle="steps-post",
+        color=colour,
+        label=run,
+    )
     axes.set_ylim(0, 1.05)
     _finish(axes, FIGURES["complexity.png"][0], "misalignment window (share of interval)")
+
+
+def _reference_lines(
+    axes: Axes, references: Sequence[Reference], levels: list[float], labels: list[str]
+) -> None:
+    for index, (level, label) in enumerate(zip(levels, labels, strict=True)):
+        style = REFERENCE_STYLES[index % len(REFERENCE_STYLES)]
+        axes.axhline(level, color=REFERENCE_COLOUR, ls=style, lw=1.4, zorder=1.5, label=label)
+    if references:
+        place_legend(axes)
+
+
+def draw_success_references(axes: Axes, references: Sequence[Reference]) -> None:
+    """Each classical controller's success rate (percent) as a horizontal line, labelled
+    with its session, successes and 95 % interval."""
+    _reference_lines(
+        axes,
+        references,
+        [100.0 * ref.successes / ref.scenarios for ref in references],
+        [
+            f"{ref.name} ({ref.session}): {success_text(ref.successes, ref.scenarios)}"
+            for ref in references
+        ],
+    )
+
+
+def draw_acquisition_references(axes: Axes, references: Sequence[Reference]) -> None:
+    """Each classical controller's median acquisitions as a horizontal line."""
+    _reference_lines(
+        axes,
+        references,
+        [ref.median_acquisitions for ref in references],
+        [f"{ref.name} ({ref.session}): median {ref.median_acquisitions:g}" for ref in references],
+    )
 
 
 # --- figures ------------------------------------------------------------------------------
@@ -376,21 +431,22 @@ def new_figure(panels: int = 1, columns: int = 1) -> tuple[Figure, list[Axes]]:
     return figure, axes[:panels]
 
 
-def panel_figure(draw: Callable[..., None], *tables: pd.DataFrame) -> Figure:
-    """A one-panel figure of one `draw_*` function, e.g. panel_figure(draw_return, episodes)."""
+def panel_figure(draw: Callable[..., None], *tables: pd.DataFrame, **options: Any) -> Figure:
+    """A one-panel figure of one `draw_*` function, e.g. panel_figure(draw_return, episodes,
+    colour="C1")."""
     figure, (axes,) = new_figure()
-    draw(axes, *tables)
+    draw(axes, *tables, **options)
     return figure
 
 
-def losses_figure(updates: pd.DataFrame) -> Figure:
+def losses_figure(updates: pd.DataFrame, colour: Any = None) -> Figure:
     """One panel per metric column, three panels a row."""
     columns = update_metric_columns(updates)
     if not columns:
         raise ValueError("updates has no columns to plot besides env_steps and updates")
     figure, panels = new_figure(len(columns), columns=min(3, len(columns)))
     for axes, column in zip(panels, columns, strict=True):
-        draw_update_metric(axes, updates, column)
+        draw_update_metric(axes, updates, column, colour=colour)
     return figure
 
 
@@ -405,14 +461,6 @@ class TrainingFigures:
     skipped: dict[str, str]
 
 
-@dataclass(frozen=True)
-class RunReport:
-    """Where report.md went, and the figures beside it."""
-
-    markdown: Path
-    figures: TrainingFigures
-
-
 def save_png(figure: Figure, path: Path) -> None:
     """Atomically: a report read while it is rewritten shows the old figure or the new one."""
     from alignrl.checkpoints import atomic_write
@@ -420,13 +468,15 @@ def save_png(figure: Figure, path: Path) -> None:
     atomic_write(path, lambda handle: figure.savefig(handle, format="png"))
 
 
-def _build_figures(metrics: RunMetrics) -> tuple[dict[str, Figure], dict[str, str]]:
+def _build_figures(
+    metrics: RunMetrics, colour: Any, references: Sequence[Reference]
+) -> tuple[dict[str, Figure], dict[str, str]]:
     """Every figure the metrics allow, and why each other one is left out."""
     updates, episodes, evaluations = metrics.updates, metrics.episodes, metrics.evaluations
     built: dict[str, Figure] = {}
     skipped: dict[str, str] = {}
     if len(episodes):
-        built["reward.png"] = panel_figure(draw_return, episodes)
+        built["reward.png"] = panel_figure(draw_return, episodes, colour=colour)
     else:
         skipped["reward.png"] = metrics.why_empty("episodes")
     if not len(updates):
@@ -434,10 +484,14 @@ def _build_figures(metrics: RunMetrics) -> tuple[dict[str, Figure], dict[str, st
     elif not update_metric_columns(updates):
         skipped["losses.png"] = "metrics/updates.csv has no columns besides the step counters"
     else:
-        built["losses.png"] = losses_figure(updates)
+        built["losses.png"] = losses_figure(updates, colour)
     if len(episodes) or len(evaluations):
-        built["success.png"] = panel_figure(draw_success, episodes, evaluations)
-        built["acquisitions.png"] = panel_figure(draw_acquisitions, episodes, evaluations)
+        sessions = {"colour": colour, "test": metrics.test}
+        success = panel_figure(draw_success, episodes, evaluations, **sessions)
+        draw_success_references(success.axes[0], references)
+        acquisitions = panel_figure(draw_acquisitions, episodes, evaluations, **sessions)
+        draw_acquisition_references(acquisitions.axes[0], references)
+        built["success.png"], built["acquisitions.png"] = success, acquisitions
     else:
         neither = f"{metrics.why_empty('episodes')} and {metrics.why_empty('evaluations')}"
         skipped["success.png"] = skipped["acquisitions.png"] = neither
@@ -447,140 +501,28 @@ def _build_figures(metrics: RunMetrics) -> tuple[dict[str, Figure], dict[str, st
         level = episodes["complexity"].iloc[0]
         skipped["complexity.png"] = f"the complexity was {level:g} in every episode"
     else:
-        built["complexity.png"] = panel_figure(draw_complexity, episodes)
+        built["complexity.png"] = panel_figure(draw_complexity, episodes, colour=colour)
     return built, skipped
 
 
-def write_figures(metrics: RunMetrics, out_dir: Path) -> TrainingFigures:
-    """Write every figure the metrics allow as PNGs into `out_dir` (created if needed)."""
-    built, skipped = _build_figures(metrics)
+def write_figures(
+    metrics: RunMetrics,
+    out_dir: Path,
+    colour: Any = None,
+    steps_label: str = ENV_STEPS_LABEL,
+    references: Sequence[Reference] = (),
+) -> TrainingFigures:
+    """Write every figure the metrics allow as PNGs into `out_dir` (created if needed): the
+    run's curves in `colour` (a league member's own), `steps_label` under the horizontal axes
+    (what the env_steps columns count), `references` across the success and acquisitions."""
+    built, skipped = _build_figures(metrics, colour, references)
     written = []
     for name in FIGURES:
         if name in built:
+            for axes in built[name].axes:
+                axes.set_xlabel(steps_label)
             save_png(built[name], out_dir / name)
             written.append(out_dir / name)
     return TrainingFigures(
         written=written, skipped={name: skipped[name] for name in FIGURES if name in skipped}
     )
-
-
-def training_figures(run_dir: Path, out_dir: Path) -> TrainingFigures:
-    """Write the training figures of `run_dir` as PNGs into `out_dir` (created if needed)."""
-    return write_figures(read_run_metrics(Path(run_dir)), Path(out_dir))
-
-
-def read_yaml_mapping(path: Path) -> dict[str, Any]:
-    """A run's YAML file (config.yaml, a league's rosters) as plain data, for a report: only
-    shown, so an older or newer config still reports. Not a mapping is a ReportError."""
-    from alignrl.yaml_io import YAMLInputError, read_yaml_file
-
-    try:
-        data = read_yaml_file(path)
-    except YAMLInputError as error:  # names the file and what is wrong
-        raise ReportError(str(error)) from None
-    if not isinstance(data, dict):
-        raise ReportError(f"{path}: expected a mapping at the top level")
-    return data
-
-
-def _evaluation_cells(row: pd.Series) -> dict[str, str]:
-    """One row of evaluations.csv as shown; a blank median_final_px (no edges) as '-'."""
-    final = row["median_final_px"]
-    return {
-        "env steps": f"{row['env_steps']:.0f}",
-        "aligned": f"{row['successes']:.0f}/{row['scenarios']:.0f}",
-        "median acquisitions": f"{row['median_acquisitions']:g}",
-        "p90 acquisitions": f"{row['p90_acquisitions']:.1f}",
-        "median final edge width (px)": "-" if math.isnan(final) else f"{final:.2f}",
-        "seconds": f"{row['seconds']:.1f}",
-    }
-
-
-def _evaluation_line(row: pd.Series) -> str:
-    cells = _evaluation_cells(row)
-    width = cells["median final edge width (px)"]
-    return (
-        f"{cells['aligned']} aligned at {cells['env steps']} env steps, median "
-        f"{cells['median acquisitions']} acquisitions (p90 {cells['p90 acquisitions']}), "
-        + (
-            "no final edge width measured"
-            if width == "-"
-            else f"median final edge width {width} px"
-        )
-    )
-
-
-def _evaluation_table(evaluations: pd.DataFrame) -> list[str]:
-    rows = [_evaluation_cells(row) for _, row in evaluations.iterrows()]
-    return [
-        "| " + " | ".join(rows[0]) + " |",
-        "|" + " ---: |" * len(rows[0]),
-        *("| " + " | ".join(cells.values()) + " |" for cells in rows),
-    ]
-
-
-def _markdown(
-    run_dir: Path, config: dict[str, Any], metrics: RunMetrics, figures: TrainingFigures
-) -> str:
-    learner = config.get("learner") or {}
-    budget = config.get("budget") or {}
-    updates, episodes, evaluations = metrics.updates, metrics.episodes, metrics.evaluations
-    env_steps = max(
-        (int(table["env_steps"].max()) for table in (updates, episodes, evaluations) if len(table)),
-        default=0,
-    )
-    gradient_updates = int(updates["updates"].iloc[-1]) if len(updates) else 0
-
-    def apparatus(key: str) -> str:
-        arguments = config.get(f"{key}_args") or {}
-        return f"`{config.get(key, '?')}`" + (f" {json.dumps(arguments)}" if arguments else "")
-
-    lines = [
-        f"# Training report: {config.get('name', run_dir.name)}",
-        "",
-        f"- **Run directory:** `{run_dir}`",
-        f"- **Learner:** {learner.get('algorithm', '?')}, encoder {learner.get('encoder', '?')}",
-        f"- **Apparatus:** trained on {apparatus('apparatus')}, evaluated on "
-        f"{apparatus('eval_apparatus')}",
-        f"- **Trained:** {env_steps} env steps of a budget of {budget.get('env_steps', '?')}, "
-        f"{len(episodes)} episodes, {gradient_updates} gradient updates",
-    ]
-    if len(evaluations):
-        best = evaluations.iloc[int(np.argmax(evaluations["successes"]))]
-        lines += [
-            f"- **Last held-out evaluation:** {_evaluation_line(evaluations.iloc[-1])}",
-            f"- **Best held-out evaluation** (kept in checkpoints/best.pt): "
-            f"{_evaluation_line(best)}",
-            "",
-            "## Held-out evaluations",
-            "",
-            *_evaluation_table(evaluations),
-        ]
-    else:
-        lines.append(f"- **Held-out evaluations:** none yet ({metrics.why_empty('evaluations')})")
-    lines += ["", "## Figures"]
-    for path in figures.written:
-        title, caption = FIGURES[path.name]
-        lines += ["", f"### {title}", "", caption, "", f"![{title}]({path.name})"]
-    if figures.skipped:
-        lines += ["", "## Not plotted", ""]
-        lines += [f"- {name}: {why}" for name, why in figures.skipped.items()]
-    return "\n".join(lines) + "\n"
-
-
-def write_run_report(run_dir: Path, out_dir: Path | None = None) -> RunReport:
-    """Write the figures and report.md of a run into `out_dir` (default <run_dir>/report/).
-    Nothing else in the run directory is touched, and every file is replaced atomically;
-    report.md goes last, so that it never links a figure not yet written. Temporaries that a
-    report killed midway left in `out_dir` are removed."""
-    from alignrl.checkpoints import atomic_write_text, remove_partial_writes
-
-    run_dir = Path(run_dir)
-    out_dir = run_dir / "report" if out_dir is None else Path(out_dir)
-    remove_partial_writes(out_dir, recursive=False)
-    metrics = read_run_metrics(run_dir)
-    config = read_yaml_mapping(run_dir / "config.yaml")
-    figures = write_figures(metrics, out_dir)
-    markdown = out_dir / "report.md"
-    atomic_write_text(markdown, _markdown(run_dir, config, metrics, figures))
-    return RunReport(markdown=markdown, figures=figures)

@@ -4,22 +4,26 @@
 above the learners.)
 
 The loop: step N apparatus together, store the transitions, update the learner (a set number
-of gradient updates per env step), adjust the curriculum, evaluate on held-out scenarios
-every so often, and checkpoint. A run lives in runs/<name>/:
+of gradient updates per env step), adjust the curriculum, hold a validation session every so
+often (the best one's learner is kept as best.pt), and checkpoint. At the end, best.pt aligns
+a test session at another seed (TEST_SEED): the figure to report, since no choice saw it. A
+run lives in runs/<name>/:
 
     config.yaml               the resolved experiment
     knobs.json                the knobs' intervals and steps, for export (alignrl.runs.state)
     checkpoints/last.pt       everything needed to continue (atomic writes)
-    checkpoints/best.pt       the learner of the best evaluation so far
+    checkpoints/best.pt       the learner of the best validation session so far
     metrics/updates.csv       losses, entropy, alpha (seed figs. 6.1.2-6.1.7)
     metrics/episodes.csv      return, success, acquisitions, complexity per episode
-    metrics/evaluations.csv   held-out successes and acquisitions
-    tensorboard/              the same as TensorBoard events
+    metrics/evaluations.csv   the validation sessions: successes and acquisitions
+    metrics/test.csv          the test session of best.pt, with its 95 % interval
+    tensorboard/              the same as TensorBoard events, and the run's settings
+                              (alignrl.runs.training_logs)
 
 A resumed run continues from last.pt: networks, optimizers, replay, counters, curriculum and
 random generators; metrics rows and TensorBoard events written after that checkpoint are
 dropped and written again, and episodes in flight at the kill start over. A run resumed after
-its budget (its final evaluation is in last.pt) writes nothing.
+its budget (its final validation and test sessions are in last.pt) writes nothing.
 """
 
 from __future__ import annotations
@@ -48,28 +52,36 @@ from alignrl.config import ExperimentConfig, dump_experiment
 from alignrl.envs import Curriculum, VectorAlignmentEnv, make_apparatus_copies
 from alignrl.envs.task import Task
 from alignrl.evaluation.controllers import PolicyController
-from alignrl.evaluation.session import SessionResult, run_session
-from alignrl.metrics import EPISODE_COLUMNS, EVALUATION_COLUMNS, CsvLog
+from alignrl.evaluation.session import TEST_SEED, VALIDATION_SEED, SessionResult, run_session
+from alignrl.intervals import success_text, wilson
 from alignrl.runs.state import (
     CONFIG_FILE,
     KNOBS_FILE,
-    TensorBoardLog,
     knob_limits,
     read_training_config,
     record_knobs,
     restore_rng,
     rng_state,
 )
-from alignrl.runs.training_runs import member_spec
+from alignrl.runs.training_logs import TrainingLogs
+from alignrl.runs.training_runs import load_policy, member_spec
 
 if TYPE_CHECKING:
     from alignrl.adaptation import HindsightSecrets
     from alignrl.runs.sources import PolicySource
 
-__all__ = ["EvaluationSummary", "Trainer", "evaluate_policy", "start_adaptation"]
+__all__ = [
+    "TEST_SEED",
+    "VALIDATION_SEED",
+    "EvaluationSummary",
+    "TestSummary",
+    "Trainer",
+    "evaluate_policy",
+    "start_adaptation",
+]
 
 CHECKPOINT_FORMAT = "alignrl-train-2"  # -1: a bare SAC state (policies still load)
-EVALUATION_SEED = 1_000_000  # evaluation scenarios never overlap training seeds
+EVALUATION_SEED = VALIDATION_SEED  # its name before issue 23 (model cards cite it)
 UPDATE_LOG_EVERY = 50  # updates between rows of updates.csv
 
 
@@ -85,11 +97,24 @@ def evaluate_policy(
     shield: ShieldOptions | None = None,
 ) -> SessionResult:
     """An evaluation session (alignrl/evaluation/session.py) with a deterministic policy:
-    held-out scenarios, starts anywhere in the interval, a verification image each, on an
-    apparatus opened with `shield` (a driver is always shielded)."""
+    `scenarios` seeded scenarios, starts anywhere in the interval, a verification image each,
+    on an apparatus opened with `shield` (a driver is always shielded)."""
     controller = PolicyController(name, act, task, history)
     unit = make_apparatus(apparatus, apparatus_args, shield=shield)
     return run_session(controller, unit, task, scenarios, seed)
+
+
+def _session_row(result: SessionResult) -> dict[str, Any]:
+    """A session's figures as a row of metrics/evaluations.csv or test.csv."""
+    median_final = result.final_width_stats()["median"]
+    return {
+        "successes": result.successes,
+        "scenarios": result.scenarios,
+        "median_acquisitions": result.median_acquisitions,
+        "p90_acquisitions": result.p90_acquisitions,
+        "median_final_px": round(median_final, 4) if median_final is not None else "",
+        "seconds": round(result.seconds, 2),
+    }
 
 
 @dataclass(frozen=True)
@@ -97,6 +122,19 @@ class EvaluationSummary:
     """The figures of an evaluation session that a checkpoint keeps: what a finished run,
     resumed, reports without running the session again."""
 
+    successes: int
+    scenarios: int
+    median_acquisitions: float
+    p90_acquisitions: float
+
+
+@dataclass(frozen=True)
+class TestSummary:
+    """The test session of a finished run: best.pt (saved at `checkpoint_env_steps`) on
+    `scenarios` scenarios of `seed` (TEST_SEED), a session no choice saw."""
+
+    checkpoint_env_steps: int
+    seed: int
     successes: int
     scenarios: int
     median_acquisitions: float
@@ -138,14 +176,9 @@ class Trainer:
         self.env_steps = self.episodes = 0
         self.best_successes = -1
         self.starts = 0  # how many times this run was started (resumes change env seeds)
-        self.last_evaluation: EvaluationSummary | None = None
-        metrics = self.run_dir / "metrics"
-        self.update_log = CsvLog(
-            metrics / "updates.csv", ["env_steps", "updates", *self.agent.metric_names]
-        )
-        self.episode_log = CsvLog(metrics / "episodes.csv", list(EPISODE_COLUMNS))
-        self.evaluation_log = CsvLog(metrics / "evaluations.csv", list(EVALUATION_COLUMNS))
-        self.tensorboard = TensorBoardLog(self.run_dir / "tensorboard")
+        self.last_evaluation: EvaluationSummary | None = None  # the last validation session
+        self.test_result: TestSummary | None = None  # best.pt's test session, at the end
+        self.logs = TrainingLogs(self.run_dir, self.agent.metric_names)
 
     # --- run directory ------------------------------------------------------------------
 
@@ -200,6 +233,7 @@ class Trainer:
             "best_successes": self.best_successes,
             "starts": self.starts,
             "evaluation": asdict(self.last_evaluation) if self.last_evaluation else {},
+            "test": asdict(self.test_result) if self.test_result else {},
             **rng_state(self.rng),
             "curriculum": self.curriculum.state_dict() if self.curriculum else {},
             "config": dump_experiment(self.config),
@@ -215,6 +249,8 @@ class Trainer:
         self.best_successes, self.starts = int(state["best_successes"]), int(state["starts"])
         if state.get("evaluation"):  # (older checkpoints have none)
             self.last_evaluation = EvaluationSummary(**state["evaluation"])
+        if state.get("test"):
+            self.test_result = TestSummary(**state["test"])
         restore_rng(self.rng, state)
         if self.curriculum and state["curriculum"]:
             self.curriculum.load_state_dict(state["curriculum"])
@@ -225,9 +261,7 @@ class Trainer:
         checkpoint (or all, where it has none yet) go, and so do writes a kill cut short."""
         for folder in ("checkpoints", "metrics"):
             remove_partial_writes(self.run_dir / folder)
-        for log in (self.update_log, self.episode_log, self.evaluation_log):
-            log.truncate_after(self.env_steps)
-        self.tensorboard.resume_after(self.env_steps)
+        self.logs.cut_back(self.env_steps)
 
     def unstart(self) -> None:
         """Undo a start that failed before the run's first checkpoint (an adaptation whose
@@ -236,52 +270,46 @@ class Trainer:
         kept (appended to by the next start)."""
         if (self.run_dir / "checkpoints" / "last.pt").exists():
             raise ValueError(f"{self.run_dir} has a checkpoint: resume it instead")
-        self.tensorboard.close()
+        self.logs.close()
         for name in ("metrics", "tensorboard", "checkpoints"):
             shutil.rmtree(self.run_dir / name, ignore_errors=True)
         (self.run_dir / CONFIG_FILE).unlink(missing_ok=True)
         (self.run_dir / KNOBS_FILE).unlink(missing_ok=True)
 
     def checkpoint(self) -> None:
-        self.tensorboard.flush()  # the events up to this checkpoint are on disk
+        self.logs.flush()  # the events up to this checkpoint are on disk
         save_checkpoint(self.run_dir / "checkpoints" / "last.pt", self._state())
 
     # --- the loop -----------------------------------------------------------------------
 
-    def evaluate(self) -> SessionResult:
-        cfg = self.config
+    def evaluate(
+        self, agent: Agent | None = None, scenarios: int | None = None, seed: int = VALIDATION_SEED
+    ) -> SessionResult:
+        """A session of `agent` (default: the one training) on eval_apparatus: by default a
+        validation session of budget.eval_scenarios."""
+        cfg, agent = self.config, agent or self.agent
         with torch.random.fork_rng(devices=[]):  # evaluating must not move training's stream
             return evaluate_policy(
-                lambda observation: self.agent.act(observation, deterministic=True),
+                lambda observation: agent.act(observation, deterministic=True),
                 cfg.eval_apparatus,
                 cfg.eval_apparatus_args,
                 self.task,
                 cfg.history,
-                cfg.budget.eval_scenarios,
+                scenarios or cfg.budget.eval_scenarios,
+                seed=seed,
                 name=cfg.name,
                 shield=dataclasses.replace(self.shield, unit="evaluation"),
             )
 
     def evaluate_and_keep_best(self) -> SessionResult:
+        """A validation session: on record, and its learner kept as best.pt where it aligned
+        more than any before."""
         result = self.evaluate()
-        median_final = result.final_width_stats()["median"]
-        summary = {
-            "successes": result.successes,
-            "scenarios": result.scenarios,
-            "median_acquisitions": result.median_acquisitions,
-            "p90_acquisitions": result.p90_acquisitions,
-            "median_final_px": round(median_final, 4) if median_final is not None else "",
-        }
+        summary = _session_row(result)
         self.last_evaluation = EvaluationSummary(
             result.successes, result.scenarios, result.median_acquisitions, result.p90_acquisitions
         )
-        self.evaluation_log.write(
-            [{"env_steps": self.env_steps, **summary, "seconds": round(result.seconds, 2)}]
-        )
-        self.tensorboard.add_scalar("evaluation/successes", result.successes, self.env_steps)
-        self.tensorboard.add_scalar(
-            "evaluation/median_acquisitions", result.median_acquisitions, self.env_steps
-        )
+        self.logs.write_validation({"env_steps": self.env_steps, **summary})
         if result.successes > self.best_successes:
             self.best_successes = result.successes
             save_checkpoint(
@@ -290,11 +318,46 @@ class Trainer:
                     "format": CHECKPOINT_FORMAT + "-policy",
                     "agent": self.agent.state_dict(),
                     "env_steps": self.env_steps,
-                    "evaluation": summary,
+                    "evaluation": {k: v for k, v in summary.items() if k != "seconds"},
                     "config": dump_experiment(self.config),
                 },
             )
         return result
+
+    def test_best(self) -> TestSummary | None:
+        """The test session of best.pt at TEST_SEED (budget.test_scenarios alignments; None
+        where that is 0): on record in metrics/test.csv and kept for the last checkpoint."""
+        budget = self.config.budget
+        scenarios = (
+            budget.eval_scenarios if budget.test_scenarios is None else budget.test_scenarios
+        )
+        best = self.run_dir / "checkpoints" / "best.pt"
+        if not scenarios or not best.exists():
+            return None
+        with torch.random.fork_rng(devices=[]):  # building the network draws on torch's stream
+            agent, _ = load_policy(best, self.config.device)
+        result = self.evaluate(agent, scenarios, TEST_SEED)
+        chosen_at = int(load_checkpoint(best)["env_steps"])
+        low, high = wilson(result.successes, result.scenarios)
+        self.logs.write_test(
+            {
+                "env_steps": self.env_steps,
+                "checkpoint_env_steps": chosen_at,
+                "seed": TEST_SEED,
+                "success_rate_low": round(low, 4),
+                "success_rate_high": round(high, 4),
+                **_session_row(result),
+            }
+        )
+        self.test_result = TestSummary(
+            chosen_at,
+            TEST_SEED,
+            result.successes,
+            result.scenarios,
+            result.median_acquisitions,
+            result.p90_acquisitions,
+        )
+        return self.test_result
 
     def _hindsight_secrets(self) -> HindsightSecrets | None:
         """HindsightSecrets where an adaptation's SAC critics read a secret that some of its
@@ -331,14 +394,16 @@ class Trainer:
     def run(
         self, progress: bool = True, log: Callable[[str], None] | None = None
     ) -> SessionResult | EvaluationSummary:
-        """Train to the budget; `log` receives a line per evaluation and per checkpoint. A
-        finished run writes nothing and gives back its final evaluation."""
+        """Train to the budget, then test best.pt (`test_result`); `log` receives a line per
+        session and per checkpoint. Gives back the last validation session; a finished run
+        writes nothing and gives back the one its checkpoint keeps."""
         from tqdm import tqdm
 
         cfg, budget = self.config, self.config.budget
         if self.finished:
             # (An older checkpoint keeps no evaluation: run the deterministic session again.)
             return self.last_evaluation or self.evaluate()
+        self.logs.write_hparams(cfg)
         self.starts += 1
         observation, infos = self.env.reset(seed=cfg.seed * 1000 + self.starts)
         secret = infos["secret"]
@@ -386,7 +451,7 @@ class Trainer:
                 if self.curriculum:
                     self.env.set_complexity(self.curriculum.record(success))
             returns[done] = 0.0
-            self.episode_log.write(episode_rows)
+            self.logs.write_episodes(episode_rows, curriculum=self.curriculum is not None)
             observation, secret = next_observation, infos["secret"]
             self.env_steps += self.env.num_envs
             bar.update(self.env.num_envs)
@@ -403,35 +468,53 @@ class Trainer:
                             **{k: round(v, 6) for k, v in metrics.items()},
                         }
                     )
-            if update_rows:
-                self.update_log.write(update_rows)
-                for row in update_rows:
-                    for key in self.agent.metric_names:
-                        self.tensorboard.add_scalar(f"learner/{key}", row[key], row["env_steps"])
-                update_rows = []
+            self.logs.write_updates(update_rows)
+            update_rows = []
             if recent:
                 bar.set_postfix(
                     success=f"{np.mean(recent[-200:]):.2f}",
                     level=f"{self.env.episodes.complexity:.2f}",
                 )
-            # The final evaluation comes before the final checkpoint: a run resumed after
-            # that checkpoint is finished, with nothing to write again.
+            # The final sessions come before the final checkpoint: a run resumed after that
+            # checkpoint is finished, with nothing to write again.
             if self.env_steps >= next_eval or self.env_steps >= budget.env_steps:
+                best = self.best_successes
                 result = self.evaluate_and_keep_best()
                 if log:
-                    log(
-                        f"{self.env_steps} steps: {result.successes}/{result.scenarios} held-out "
-                        f"alignments, median {result.median_acquisitions:g} acquisitions"
-                    )
+                    log(validation_line(self.env_steps, result, result.successes > best))
                 next_eval += budget.eval_every
+            if self.env_steps >= budget.env_steps:
+                tested = self.test_best()
+                if log and tested:
+                    log(test_line(tested))
             if self.env_steps >= next_checkpoint or self.env_steps >= budget.env_steps:
                 self.checkpoint()
                 if log:
                     log(f"checkpoint at {self.env_steps} env steps")
                 next_checkpoint += budget.checkpoint_every
         bar.close()
-        self.tensorboard.flush()
+        self.logs.flush()
         return result
+
+
+def validation_line(env_steps: int, result: SessionResult, best: bool) -> str:
+    """The line a validation session prints as a run trains."""
+    aligned = success_text(result.successes, result.scenarios)
+    return (
+        f"{env_steps} env steps: validation session {aligned} aligned, median "
+        f"{result.median_acquisitions:g} acquisitions"
+        + ("; the best so far: checkpoints/best.pt" if best else "")
+    )
+
+
+def test_line(test: TestSummary) -> str:
+    """The line that reports best.pt on the test session."""
+    return (
+        f"test session (seed {test.seed}, chose nothing): best.pt of "
+        f"{test.checkpoint_env_steps} env steps aligned "
+        f"{success_text(test.successes, test.scenarios)}, median "
+        f"{test.median_acquisitions:g} acquisitions"
+    )
 
 
 def start_adaptation(

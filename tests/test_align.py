@@ -3,6 +3,7 @@ file, end to end through `alignrl.cli.main` (the shield's rules: tests/test_shie
 
 from __future__ import annotations
 
+import itertools
 import json
 from pathlib import Path
 from typing import Any
@@ -466,3 +467,65 @@ def test_a_sequence_needs_a_task_that_covers_its_policies() -> None:
         align(sequence, column, limits, MemoryAudit())
     with pytest.raises(ValueError, match="which task 'stigmation' does not align"):
         align(sequence, column, limits, MemoryAudit(), task=get_task("stigmation"))
+
+
+# --- --gif: the alignment as an animated GIF ----------------------------------------------
+
+
+def test_align_writes_a_gif_of_each_acquisition_and_the_final_image(
+    capsys: pytest.CaptureFixture[str], member_file: Path, tmp_path: Path
+) -> None:
+    from PIL import Image, ImageSequence
+
+    out = tmp_path / "align.gif"
+    argv = ["align", "--policy", str(member_file), "--apparatus", "synthetic", "--seed", "2"]
+    code = main([*argv, "--gif", str(out), "--json"])
+    result = json.loads(capsys.readouterr().out)
+    assert set(result) == JSON_KEYS | {"gif"} and code == result["exit_code"] in (0, 1)
+    assert result["gif"] == str(out)
+    with Image.open(out) as gif:
+        frames = [np.asarray(frame.convert("RGB")) for frame in ImageSequence.Iterator(gif)]
+    # One frame per acquisition of the alignment, then the final (judging) image.
+    assert len(frames) == result["acquisitions"] + 1
+    assert all(np.any(a != b) for a, b in itertools.pairwise(frames))
+
+
+def test_filming_sends_the_driver_nothing_more(
+    capsys: pytest.CaptureFixture[str], scripted_policy, tmp_path: Path
+) -> None:
+    code, plain = align_cli(capsys, "--policy", "seeker", "--spec-px", "3.2")
+    calls = RecordingDriver.last.calls  # type: ignore[union-attr]
+    gif = tmp_path / "seeker.gif"
+    filmed_code, filmed = align_cli(
+        capsys, "--policy", "seeker", "--spec-px", "3.2", "--gif", str(gif)
+    )
+    assert RecordingDriver.last.calls == calls  # type: ignore[union-attr]
+    assert (filmed_code, filmed.pop("gif")) == (code, str(gif)) and filmed == plain
+    text = main(
+        [
+            "align",
+            "--policy",
+            "seeker",
+            "--apparatus",
+            DRIVER,
+            "--spec-px",
+            "3.2",
+            "--gif",
+            str(gif),
+        ]
+    )
+    assert text == code and f"animation: {gif} (" in capsys.readouterr().out
+
+
+def test_a_gif_path_in_a_missing_folder_is_refused_before_anything_happens(
+    capsys: pytest.CaptureFixture[str], scripted_policy, tmp_path: Path
+) -> None:
+    RecordingDriver.last = None
+    missing = tmp_path / "no-such-folder" / "a.gif"
+    code = main(["align", "--policy", "seeker", "--apparatus", DRIVER, "--gif", str(missing)])
+    captured = capsys.readouterr()
+    assert code == 2 and captured.out == "" and RecordingDriver.last is None  # never opened
+    assert captured.err == (
+        f"alignrl: error: --gif {tmp_path}/no-such-folder/a.gif: the folder "
+        f"{tmp_path}/no-such-folder does not exist; create it first, or write the GIF elsewhere\n"
+    )

@@ -171,8 +171,19 @@ def _export_champion(tmp_path: Path, export_format: str, capsys: pytest.CaptureF
     card = exported.card
     assert card["export_format"] == export_format and card["source"]["kind"] == "champion"
     assert card["command"] == f"alignrl export {FOCUS} --format {export_format} --out {out}"
-    # The record travels with the policy: sessions, lineage, training and knobs of the champion.
-    assert card["evaluations"] == original["evaluations"]
+    # The record travels with the policy: sessions, lineage, training and knobs of the champion;
+    # the sessions labelled for what they are (the league's validation sessions, each count
+    # with its interval, the one that kept the champion named), none of their figures changed.
+    evaluations, recorded = card["evaluations"], original["evaluations"]
+    assert {key: evaluations[key] for key in recorded if key != "rows"} == {
+        key: value for key, value in recorded.items() if key != "rows"
+    }
+    assert [
+        {key: row[key] for key in old}
+        for row, old in zip(evaluations["rows"], recorded["rows"], strict=True)
+    ] == recorded["rows"]
+    assert evaluations["session"] == "validation"
+    assert evaluations["chosen_on"]["iteration"] == original["training"]["league_iteration"]
     assert card["lineage"] == original["lineage"]
     assert card["knobs"] == original["knobs"] and card["task"] == original["task"]
     assert card["training"]["updates"] == original["training"]["updates"]

@@ -62,6 +62,14 @@ class RecordingBoard:
     def add_scalar(self, tag: str, value: float, step: int) -> None:
         self.pending.append((tag, int(step), float(value)))
 
+    @property
+    def file_writer(self) -> RecordingBoard:  # where a run's hyperparameters are written
+        return self
+
+    def add_summary(self, summary: Any, global_step: int | None = None) -> None:
+        """A run's hyperparameters: not kept (written once per run, which tests/test_training.py
+        checks on real event files)."""
+
     def flush(self) -> None:
         self.events.durable += self.pending
         self.pending = []

@@ -7,6 +7,7 @@ from __future__ import annotations
 import csv
 import datetime
 import json
+import shutil
 import sys
 from pathlib import Path
 
@@ -374,6 +375,35 @@ def test_export_of_a_league_champion_end_to_end(
         "policy.pt",
     ]
     assert [path.name for path in tmp_path.iterdir()] == ["champion"]  # no leftovers
+
+
+def test_an_export_without_out_lands_beside_its_run_or_under_runs(
+    league_run: Path,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """Without --out nothing is written into the working directory itself: a run's policy
+    goes to RUN/exports/MEMBER-FORMAT, a shipped champion's to runs/exports/NAME-FORMAT."""
+    run = shutil.copytree(league_run, tmp_path / "elsewhere" / "tiny")
+    here = tmp_path / "here"
+    here.mkdir()
+    monkeypatch.chdir(here)
+    assert main(["export", str(run), "--format", "safetensors", "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    beside = run / "exports" / f"{report['member']}-safetensors"
+    assert report["out"] == str(beside) and (beside / "policy.safetensors").is_file()
+    assert json.loads((beside / "card.json").read_text())["command"].endswith(f"--out {beside}")
+    assert list(here.iterdir()) == []
+    assert main(["export", "champion:focus-v1", "--format", "torchscript"]) == 0
+    assert "runs/exports/focus-v1-torchscript/policy.pt" in capsys.readouterr().out
+    assert sorted(path.relative_to(here) for path in here.rglob("*") if path.is_file()) == [
+        Path("runs/exports/focus-v1-torchscript") / name
+        for name in ("card.json", "model_card.md", "policy.pt")
+    ]
+    # The same export again is refused (exit 2), as for a given --out.
+    assert main(["export", "champion:focus-v1", "--format", "torchscript"]) == 2
+    assert "runs/exports/focus-v1-torchscript is not empty" in capsys.readouterr().err
 
 
 def test_export_of_a_league_member_by_id(

@@ -21,6 +21,7 @@ from alignrl.cli import main
 from alignrl.envs.task import get_task
 from alignrl.evaluation.baselines import BASELINES, CLASSICAL
 from alignrl.evaluation.instrument_sets import SetResult, run_set, set_summary, set_table
+from alignrl.intervals import success_text
 
 FOCUS = get_task("focus")
 SET = "validation"
@@ -142,15 +143,18 @@ def test_the_table_has_a_row_per_instrument_and_a_total_row(
     assert len(rows) == len(NAMES) + 1
     assert [row[0] for row in rows[:-1]] == NAMES and rows[-1][0] == "**total**"
     for row, session in zip(rows[:-1], hyperbola.sessions, strict=True):
-        assert row[1] == f"{session.successes}/{SCENARIOS} at {session.median_acquisitions:g}"
+        # Each count with its 95 % Wilson interval.
+        counted = success_text(session.successes, SCENARIOS)
+        assert row[1] == f"{counted} at {session.median_acquisitions:g}"
     for column, result in ((1, hyperbola), (2, golden)):
         counts = [int(row[column].split("/")[0]) for row in rows[:-1]]
-        total, alignments = rows[-1][column].split(" at ")[0].split("/")
+        total, alignments = rows[-1][column].split(" (")[0].split("/")
         assert int(total) == sum(counts) == result.successes
         assert int(alignments) == SCENARIOS * len(NAMES)
+        assert rows[-1][column].startswith(success_text(result.successes, result.alignments))
     assert len({len(line) for line in table}) == 1  # padded: the columns line up
     line = set_summary(hyperbola)
-    assert f"{hyperbola.successes}/{hyperbola.alignments} aligned" in line
+    assert f"{success_text(hyperbola.successes, hyperbola.alignments)} aligned" in line
     assert line.startswith("hyperbola: ") and f"worst {hyperbola.worst}" in line
 
 

@@ -13,6 +13,7 @@ def test_wilson_matches_the_closed_form_and_holds_at_the_ends():
     low, high = wilson(30, 50)
     assert (round(low, 3), round(high, 3)) == (0.462, 0.724)
     assert wilson(0, 100)[0] == 0.0 and 0.0 < wilson(0, 100)[1] < 0.05
+    assert wilson(0, 5)[0] == 0.0 and wilson(5, 5)[1] == 1.0  # exactly, not 3e-17
     assert wilson(100, 100)[1] == 1.0 and 0.95 < wilson(100, 100)[0] < 1.0
     # More alignments, a narrower interval around the same rate.
     assert np.diff(wilson(300, 500)) < np.diff(wilson(30, 50))
@@ -30,6 +31,7 @@ def test_wilson_covers_the_true_rate_about_95_percent_of_the_time():
 
 def test_success_text_and_json_agree():
     assert success_text(30, 50) == "30/50 (46-72 %)"
+    assert success_text(3830, 3840) == "3830/3840 (99.5-99.9 %)"  # whole percent: 100-100
     figure = success_interval(30, 50)
     assert figure["successes"] == 30 and figure["total"] == 50 and figure["rate"] == 0.6
     assert (figure["low"], figure["high"]) == wilson(30, 50)

@@ -62,16 +62,17 @@ def test_a_tiny_league_rates_snapshots_copies_and_keeps_the_best(tmp_path: Path)
     run = tmp_path / "runs" / "tiny"
     rows = read_csv(run / "metrics" / "iterations.csv")
     assert [int(row["iteration"]) for row in rows] == list(range(1, 9))
-    # Every player (members and snapshots) is rated, and the ratings moved; that Elo stays
-    # zero-sum (PBT copies aside) is test_elo_bookkeeping_is_zero_sum_over_a_run.
+    # Every player (members and snapshots) is rated, and the ratings moved; the anchor's did
+    # not (test_every_rated_match_rates_the_pair_once_and_the_anchor_plays_every_one).
     ratings = [
-        league.ratings.rating(p)
+        league.ratings.rating(p).mu
         for t in ("aligner", "misaligner")
         for p in league.pool.candidates(t)
     ]
     assert len(league.pool.snapshots("aligner")) >= 2
     assert all(np.isfinite(ratings))
     assert np.std(ratings) > 0
+    assert tuple(league.ratings.rating("hyperbola")) == (25.0, 0.0)
     lineage = read_csv(run / "metrics" / "lineage.csv")
     assert lineage and all(
         row["member"].startswith(row["parent"].split("-pbt")[0]) for row in lineage
@@ -86,22 +87,36 @@ def test_a_tiny_league_rates_snapshots_copies_and_keeps_the_best(tmp_path: Path)
     assert any(row["snapshot"] for row in board)
 
 
-def test_elo_bookkeeping_is_zero_sum_over_a_run(tmp_path: Path) -> None:
+def test_every_rated_match_rates_the_pair_once_and_the_anchor_plays_every_one(
+    tmp_path: Path,
+) -> None:
     league = tiny_league(
         tmp_path,
         pbt={"enabled": False},
         schedule=quiet_schedule(),
     )
+    updates: list[tuple[str, str, int]] = []
+    update = league.ratings.update
+
+    def counted(a: str, b: str, scores: list[float]) -> object:
+        updates.append((a, b, len(scores)))
+        return update(a, b, scores)
+
+    league.ratings.update = counted  # type: ignore[method-assign]
     league.run(progress=False)
-    players = [p for team in ("aligner", "misaligner") for p in league.pool.candidates(team)]
-    total = sum(league.ratings.rating(p) for p in players)
-    assert total == pytest.approx(1200.0 * len(players))
-    played = sum(
-        league.payoff.matches(a, m)
-        for a in league.pool.candidates("aligner")
-        for m in league.pool.candidates("misaligner")
-    )
+    aligners = league.pool.candidates("aligner")
+    misaligners = league.pool.candidates("misaligner")
+    played = sum(league.payoff.matches(a, m) for a in aligners for m in misaligners)
     assert played == 6 * 8
+    # One rating update per match against the misaligner and one against the anchor, which
+    # aligned the same starts: per aligner, as many anchor matches as rated ones.
+    assert sum(n for _, b, n in updates if b != "hyperbola") == played
+    assert sum(n for _, b, n in updates if b == "hyperbola") == played
+    for aligner in aligners:
+        rated = sum(league.payoff.matches(aligner, m) for m in misaligners)
+        assert league.anchor_payoff.matches(aligner, "hyperbola") == rated
+    assert league.anchor_record["hyperbola"][0] == played and league.unanchored == 0
+    assert tuple(league.ratings.rating("hyperbola")) == (25.0, 0.0)
 
 
 def _league_command(*args: str) -> list[str]:
@@ -245,13 +260,24 @@ def test_a_resumed_league_plays_exactly_as_one_never_stopped(tmp_path: Path) -> 
     (run / "config.yaml").write_text(config)
     League.resume(run).run(progress=False)
     assert iteration_outcomes(run) == iteration_outcomes(tmp_path / "a" / "runs" / "tiny")
+    # The ratings (mu, sigma and history, anchors included) and the anchors' record as well.
+    resumed, never = (
+        League.resume(run, read_only=True),
+        League.resume(tmp_path / "a" / "runs" / "tiny", read_only=True),
+    )
+    assert resumed.ratings.state_dict() == never.ratings.state_dict()
+    assert resumed.anchor_record == never.anchor_record
+    assert resumed.anchor_payoff.state_dict() == never.anchor_payoff.state_dict()
 
 
 def test_pbt_copies_the_strongest_and_perturbs_its_learning_rate(tmp_path: Path) -> None:
-    league = tiny_league(tmp_path, pbt={"min_gap": 10.0, "perturb": [0.5, 2.0]})
-    league.ratings.update("a-sac", "m-sac", 1.0)  # a-sac beats m-sac: a-ppo is now the weakest
-    for _ in range(20):
-        league.ratings.update("a-sac", "m-ppo", 1.0)
+    league = tiny_league(tmp_path, pbt={"min_gap": 5.0, "perturb": [0.5, 2.0]})
+    # a-sac beats m-ppo 20 times, a-ppo and m-sac draw 20 times: as sure of each rating, a-ppo
+    # and m-ppo are now the weakest, by more than min_gap of the ordinal.
+    league.ratings.update("a-sac", "m-ppo", [1.0] * 20)
+    league.ratings.update("a-ppo", "m-sac", [0.5] * 20)
+    ordinal = {player: rating.ordinal for player, rating in league.ratings.ranking()}
+    assert ordinal["a-sac"] - ordinal["a-ppo"] >= 5.0 <= ordinal["m-sac"] - ordinal["m-ppo"]
     changes = league.exploit_and_explore()
     aligner = [c for c in changes if c["parent"] == "a-sac"]
     assert len(aligner) == 1 and aligner[0]["replaced"] == "a-ppo"
@@ -338,3 +364,21 @@ def test_a_league_with_uniform_starts_rates_only_the_misaligners_matches(
         len(read_csv(path)) for path in (run / "metrics" / "members").glob("a-*/episodes.csv")
     )
     assert episodes == sum(int(row["matches"]) for row in rows) == 8 * len(rows)
+
+
+def test_a_members_episodes_are_its_own_matches_not_its_snapshots(tmp_path: Path) -> None:
+    """A snapshot loaded from file carries its live member's id; its matches were logged as
+    that member's episodes (so a member's learning curve held matches it never played).
+    Every episode in a live aligner's episodes.csv comes from an iteration where it, by its
+    own id, was the aligner; the tiny league does pick a snapshot aligner."""
+    league = tiny_league(tmp_path)
+    league.run(progress=False)
+    metrics = league.run_dir / "metrics"
+    iterations = read_csv(metrics / "iterations.csv")
+    matches = league.config.schedule.matches
+    assert any("@" in row["aligner"] for row in iterations)  # a snapshot aligned
+    for member in ("a-sac", "a-ppo"):
+        own = {int(row["iteration"]) for row in iterations if row["aligner"] == member}
+        episodes = read_csv(metrics / "members" / member / "episodes.csv")
+        played = {(int(row["episode"]) - 1) // matches + 1 for row in episodes}
+        assert played <= own, (member, sorted(played - own))

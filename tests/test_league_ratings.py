@@ -1,5 +1,5 @@
-"""League ratings, payoff table, opponent pool and matchmaking, checked against numbers worked out
-by hand and against seeded sampling."""
+"""League ratings (openskill, with fixed-rating anchors), payoff table, opponent pool and
+matchmaking, checked against numbers worked out by hand and against seeded sampling."""
 
 from __future__ import annotations
 
@@ -10,14 +10,15 @@ import numpy as np
 import pytest
 
 from alignrl.league import (
-    EloConfig,
     Matchmaker,
     MatchmakingConfig,
     OpponentPool,
     Pairing,
     PayoffTable,
+    Rating,
+    RatingConfig,
     Ratings,
-    expected_score,
+    anchor_scores,
 )
 from alignrl.league.matchmaking import PFSP_WEIGHTINGS, pfsp_probabilities
 
@@ -27,120 +28,198 @@ def through_json(state: dict) -> dict:
     return json.loads(json.dumps(state))
 
 
-# --- Elo ratings -------------------------------------------------------------------------------
+# --- ratings -----------------------------------------------------------------------------------
+
+SIGMA, BETA = 25 / 3, 25 / 6  # openskill's defaults
 
 
-def test_expected_scores_are_symmetric_and_sum_to_one():
+def test_one_win_between_new_players_moves_them_as_worked_out_by_hand():
+    # Plackett-Luce, two new players, tau 0: c^2 = 2 sigma^2 + 2 beta^2, p = 1/2.
+    # mu +- sigma^2 / c * (1 - p); sigma * sqrt(1 - (sigma / c) * sigma^2 / c^2 * p (1 - p)).
+    ratings = Ratings(RatingConfig(tau=0.0))
+    c = math.sqrt(2 * SIGMA**2 + 2 * BETA**2)
+    step = SIGMA**2 / c * 0.5
+    sigma = SIGMA * math.sqrt(1 - SIGMA / c * SIGMA**2 / c**2 * 0.25)
+    winner, loser = ratings.update("aligner-0", "misaligner-0", [1.0])
+    assert winner == pytest.approx((25 + step, sigma)) and step == pytest.approx(2.6352, abs=1e-4)
+    assert loser == pytest.approx((25 - step, sigma))
+    # A draw between equals moves no mean, and narrows both spreads alike.
+    even = Ratings(RatingConfig(tau=0.0)).update("a", "b", [0.5])
+    assert even == (pytest.approx((25.0, sigma)), pytest.approx((25.0, sigma)))
+
+
+def test_a_loss_is_a_win_seen_from_the_other_side():
+    first = Ratings().update("a", "m", [0.0, 1.0, 0.0])
+    second = Ratings().update("m", "a", [1.0, 0.0, 1.0])
+    assert first[0] == pytest.approx(second[1]) and first[1] == pytest.approx(second[0])
+
+
+def test_sigma_shrinks_with_games_and_wins_raise_mu_by_shrinking_steps():
     ratings = Ratings()
-    ratings.add("strong", 1400.0)
-    assert ratings.expected("a", "b") == pytest.approx(0.5)
-    # 1 / (1 + 10^(-200/400)) worked out by hand
-    assert ratings.expected("strong", "a") == pytest.approx(0.759746926647958)
-    assert ratings.expected("strong", "a") + ratings.expected("a", "strong") == pytest.approx(1.0)
-    assert expected_score(1600.0, 1200.0) == pytest.approx(10 / 11)  # 400 points: 10:1
-
-
-def test_update_is_zero_sum_and_moves_by_k_times_surprise():
-    ratings = Ratings(EloConfig(initial=1200.0, k_factor=16.0))
-    assert ratings.update("aligner-0", "misaligner-0", 1.0) == (1208.0, 1192.0)
-    before = ratings.rating("aligner-0"), ratings.rating("misaligner-0")
-    after = ratings.update("aligner-0", "misaligner-0", 0.3)
-    deltas = [new - old for new, old in zip(after, before, strict=True)]
-    assert sum(deltas) == pytest.approx(0.0, abs=1e-12)
-    expected = 1 / (1 + 10 ** ((1192 - 1208) / 400))
-    assert deltas[0] == pytest.approx(16 * (0.3 - expected))
-
-
-def test_unknown_ids_start_at_the_initial_rating():
-    ratings = Ratings(EloConfig(initial=1000.0))
-    assert "aligner-0" not in ratings
-    assert ratings.rating("aligner-0") == 1000.0
-    ratings.update("aligner-0", "misaligner-0@3", 0.5)
-    assert "aligner-0" in ratings and "misaligner-0@3" in ratings
-    assert ratings.rating("misaligner-0@3") == 1000.0  # an even match between equals: no change
-
-
-def test_upset_gains_more_than_expected_win():
+    trajectory = [ratings.update("winner", "loser", [1.0])[0] for _ in range(20)]
+    mus = np.array([25.0, *(rating.mu for rating in trajectory)])
+    sigmas = np.array([SIGMA, *(rating.sigma for rating in trajectory)])
+    assert np.all(np.diff(sigmas) < 0) and sigmas[-1] > 0
+    assert np.all(np.diff(mus) > 0) and np.all(np.diff(mus, 2) < 0)
+    # Draws narrow the spread too: each is news about the skill.
     ratings = Ratings()
-    ratings.add("strong", 1400.0)
-    ratings.add("weak", 1200.0)
-    strong_gain = ratings.update("strong", "weak", 1.0)[0] - 1400.0
+    drawn = [ratings.update("a", "b", [0.5])[0] for _ in range(20)]
+    assert all(rating.mu == pytest.approx(25.0) for rating in drawn)
+    assert np.all(np.diff([SIGMA, *(rating.sigma for rating in drawn)]) < 0)
+
+
+def test_tau_keeps_a_rating_able_to_move():
+    still, moving = Ratings(RatingConfig(tau=0.0)), Ratings(RatingConfig(tau=1.0))
+    for ratings in (still, moving):
+        ratings.update("a", "b", [0.5] * 200)
+    assert moving.rating("a").sigma > still.rating("a").sigma
+    assert moving.update("a", "b", [1.0])[0].mu - 25 > still.update("a", "b", [1.0])[0].mu - 25
+
+
+def test_an_anchor_never_moves_whoever_wins():
     ratings = Ratings()
-    ratings.add("strong", 1400.0)
-    ratings.add("weak", 1200.0)
-    weak_gain = ratings.update("weak", "strong", 1.0)[0] - 1200.0
-    assert strong_gain == pytest.approx(16 * (1 - 0.759746926647958))
-    assert weak_gain == pytest.approx(16 * 0.759746926647958)
-    assert 0 < strong_gain < weak_gain
+    assert ratings.pin("hyperbola", 25.0) == Rating(25.0, 0.0)
+    before = ratings.rating("aligner-0")
+    aligner, anchor = ratings.update("aligner-0", "hyperbola", [1.0, 0.0, 0.5, 0.0, 0.0])
+    assert anchor == Rating(25.0, 0.0) == ratings.rating("hyperbola")
+    assert aligner.mu < before.mu and aligner.sigma < before.sigma  # lost more than it won
+    anchor, aligner = ratings.update("hyperbola", "aligner-1", [0.0] * 5)  # either side
+    assert anchor == Rating(25.0, 0.0) and aligner.mu > 25.0
+    assert ratings.anchors == ["hyperbola"] and ratings.is_anchor("hyperbola")
+    ratings.pin("golden-section", 20.0)
+    with pytest.raises(ValueError, match="both anchors"):
+        ratings.update("hyperbola", "golden-section", [1.0])
 
 
-def test_repeated_wins_raise_a_rating_monotonically_by_shrinking_steps():
+def _against_the_anchor(aligner_meets_spec: bool, seed: int = 0) -> Rating:
+    """An aligner rated on 200 starts against a hyperbola fit that meets the spec on 90 % of
+    them (and ends at 2.5 px there, at 4 px elsewhere)."""
+    rng = np.random.default_rng(seed)
+    anchor_success = rng.random(200) < 0.9
+    anchor_px = np.where(anchor_success, 2.5, 4.0)
+    mine = np.full(200, aligner_meets_spec)
+    mine_px = np.where(mine, 2.6, 6.0)
     ratings = Ratings()
-    trajectory = [ratings.update("winner", "loser", 1.0)[0] for _ in range(20)]
-    steps = np.diff([1200.0, *trajectory])
-    assert np.all(steps > 0)
-    assert np.all(np.diff(steps) < 0)
+    ratings.pin("hyperbola", 25.0)
+    scores = anchor_scores(mine, mine_px, anchor_success, anchor_px)
+    return ratings.update("aligner", "hyperbola", scores.tolist())[0]
 
 
-@pytest.mark.parametrize("score", [-0.1, 1.5, math.nan])
+def test_always_meeting_the_spec_rates_above_the_hyperbola_anchor_never_below():
+    always, never = _against_the_anchor(True), _against_the_anchor(False)
+    assert always.mu > 25.0 > never.mu
+    # Many matches: both are sure of it, not just ahead by chance.
+    assert always.ordinal > 25.0 - 3 * always.sigma and never.mu + 3 * never.sigma < 25.0
+
+
+def test_anchor_scores_as_worked_out_by_hand():
+    #          aligner: met,  width | anchor: met, width | score
+    cases = [
+        (True, 2.6, False, 3.5, 1.0),  # only the aligner met the spec
+        (False, 3.5, True, 2.6, 0.0),  # only the anchor
+        (True, 2.6, True, 2.2, 0.5),  # both: a draw, however narrow either ended
+        (False, 4.0, False, 5.0, 1.0),  # neither: the aligner 20 % narrower
+        (False, 5.0, False, 4.0, 0.0),
+        (False, 4.1, False, 4.0, 0.5),  # neither, within 5 %: alike
+        (False, np.nan, False, 9.0, 0.0),  # no image is wider than any
+        (False, 9.0, False, np.nan, 1.0),
+        (False, np.nan, False, np.nan, 0.5),
+    ]
+    mine, mine_px, theirs, theirs_px, expected = (
+        np.array(column) for column in zip(*cases, strict=True)
+    )
+    np.testing.assert_array_equal(
+        anchor_scores(mine.astype(bool), mine_px, theirs.astype(bool), theirs_px), expected
+    )
+
+
+@pytest.mark.parametrize("score", [0.3, -0.1, 1.5, math.nan])
 def test_invalid_score_names_the_pair_and_the_value(score):
     ratings = Ratings()
     with pytest.raises(ValueError, match=r"'aligner-0'.*'misaligner-1'.*" + str(score)):
-        ratings.update("aligner-0", "misaligner-1", score)
+        ratings.update("aligner-0", "misaligner-1", [1.0, score])
     assert len(ratings) == 0  # nothing rated by a rejected update
 
 
-def test_add_seeds_a_copy_and_refuses_a_duplicate():
-    ratings = Ratings()
-    ratings.update("aligner-0", "misaligner-0", 1.0)
-    ratings.add("aligner-2", ratings.rating("aligner-0"))  # PBT copy of aligner-0
-    assert ratings.rating("aligner-2") == 1208.0
-    assert ratings.add("aligner-3") == 1200.0
+def test_unknown_ids_start_at_the_initial_rating_and_add_refuses_a_duplicate():
+    ratings = Ratings(RatingConfig(mu=10.0, sigma=2.0))
+    assert "aligner-0" not in ratings and ratings.rating("aligner-0") == Rating(10.0, 2.0)
+    won = ratings.update("aligner-0", "misaligner-0", [1.0])[0]
+    assert ratings.add("aligner-2", won) == won  # a PBT copy of aligner-0
+    assert ratings.add("aligner-3") == Rating(10.0, 2.0)
     with pytest.raises(ValueError, match="already rated"):
         ratings.add("aligner-0")
     with pytest.raises(ValueError, match="itself"):
-        ratings.update("aligner-0", "aligner-0", 1.0)
+        ratings.update("aligner-0", "aligner-0", [1.0])
+    with pytest.raises(ValueError, match="sigma must be a positive number"):
+        RatingConfig(sigma=0.0)
 
 
-def test_ranking_is_best_first_with_ties_by_id():
+def test_ranking_is_by_ordinal_best_first_with_ties_by_id():
     ratings = Ratings()
-    ratings.add("b", 1300.0)
-    ratings.add("a", 1300.0)
-    ratings.add("c", 1100.0)
-    ratings.add("d", 1500.0)
-    assert ratings.ranking() == [("d", 1500.0), ("a", 1300.0), ("b", 1300.0), ("c", 1100.0)]
-    assert ratings.ranking(["c", "new", "a"]) == [("a", 1300.0), ("new", 1200.0), ("c", 1100.0)]
+    ratings.add("sure", Rating(30.0, 1.0))  # ordinal 27
+    ratings.add("unsure", Rating(32.0, 3.0))  # higher mean, but ordinal 23
+    ratings.add("b", Rating(26.0, 1.0))
+    ratings.add("a", Rating(26.0, 1.0))
+    assert [player for player, _ in ratings.ranking()] == ["sure", "a", "b", "unsure"]
+    assert ratings.ranking(["unsure", "new"]) == [
+        ("unsure", Rating(32.0, 3.0)),
+        ("new", Rating(25.0, SIGMA)),
+    ]
+    assert Rating(30.0, 1.0).ordinal == 27.0 and Rating(30.0, 1.0).text() == "30.0 ± 1.0"
+
+
+def test_win_probabilities_are_symmetric():
+    ratings = Ratings()
+    ratings.add("strong", Rating(30.0, 1.0))
+    assert ratings.win_probability("a", "b") == pytest.approx(0.5)
+    assert ratings.win_probability("strong", "a") > 0.5
+    assert ratings.win_probability("strong", "a") + ratings.win_probability(
+        "a", "strong"
+    ) == pytest.approx(1.0)
 
 
 def test_history_records_every_rated_player_per_iteration():
     ratings = Ratings()
-    ratings.update("a", "m", 1.0)
+    ratings.update("a", "m", [1.0])
     ratings.record(0)
-    ratings.update("a", "m", 1.0)
+    ratings.update("a", "m", [1.0])
     ratings.record(1)
     assert [row[:2] for row in ratings.history] == [(0, "a"), (0, "m"), (1, "a"), (1, "m")]
-    assert ratings.history[0][2] == 1208.0
+    assert ratings.history[2][2:] == tuple(ratings.rating("a"))  # (mu, sigma)
+    assert ratings.history[0][2] < ratings.history[2][2]
     with pytest.raises(ValueError, match="increasing order"):
         ratings.record(1)
 
 
 def test_ratings_state_round_trips_through_json():
     rng = np.random.default_rng(3)
-    pairs = [("a0", "m0"), ("a1", "m0"), ("a0", "m0@2")]
+    pairs = [("a0", "m0"), ("a1", "m0"), ("a0", "m0@2"), ("a1", "hyperbola")]
     original = Ratings()
-    for iteration in range(5):
-        original.update(*pairs[iteration % 3], float(rng.random()))
+    original.pin("hyperbola", 25.0)
+    for iteration in range(8):
+        scores = rng.choice([0.0, 0.5, 1.0], 4).tolist()
+        original.update(*pairs[iteration % 4], scores)
         original.record(iteration)
     restored = Ratings()
     restored.load_state_dict(through_json(original.state_dict()))
-    assert restored.history == original.history
+    assert restored.history == original.history and restored.anchors == ["hyperbola"]
     for ratings in (original, restored):
-        ratings.update("a1", "m0@2", 0.25)
-        ratings.record(5)
+        ratings.update("a1", "m0@2", [0.0, 1.0])
+        ratings.update("a0", "hyperbola", [1.0])
+        ratings.record(8)
     assert restored.ranking() == original.ranking()
+    assert restored.rating("hyperbola") == Rating(25.0, 0.0)  # still an anchor
     assert restored.history == original.history
     with pytest.raises(ValueError, match="increasing order"):
-        restored.record(5)
+        restored.record(8)
+
+
+def test_elo_ratings_of_an_older_league_are_refused_with_what_to_do():
+    with pytest.raises(ValueError, match=r"Elo.*start it again"):
+        Ratings().load_state_dict(
+            {"ratings": {"a0": 1208.0}, "anchors": [], "history": [], "last_recorded": None}
+        )
 
 
 # --- payoff table ------------------------------------------------------------------------------

@@ -48,3 +48,50 @@ def test_the_family_env_draws_a_new_column_each_episode() -> None:
         env.reset(seed=seed)
         intervals.add(tuple(env.unwrapped.apparatus.knobs["defocus"]))
     assert len(intervals) == 4
+
+
+# --- render_mode="rgb_array": the frames of `alignrl align --gif` -------------------------
+
+
+@pytest.mark.parametrize("env_id", ["alignrl/Focus-v0", "alignrl/Stigmation-v0"])
+def test_a_rendering_env_passes_the_checker_with_its_render_check(env_id: str) -> None:
+    env = gymnasium.make(env_id, render_mode="rgb_array")
+    assert env.unwrapped.render_mode == "rgb_array"
+    check_env(env.unwrapped)  # render modes and fps declared, frames of the right kind
+
+
+def test_render_gives_an_rgb_frame_of_the_episode_so_far() -> None:
+    env = gymnasium.make("alignrl/Focus-v0", apparatus="synthetic", render_mode="rgb_array")
+    env.reset(seed=2)
+    first = env.render()
+    env.step(np.array([0.4, -1.0], np.float32))
+    second = env.render()
+    assert second.ndim == 3 and second.shape[2] == 3 and second.dtype == np.uint8
+    assert first.shape == second.shape and np.any(first != second)
+    readings = env.unwrapped.readings
+    assert len(readings) == 2 and all(r.image is not None for r in readings)  # images of the SEM
+    assert readings[1].settings["defocus"] != readings[0].settings["defocus"]
+    env.step(np.array([0.0, 1.0], np.float32))  # a stop acquires nothing
+    assert len(env.unwrapped.readings) == 2
+
+
+def test_rendering_changes_nothing_in_the_episode() -> None:
+    plain = AlignmentEnv(apparatus="synthetic", apparatus_args={"analytic": True})
+    rendering = AlignmentEnv(
+        apparatus="synthetic", apparatus_args={"analytic": True}, render_mode="rgb_array"
+    )
+    np.testing.assert_array_equal(plain.reset(seed=4)[0], rendering.reset(seed=4)[0])
+    for change in (0.5, -0.2, 0.1):
+        action = np.array([change, -1.0], np.float32)
+        a, b = plain.step(action), rendering.step(action)
+        rendering.render()
+        np.testing.assert_array_equal(a[0], b[0])
+        assert a[1:3] == b[1:3]
+    assert plain.render() is None  # no render_mode: nothing drawn
+
+
+def test_an_unknown_render_mode_and_a_render_before_reset_are_refused() -> None:
+    with pytest.raises(ValueError, match=r"render_mode 'human'.*rgb_array"):
+        AlignmentEnv(render_mode="human")
+    with pytest.raises(gymnasium.error.ResetNeeded, match="before reset"):
+        AlignmentEnv(render_mode="rgb_array").render()

@@ -28,6 +28,7 @@ LAYERS = {
     "alignrl.metrics": 0,
     "alignrl.overlays": 0,
     "alignrl.intervals": 0,
+    "alignrl.animation": 0,  # frames and GIFs of an alignment: numpy, matplotlib, Pillow
     "alignrl.apparatus": 1,
     "alignrl.envs": 2,
     "alignrl.agents": 3,
@@ -39,6 +40,7 @@ LAYERS = {
     "alignrl.deploy": 5,
     "alignrl.training": 5,
     "alignrl.adaptation": 5,
+    "alignrl.api": 5,  # train, evaluate, align from Python (docs/python.md)
     "alignrl.cli": 6,
     "alignrl.__main__": 6,  # `python -m alignrl`: the command itself
 }

@@ -18,6 +18,7 @@ from alignrl.cli.common import (
     _json_object,
     _seed,
 )
+from alignrl.cli.gifs import add_gif_options, check_gif, write_gif
 
 
 def _count(number: int, noun: str) -> str:
@@ -33,12 +34,21 @@ def _setting_text(setting: dict[str, float] | None) -> str:
 def cmd_align(args: argparse.Namespace) -> int:
     """One alignment through the safety shield; the exit code says how it ended
     (alignrl/deploy/align.py: 0 aligned, 1 not, 2 config, 3 aborted, 4 driver failure)."""
+    from alignrl.apparatus.filming import Film, FilmedApparatus
     from alignrl.apparatus.registry import build_apparatus
     from alignrl.apparatus.shield import JsonLinesAudit, MemoryAudit, resolve_limits
-    from alignrl.deploy.align import EXIT_ABORTED, EXIT_DRIVER, align, operator_signals
+    from alignrl.deploy.align import (
+        EXIT_ABORTED,
+        EXIT_DRIVER,
+        align,
+        alignment_scene,
+        operator_signals,
+    )
     from alignrl.deploy.policy import load_deployable
     from alignrl.envs.task import get_task
 
+    check_gif(args)
+    film = Film() if args.gif is not None else None
     apparatus_args = _json_object(args.apparatus_args, "--apparatus-args")
     site_limits = _json_object(args.limits, "--limits")
     max_step = _json_object(args.max_step, "--max-step")
@@ -77,7 +87,7 @@ def cmd_align(args: argparse.Namespace) -> int:
         try:
             result = align(
                 policies,
-                apparatus,
+                apparatus if film is None else FilmedApparatus(apparatus, film),
                 limits,
                 audit,
                 task=judged,
@@ -108,22 +118,32 @@ def cmd_align(args: argparse.Namespace) -> int:
     ]
     if result.log:
         lines.append(f"  audit log: {result.log}")
-    _emit(result.to_dict(), args.json, lines)
+    payload = result.to_dict()
+    if film is not None:
+        scene = alignment_scene(result, judged or policies[0].task, film.knobs)
+        line = write_gif(film.readings, scene, args.gif, payload)
+        lines += [f"  {line}"] if line else []
+    _emit(payload, args.json, lines)
     return result.exit_code
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    from alignrl.deploy.export import export_command, export_policy
+    from alignrl.deploy.export import default_out, export_command, export_policy
     from alignrl.runs.sources import resolve_source
 
     started = time.perf_counter()
     learner = args.with_learner_state
     source = resolve_source(args.run, args.member)
-    command = export_command(args.run, args.member, args.format, args.out, learner)
+    out = (
+        args.out
+        if args.out is not None
+        else default_out(source, args.run, args.format, args.runs_dir)
+    )
+    command = export_command(args.run, args.member, args.format, out, learner)
     try:
         result = export_policy(
             source,
-            args.out,
+            out,
             args.format,
             force=args.force,
             command=command,
@@ -228,6 +248,7 @@ def add_deploy_parsers(verbs: argparse._SubParsersAction[argparse.ArgumentParser
         help="after Ctrl-C, SIGTERM or the watchdog, write the starting setting back",
     )
     align.add_argument("--seed", type=_seed, default=0, help="seed of a simulated apparatus")
+    add_gif_options(align, session=False)
     align.add_argument("--json", action="store_true", help="machine-readable result")
     align.set_defaults(handler=cmd_align)
 
@@ -249,7 +270,18 @@ def add_deploy_parsers(verbs: argparse._SubParsersAction[argparse.ArgumentParser
         help="policy.onnx (needs: pip install 'alignrl[onnx]'), policy.pt (torch.jit) or "
         "policy.safetensors (the network's weights; no extra dependencies)",
     )
-    export.add_argument("--out", required=True, metavar="DIR", help="folder to write")
+    export.add_argument(
+        "--out",
+        metavar="DIR",
+        help="folder to write (default: RUN/exports/MEMBER-FORMAT beside a run; "
+        "RUNS/exports/NAME-FORMAT for a policy outside any run)",
+    )
+    export.add_argument(
+        "--runs-dir",
+        default="runs",
+        metavar="RUNS",
+        help="where the export of a policy outside any run goes without --out",
+    )
     export.add_argument(
         "--with-learner-state",
         action="store_true",

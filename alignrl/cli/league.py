@@ -1,6 +1,8 @@
 """`alignrl league run|resume|status` and `alignrl leaderboard`: the two-team league (aligners
-against misaligners) run to its schedule, and its members ranked by rating and held-out
-evaluation, with the league report."""
+against misaligners) run to its schedule, and its members ranked by rating (openskill mu ±
+sigma, beside the anchors) with their best validation session, the champion reported on a
+test session that chose nothing, and the league report. Every success figure says which
+session it comes from and carries its 95 % Wilson interval."""
 
 from __future__ import annotations
 
@@ -24,22 +26,38 @@ from alignrl.cli.common import (
 
 
 def _leaderboard_lines(rows: list[dict[str, Any]]) -> list[str]:
+    """The table: ratings as mu ± sigma, and each member's best validation session with its
+    95 % interval."""
+    from alignrl.intervals import success_text
+
     header = (
-        f"{'member':28} {'team':10} {'architecture':36} {'learner':7} {'rating':>7} "
-        f"{'eval':>7} {'median acq':>10}  parent"
+        f"{'member':28} {'team':10} {'architecture':36} {'learner':7}  {'rating μ ± σ':>12} "
+        f"{'validation (95 %)':>18}  {'median acq':>10}  parent"
     )
     lines = [header, "-" * len(header)]
     for row in rows:
-        evaluation = (
-            f"{row['successes']}/{row['scenarios']}" if row["successes"] is not None else "-"
-        )
+        known = row["successes"] is not None
+        validation = success_text(row["successes"], row["scenarios"]) if known else "-"
         median = row["median_acquisitions"]
-        lines.append(
+        rating = f"{row['rating']:.1f} ± {row['sigma']:.1f}"
+        line = (
             f"{row['member']:28} {row['team']:10} {row['architecture'][:36]:36} "
-            f"{row['learner']:7} {row['rating']:7.1f} {evaluation:>7} "
+            f"{row['learner']:7}  {rating:>12} {validation:>18}  "
             f"{'-' if median is None else f'{median:g}':>10}  {row['parent'] or ''}"
         )
+        lines.append(line.rstrip())
     return lines
+
+
+def _standing(league: Any) -> tuple[list[dict[str, Any]], dict[str, Any], list[str]]:
+    """The leaderboard rows, the anchors' record and the lines that show both."""
+    from alignrl.league.standings import anchor_lines, anchor_records, leaderboard
+
+    rows = leaderboard(league)
+    anchors = anchor_records(
+        league.ratings, league.anchor_payoff, league.anchor_record, league.unanchored
+    )
+    return rows, anchors, [*_leaderboard_lines(rows), *anchor_lines(anchors)]
 
 
 def _emit_with_league_report(
@@ -67,7 +85,8 @@ def _run_league(league: Any, args: argparse.Namespace) -> int:
 
     from alignrl.agents.sac import NonFiniteError
     from alignrl.deploy.align import operator_signals
-    from alignrl.league.loop import WorkerFailedError, leaderboard
+    from alignrl.league.loop import WorkerFailedError
+    from alignrl.league.sessions import lines_of_test
 
     log = None if args.quiet else (lambda line: tqdm.write(line, file=sys.stderr))
     started = time.perf_counter()
@@ -89,24 +108,19 @@ def _run_league(league: Any, args: argparse.Namespace) -> int:
         raise _checkpoint_kept(error, league.run_dir, "alignrl league resume") from None
     finally:
         league.close()  # a Ray backend's workers
-    rows = leaderboard(league)
-    champion = league.champion()
+    rows, anchors, lines = _standing(league)
+    test = league.test()  # the champion on the test session, which chose nothing
     payload = {
         "run": str(league.run_dir),
         "iterations": league.iteration,
         "env_steps": league.env_steps,
         "seconds": round(time.perf_counter() - started, 1),
         "leaderboard": rows,
-        "champion": champion,
+        "anchors": anchors,
+        "test": test,
     }
-    lines = _leaderboard_lines(rows)
-    if champion:
-        lines.append("")
-        lines += [
-            f"{label:9}: {row['member']} aligned {row['successes']}/{row['scenarios']} "
-            f"held-out, median {row['median_acquisitions']:g} acquisitions"
-            for label, row in champion.items()
-        ]
+    if test:
+        lines += ["", *lines_of_test(test)]
     _emit_with_league_report(payload, args.json, lines, league.run_dir, rows)
     return 0
 
@@ -133,9 +147,12 @@ def cmd_league_resume(args: argparse.Namespace) -> int:
 
 
 def cmd_league_status(args: argparse.Namespace) -> int:
+    from alignrl.intervals import success_text
     from alignrl.league.loop import League
+    from alignrl.league.sessions import interval, lines_of_test
 
     league = League.resume(args.run, read_only=True)
+    sessions = league.config.sessions
     schedule = league.config.schedule
     payload = {
         "run": args.run,
@@ -148,30 +165,56 @@ def cmd_league_status(args: argparse.Namespace) -> int:
             team: [snapshot.id for snapshot in league.pool.snapshots(team)]
             for team in ("aligner", "misaligner")
         },
-        "best": list(league.best.values()),
+        "best": [
+            {
+                **row,
+                "session": "validation",
+                "seed": sessions.validation_seed,
+                "interval": interval(row["successes"], row["scenarios"]),
+            }
+            for row in league.best.values()
+        ],
+        "test": _read_test(league.run_dir),
     }
     lines = [
         f"{args.run}: iteration {league.iteration} of {schedule.iterations}, "
         f"{league.env_steps} env steps, complexity {payload['complexity']:g}",
         *(f"  {team}s: {', '.join(ids)}" for team, ids in payload["members"].items()),
         *(
-            f"  best: {row['member']} {row['successes']}/{row['scenarios']} at iteration "
-            f"{row['iteration']}"
+            f"  best (validation, seed {row['seed']}): {row['member']} "
+            f"{success_text(row['successes'], row['scenarios'])} at iteration {row['iteration']}"
             for row in payload["best"]
         ),
     ]
+    if payload["test"]:
+        lines += [f"  {line}" for line in lines_of_test(payload["test"])]
     _emit(payload, args.json, lines)
     return 0
 
 
 def cmd_leaderboard(args: argparse.Namespace) -> int:
-    from alignrl.league.loop import League, leaderboard
+    from alignrl.league.loop import League
+    from alignrl.league.sessions import lines_of_test
 
     league = League.resume(args.run, read_only=True)
-    rows = leaderboard(league)
-    payload = {"run": args.run, "leaderboard": rows}
-    _emit_with_league_report(payload, args.json, _leaderboard_lines(rows), league.run_dir, rows)
+    rows, anchors, lines = _standing(league)
+    test = _read_test(league.run_dir)
+    payload = {"run": args.run, "leaderboard": rows, "anchors": anchors, "test": test}
+    if test:
+        lines += ["", *lines_of_test(test)]
+    _emit_with_league_report(payload, args.json, lines, league.run_dir, rows)
     return 0
+
+
+def _read_test(run_dir: Path) -> dict[str, Any] | None:
+    """The run's test session (test.json), None before the league finished; a damaged file
+    is a CommandError naming it."""
+    from alignrl.league.sessions import read_test
+
+    try:
+        return read_test(run_dir)
+    except ValueError as error:
+        raise CommandError(str(error)) from None
 
 
 def add_league_parsers(verbs: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:

@@ -5,7 +5,14 @@ of a task's classical controllers.
 Where: one apparatus (`--apparatus SPEC`), or every instrument of an instrument set
 (`--set NAME`, alignrl/evaluation/instrument_sets.py: one session per instrument, the same
 seed on each, one table row each and the total; `--analytic` for analytic readings instead of
-images). The two are exclusive."""
+images). The two are exclusive.
+
+How many: one session at `--seed S` (default 0), or one per seed of `--seeds S1 S2 ...`
+(each the session `--seed S` runs), printed per seed and then aggregated across the seeds:
+the interquartile mean of the per-seed success rates with its bootstrap interval, the pooled
+successes with their Wilson interval, the median acquisitions (alignrl.evaluation.report).
+Every success count carries its 95 % Wilson interval, and every `--json` says that these are
+test sessions: they choose nothing."""
 
 from __future__ import annotations
 
@@ -18,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from alignrl.apparatus.filming import Film, FilmedApparatus
 from alignrl.apparatus.registry import make_apparatus
 from alignrl.cli.common import (
     EXIT_INTERRUPTED,
@@ -26,8 +34,12 @@ from alignrl.cli.common import (
     _add_session_options,
     _emit,
     _json_object,
+    _seed,
     _shield_options,
 )
+from alignrl.cli.gifs import add_gif_options, check_gif, session_film, write_session_gif
+
+SESSION = "test"  # what evaluate and baselines sessions are: they choose nothing
 
 
 def _check_counts(args: argparse.Namespace) -> None:
@@ -36,6 +48,36 @@ def _check_counts(args: argparse.Namespace) -> None:
         raise CommandError("--scenarios must be at least 1")
     if args.budget is not None and args.budget < 1:
         raise CommandError("--budget must be at least 1 acquisition")
+
+
+def _session_seeds(args: argparse.Namespace) -> tuple[int, ...]:
+    """The seeds of the sessions: those of --seeds, or --seed (default 0), never both; a seed
+    given twice is refused. `args.seed` is resolved to the first session's seed, for what
+    needs one. Checked before any policy loads."""
+    if args.seeds is None:
+        args.seed = 0 if args.seed is None else args.seed
+        return (args.seed,)
+    if args.seed is not None:
+        raise CommandError(
+            "--seed and --seeds are exclusive: give --seed S for one session, or --seeds S1 "
+            "S2 ... for one session per seed and their aggregate"
+        )
+    twice = sorted({seed for seed in args.seeds if args.seeds.count(seed) > 1})
+    if twice:
+        raise CommandError(f"--seeds gives seed {twice[0]} twice: each seed is one session")
+    args.seed = args.seeds[0]
+    return tuple(args.seeds)
+
+
+def _seeded(path: Path, seed: int | str, seeds: bool) -> Path:
+    """A plot path, with `-seedS` before its suffix where the command ran --seeds (`seed`
+    "S": the pattern, as the command prints it)."""
+    return path.with_name(f"{path.stem}-seed{seed}{path.suffix}") if seeds else path
+
+
+def _plot_name(result: Any, several: bool) -> str:
+    """A --plot-dir file's name: the controller, and `-seedS` where the command ran --seeds."""
+    return result.controller + (f"-seed{result.seed}" if several else "")
 
 
 def _check_where(args: argparse.Namespace) -> None:
@@ -75,10 +117,20 @@ def _progress(args: argparse.Namespace, total: int) -> Any:
     )
 
 
+def _described(name: str, seed: int, seeds: Sequence[int]) -> str:
+    return name if len(seeds) == 1 else f"{name}, seed {seed}"
+
+
 def _run_evaluations(
-    args: argparse.Namespace, controllers: Sequence[Any], task: Any
-) -> tuple[list[Any], float]:
-    """Run one session per controller on the same scenarios of `task`, with a progress bar."""
+    args: argparse.Namespace,
+    controllers: Sequence[Any],
+    task: Any,
+    seeds: Sequence[int],
+    film: Film | None = None,
+) -> tuple[list[list[Any]], list[float]]:
+    """Run one session per seed and controller, the controllers of a seed on the same
+    scenarios of `task`, with one progress bar. Per seed: the results (one per controller)
+    and the seconds they took. `film`: keep its scenario's acquisitions as they happen."""
     from alignrl.evaluation.session import run_session
 
     apparatus = make_apparatus(
@@ -86,64 +138,73 @@ def _run_evaluations(
         _json_object(args.apparatus_args, "--apparatus-args"),
         shield=_shield_options(args),
     )
-    bar = _progress(args, args.scenarios * len(controllers))
-    results = []
-    started = time.perf_counter()
+    if film is not None:  # --gif (alignrl/cli/gifs.py)
+        apparatus = FilmedApparatus(apparatus, film)
+    bar = _progress(args, args.scenarios * len(controllers) * len(seeds))
+    per_seed, seconds = [], []
     try:
-        for controller in controllers:
-            bar.set_description(controller.name)
-            results.append(
-                run_session(
-                    controller,
-                    apparatus,
-                    task,
-                    scenarios=args.scenarios,
-                    seed=args.seed,
-                    spec_px=args.spec_px,
-                    budget=args.budget,
-                    on_scenario=lambda _record: bar.update(1),
+        for seed in seeds:
+            started, results = time.perf_counter(), []
+            for controller in controllers:
+                bar.set_description(_described(controller.name, seed, seeds))
+                results.append(
+                    run_session(
+                        controller,
+                        apparatus,
+                        task,
+                        scenarios=args.scenarios,
+                        seed=seed,
+                        spec_px=args.spec_px,
+                        budget=args.budget,
+                        on_scenario=lambda _record: bar.update(1),
+                    )
                 )
-            )
+            per_seed.append(results)
+            seconds.append(time.perf_counter() - started)
     finally:
         bar.close()
-    return results, time.perf_counter() - started
+    return per_seed, seconds
 
 
 def _run_set_evaluations(
-    args: argparse.Namespace, controllers: Sequence[Any], task: Any
-) -> tuple[list[Any], float]:
-    """Run every controller over every instrument of --set, with one progress bar over all
-    alignments of all instruments."""
+    args: argparse.Namespace, controllers: Sequence[Any], task: Any, seeds: Sequence[int]
+) -> tuple[list[list[Any]], list[float]]:
+    """Run every controller over every instrument of --set at every seed, with one progress
+    bar over all alignments. Per seed: the set results (one per controller), the seconds."""
     from alignrl.apparatus.instruments import instrument_names
     from alignrl.evaluation.instrument_sets import run_set
 
     shield = _shield_options(args)
-    total = args.scenarios * len(instrument_names(args.set)) * len(controllers)
+    total = args.scenarios * len(instrument_names(args.set)) * len(controllers) * len(seeds)
     bar = _progress(args, total)
-    results = []
-    started = time.perf_counter()
+    per_seed, seconds = [], []
     try:
-        for controller in controllers:
-            results.append(
-                run_set(
-                    controller,
-                    args.set,
-                    task,
-                    scenarios=args.scenarios,
-                    seed=args.seed,
-                    analytic=args.analytic,
-                    budget=args.budget,
-                    spec_px=args.spec_px,
-                    on_scenario=lambda _record: bar.update(1),
-                    on_instrument=lambda name, c=controller: bar.set_description(
-                        f"{c.name} on {name}"
-                    ),
-                    shield=shield,
+        for seed in seeds:
+            started, results = time.perf_counter(), []
+            for controller in controllers:
+                name = _described(controller.name, seed, seeds)
+                results.append(
+                    run_set(
+                        controller,
+                        args.set,
+                        task,
+                        scenarios=args.scenarios,
+                        seed=seed,
+                        analytic=args.analytic,
+                        budget=args.budget,
+                        spec_px=args.spec_px,
+                        on_scenario=lambda _record: bar.update(1),
+                        on_instrument=lambda instrument, n=name: bar.set_description(
+                            f"{n} on {instrument}"
+                        ),
+                        shield=shield,
+                    )
                 )
-            )
+            per_seed.append(results)
+            seconds.append(time.perf_counter() - started)
     finally:
         bar.close()
-    return results, time.perf_counter() - started
+    return per_seed, seconds
 
 
 def _plot_set(result: Any, path_of: Any, payload: dict[str, Any]) -> None:
@@ -164,65 +225,116 @@ def _interrupted() -> int:
     return EXIT_INTERRUPTED
 
 
-def _evaluate_set(args: argparse.Namespace, controller: Any, task: Any) -> int:
-    from alignrl.evaluation.instrument_sets import set_heading, set_notes, set_summary, set_table
+def _over_seeds(
+    head: dict[str, Any],
+    seeds: Sequence[int],
+    payloads: list,
+    aggregate: Any,
+    seconds: Sequence[float],
+) -> dict[str, Any]:
+    """The `--json` of --seeds: `head` (what ran where), each seed's object as `--seed S
+    --json` prints it (`per_seed`), their `aggregate` and the seconds of them all."""
+    return {
+        **head,
+        "session": SESSION,
+        "seeds": list(seeds),
+        "per_seed": payloads,
+        "aggregate": aggregate,
+        "seconds": round(sum(seconds), 3),
+    }
+
+
+def _by_controller(per_seed: Sequence[Sequence[Any]]) -> list[tuple[str, list[Any]]]:
+    """Per controller (in order), its results at every seed."""
+    return [
+        (result.controller, [results[index] for results in per_seed])
+        for index, result in enumerate(per_seed[0])
+    ]
+
+
+def _evaluate_set(args: argparse.Namespace, controller: Any, task: Any, seeds: tuple) -> int:
+    from alignrl.evaluation import instrument_sets as sets
+    from alignrl.evaluation.report import aggregate_line
 
     try:
-        (result,), _ = _run_set_evaluations(args, [controller], task)
+        per_seed, seconds = _run_set_evaluations(args, [controller], task, seeds)
     except KeyboardInterrupt:
         return _interrupted()
-    payload = result.to_dict()
-    lines = [
-        f"{result.controller} {set_heading(result)}",
-        "",
-        *set_table([result]),
-        "",
-        set_summary(result),
-        *set_notes([result]),
-    ]
+    results, several = [results[0] for results in per_seed], args.seeds is not None
+    payloads = [result.to_dict(SESSION) for result in results]
     if args.plot:
-        plot = Path(args.plot)
-        _plot_set(result, lambda name: plot.with_name(f"{plot.stem}-{name}{plot.suffix}"), payload)
+        for result, payload in zip(results, payloads, strict=True):
+            plot = _seeded(Path(args.plot), result.seed, several)
+            _plot_set(result, lambda n, p=plot: p.with_name(f"{p.stem}-{n}{p.suffix}"), payload)
+    first = results[0]
+    if not several:
+        payload = payloads[0]
+        table, summary = sets.set_table([first]), [sets.set_summary(first)]
+    else:
+        head = {"set": args.set, "controller": first.controller, "task": task.name}
+        head |= {"analytic": args.analytic, "scenarios": args.scenarios}
+        aggregate = sets.set_seeds_aggregate(results)
+        payload = _over_seeds(head, seeds, payloads, aggregate, seconds)
+        columns = [{**data, "controller": f"seed {data['seed']}"} for data in payloads]
+        table = sets.set_table([*columns, sets.pooled_over_seeds(results, "all seeds")])
+        summary = [aggregate_line(results)]
+    heading = sets.set_heading(first, seeds if several else None)
+    lines = [f"{first.controller} {heading}", "", *table, "", *summary]
+    lines += sets.set_notes(results, seeded=several)
+    if args.plot:
+        plot = _seeded(Path(args.plot), "S", several)
         lines.append(f"plots: {plot.with_name(f'{plot.stem}-INSTRUMENT{plot.suffix}')}")
     _emit(payload, args.json, lines)
     return 0
 
 
-def _baselines_set(args: argparse.Namespace, controllers: Sequence[Any], task: Any) -> int:
-    from alignrl.evaluation.instrument_sets import set_heading, set_notes, set_summary, set_table
+def _baselines_set(
+    args: argparse.Namespace, controllers: Sequence[Any], task: Any, seeds: tuple
+) -> int:
+    from alignrl.evaluation import instrument_sets as sets
+    from alignrl.evaluation.report import aggregate_table
 
     try:
-        results, elapsed = _run_set_evaluations(args, controllers, task)
+        per_seed, seconds = _run_set_evaluations(args, controllers, task, seeds)
     except KeyboardInterrupt:
         return _interrupted()
-    payload: dict[str, Any] = {
-        "set": args.set,
-        "task": task.name,
-        "analytic": args.analytic,
-        "instruments": list(results[0].instruments),
-        "scenarios": args.scenarios,
-        "seed": args.seed,
-        "controllers": {result.controller: result.to_dict() for result in results},
-        "seconds": round(elapsed, 3),
-    }
-    what = "autofocus" if task.name == "focus" else f"{task.name} alignment"
-    lines = [
-        f"classical {what} {set_heading(results[0])}",
-        "",
-        *set_table(results),
-        "",
-        *(set_summary(result) for result in results),
-        *set_notes(results),
+    several = args.seeds is not None
+    head = {"set": args.set, "task": task.name, "analytic": args.analytic}
+    head |= {"instruments": list(per_seed[0][0].instruments), "scenarios": args.scenarios}
+    payloads: list[dict[str, Any]] = [
+        {
+            **head,
+            "session": SESSION,
+            "seed": seed,
+            "controllers": {result.controller: result.to_dict(SESSION) for result in results},
+            "seconds": round(elapsed, 3),
+        }
+        for seed, results, elapsed in zip(seeds, per_seed, seconds, strict=True)
     ]
+    for results, payload in zip(per_seed, payloads, strict=True):
+        for result in results if args.plot_dir else ():
+            name = Path(args.plot_dir) / _plot_name(result, several)
+            entry = payload["controllers"][result.controller]
+            _plot_set(result, lambda instrument, n=name: Path(f"{n}-{instrument}.png"), entry)
+    what = "autofocus" if task.name == "focus" else f"{task.name} alignment"
+    every = [result for results in per_seed for result in results]
+    if not several:
+        payload, results = payloads[0], per_seed[0]
+        lines = [f"classical {what} {sets.set_heading(results[0])}", "", *sets.set_table(results)]
+        lines += ["", *(sets.set_summary(result) for result in results)]
+    else:
+        by_controller = _by_controller(per_seed)
+        aggregate = {name: sets.set_seeds_aggregate(runs) for name, runs in by_controller}
+        payload = _over_seeds(head, seeds, payloads, aggregate, seconds)
+        heading = sets.set_heading(every[0], seeds)
+        pooled = [sets.pooled_over_seeds(runs, name) for name, runs in by_controller]
+        lines = [f"classical {what} {heading}; each cell pools the seeds", ""]
+        lines += [*sets.set_table(pooled), "", "totals over the set, per seed and aggregated:"]
+        lines += ["", *aggregate_table(by_controller)]
+    lines += sets.set_notes(every, seeded=several)
     if args.plot_dir:
-        folder = Path(args.plot_dir)
-        for result in results:
-            _plot_set(
-                result,
-                lambda name, c=result.controller: folder / f"{c}-{name}.png",
-                payload["controllers"][result.controller],
-            )
-        lines.append(f"plots: {folder}/CONTROLLER-INSTRUMENT.png")
+        seeded = "-seedS" if several else ""
+        lines.append(f"plots: {args.plot_dir}/CONTROLLER{seeded}-INSTRUMENT.png")
     _emit(payload, args.json, lines)
     return 0
 
@@ -261,15 +373,11 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from alignrl.envs.task import get_task
     from alignrl.evaluation.baselines import CLASSICAL
     from alignrl.evaluation.controllers import SequenceController
-    from alignrl.evaluation.report import (
-        plot_trajectories,
-        session_notes,
-        session_summary,
-        summary_table,
-    )
 
     _check_where(args)
     _check_counts(args)
+    seeds = _session_seeds(args)
+    check_gif(args)
     policy = args.policy[0]
     if len(args.policy) > 1:
         # Stage aligners run in sequence (a column: its aperture stage, then its focus and
@@ -299,71 +407,111 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         # focus aligner always was, whatever options it trained with).
         task = get_task(args.task or controller.task.name)
     if args.set is not None:
-        return _evaluate_set(args, controller, task)
+        return _evaluate_set(args, controller, task, seeds)
+    return _evaluate_apparatus(args, controller, task, seeds)
+
+
+def _evaluate_apparatus(args: argparse.Namespace, controller: Any, task: Any, seeds: tuple) -> int:
+    """`alignrl evaluate --apparatus`: one session, or one per seed and their aggregate."""
+    from alignrl.evaluation import report
+    from alignrl.intervals import success_text
+
+    film = session_film(args)
     try:
-        (result,), _ = _run_evaluations(args, [controller], task)
+        per_seed, seconds = _run_evaluations(args, [controller], task, seeds, film)
     except KeyboardInterrupt:
         return _interrupted()
-    payload = session_summary(result, args.apparatus)
-    lines = [
-        f"{result.controller} on {args.apparatus}: {result.successes}/{result.scenarios} "
-        f"aligned (threshold {payload['threshold_px']:.2f} px, median)",
-        "",
-        *summary_table([result]),
-        *session_notes([result]),
-    ]
+    results, several = [results[0] for results in per_seed], args.seeds is not None
+    summaries = [report.session_summary(result, args.apparatus, SESSION) for result in results]
     if args.plot:
-        plot_trajectories(result, Path(args.plot), f"{result.controller} on {args.apparatus}")
-        payload["plot"] = args.plot
-        lines.append(f"plot: {args.plot}")
+        for result, summary in zip(results, summaries, strict=True):
+            out = _seeded(Path(args.plot), result.seed, several)
+            report.plot_trajectories(result, out, f"{result.controller} on {args.apparatus}")
+            summary["plot"] = str(out)
+    first, threshold = results[0], summaries[0]["threshold_px"]
+    where = f"{first.controller} on {args.apparatus}"
+    if not several:
+        payload = summaries[0]
+        aligned = success_text(first.successes, first.scenarios)
+        lines = [f"{where}: {aligned} aligned (threshold {threshold:.2f} px, median)", ""]
+        lines += [*report.summary_table(results), *report.session_notes(results)]
+    else:
+        head = {"controller": first.controller, "apparatus": args.apparatus, "task": task.name}
+        head["scenarios"] = args.scenarios
+        aggregate = report.seeds_aggregate(results)
+        payload = _over_seeds(head, seeds, summaries, aggregate, seconds)
+        lines = [
+            f"{where}: {args.scenarios} scenarios at each of {len(seeds)} seeds (threshold "
+            f"{threshold:.2f} px, median)",
+            "",
+            *report.summary_table(results, ("seed", [str(seed) for seed in seeds])),
+            *report.session_notes(results, [f"seed {seed}" for seed in seeds]),
+            "",
+            report.aggregate_line(results),
+        ]
+    if args.plot:
+        lines.append(f"plot: {_seeded(Path(args.plot), 'S', several)}")
+    if film is not None:
+        write_session_gif(args, film, first, payload, lines)
     _emit(payload, args.json, lines)
     return 0
 
 
 def cmd_baselines(args: argparse.Namespace) -> int:
     from alignrl.envs.task import get_task
+    from alignrl.evaluation import report
     from alignrl.evaluation.baselines import task_baselines
-    from alignrl.evaluation.report import (
-        plot_trajectories,
-        session_notes,
-        session_summary,
-        summary_table,
-    )
 
     _check_where(args)
     _check_counts(args)
+    seeds = _session_seeds(args)
     task = get_task(args.task or "focus")
     controllers = [make() for make in task_baselines(task.name).values()]
     if args.set is not None:
-        return _baselines_set(args, controllers, task)
+        return _baselines_set(args, controllers, task, seeds)
     try:
-        results, elapsed = _run_evaluations(args, controllers, task)
+        per_seed, seconds = _run_evaluations(args, controllers, task, seeds)
     except KeyboardInterrupt:
         return _interrupted()
-    payload: dict[str, Any] = {
-        "apparatus": args.apparatus,
-        "task": task.name,
-        "scenarios": args.scenarios,
-        "seed": args.seed,
-        "controllers": {r.controller: session_summary(r, args.apparatus) for r in results},
-        "seconds": round(elapsed, 3),
-    }
-    threshold = float(np.median([r.median_threshold_px for r in results]))
-    what = "autofocus" if task.name == "focus" else f"{task.name} alignment"
-    lines = [
-        f"classical {what} on {args.apparatus}: {args.scenarios} scenarios, seed "
-        f"{args.seed}, threshold {threshold:.2f} px (median)",
-        "",
-        *summary_table(results),
-        *session_notes(results),
+    several = args.seeds is not None
+    head = {"apparatus": args.apparatus, "task": task.name, "scenarios": args.scenarios}
+    payloads: list[dict[str, Any]] = [
+        {
+            **head,
+            "session": SESSION,
+            "seed": seed,
+            "controllers": {
+                r.controller: report.session_summary(r, args.apparatus, SESSION) for r in results
+            },
+            "seconds": round(elapsed, 3),
+        }
+        for seed, results, elapsed in zip(seeds, per_seed, seconds, strict=True)
     ]
-    if args.plot_dir:
-        folder = Path(args.plot_dir)
-        for result in results:
-            out = folder / f"{result.controller}.png"
-            plot_trajectories(result, out, f"{result.controller} on {args.apparatus}")
+    for results, payload in zip(per_seed, payloads, strict=True):
+        for result in results if args.plot_dir else ():
+            out = Path(args.plot_dir) / f"{_plot_name(result, several)}.png"
+            report.plot_trajectories(result, out, f"{result.controller} on {args.apparatus}")
             payload["controllers"][result.controller]["plot"] = str(out)
-        lines.append(f"plots: {folder}/")
+    every = [result for results in per_seed for result in results]
+    threshold = float(np.median([r.median_threshold_px for r in every]))
+    what = "autofocus" if task.name == "focus" else f"{task.name} alignment"
+    heading = f"classical {what} on {args.apparatus}: {args.scenarios} scenarios, seed"
+    if not several:
+        payload = payloads[0]
+        lines = [f"{heading} {seeds[0]}, threshold {threshold:.2f} px (median)", ""]
+        lines += [*report.summary_table(per_seed[0]), *report.session_notes(per_seed[0])]
+    else:
+        by_controller = _by_controller(per_seed)
+        aggregate = {name: report.seeds_aggregate(runs) for name, runs in by_controller}
+        payload = _over_seeds(head, seeds, payloads, aggregate, seconds)
+        lines = [f"{heading}s {', '.join(map(str, seeds))}, threshold {threshold:.2f} px (median)"]
+        for seed, results in zip(seeds, per_seed, strict=True):
+            names = [f"{result.controller}, seed {seed}" for result in results]
+            lines += ["", f"seed {seed}:", *report.summary_table(results)]
+            lines += report.session_notes(results, names)
+        lines += ["", "over the seeds:", "", *report.aggregate_table(by_controller)]
+    if args.plot_dir:
+        lines.append(f"plots: {args.plot_dir}/" + ("CONTROLLER-seedS.png" if several else ""))
     _emit(payload, args.json, lines)
     return 0
 
@@ -387,6 +535,22 @@ def _add_set_options(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def _add_seeds_option(parser: argparse.ArgumentParser) -> None:
+    """--seeds S1 S2 ... (instead of --seed): one session per seed, and their aggregate."""
+    parser.add_argument(
+        "--seeds",
+        nargs="+",
+        type=_seed,
+        metavar="S",
+        default=None,
+        help="instead of --seed: one session per seed (the same --scenarios each), printed "
+        "per seed, then their aggregate: the interquartile mean of the per-seed success rates "
+        "with its 95 %% bootstrap interval, the pooled successes and the median acquisitions",
+    )
+    # None until given, so that --seed with --seeds is refused; _session_seeds resolves it.
+    parser.set_defaults(seed=None)
+
+
 def add_session_parsers(verbs: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     evaluate = verbs.add_parser(
         "evaluate", help="an evaluation session: N alignments checked against the spec"
@@ -402,10 +566,12 @@ def add_session_parsers(verbs: argparse._SubParsersAction[argparse.ArgumentParse
     )
     _add_session_options(evaluate, apparatus_required=False)
     _add_set_options(evaluate)
+    _add_seeds_option(evaluate)
     evaluate.add_argument(
         "--plot",
         help="write the trajectories to this PNG (--set: one per instrument, NAME-INSTRUMENT.png)",
     )
+    add_gif_options(evaluate, session=True)
     evaluate.set_defaults(handler=cmd_evaluate)
 
     baselines = verbs.add_parser(
@@ -413,6 +579,7 @@ def add_session_parsers(verbs: argparse._SubParsersAction[argparse.ArgumentParse
     )
     _add_session_options(baselines, apparatus_required=False)
     _add_set_options(baselines)
+    _add_seeds_option(baselines)
     baselines.add_argument(
         "--plot-dir",
         help="write one trajectory PNG per controller here (--set: CONTROLLER-INSTRUMENT.png)",

@@ -7,6 +7,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -108,27 +109,36 @@ def _train_to_the_end(trainer: Any, args: argparse.Namespace, resume: str) -> in
         ) from None
     except ShieldStop as error:
         raise _checkpoint_kept(error, run_dir, resume) from None
+    from alignrl.intervals import success_interval, success_text
+    from alignrl.training import VALIDATION_SEED, test_line
+
+    test = trainer.test_result
     payload = {
         "run": str(run_dir),
         "env_steps": trainer.env_steps,
         "updates": trainer.agent.updates,
         "episodes": trainer.episodes,
+        "validation_seed": VALIDATION_SEED,
         "successes": result.successes,
         "scenarios": result.scenarios,
+        "success_interval": success_interval(result.successes, result.scenarios),
         "median_acquisitions": result.median_acquisitions,
         "p90_acquisitions": result.p90_acquisitions,
         "best_successes": trainer.best_successes,
+        "test": None
+        if test is None
+        else {
+            **asdict(test),
+            "success_interval": success_interval(test.successes, test.scenarios),
+        },
         "seconds": round(time.perf_counter() - started, 1),
     }
-    _emit(
-        payload,
-        args.json,
-        [
-            f"{run_dir}: {trainer.env_steps} env steps, {trainer.agent.updates} updates; "
-            f"held-out {result.successes}/{result.scenarios} aligned, median "
-            f"{result.median_acquisitions:g} acquisitions (best {trainer.best_successes})"
-        ],
-    )
+    lines = [
+        f"{run_dir}: {trainer.env_steps} env steps, {trainer.agent.updates} updates; last "
+        f"validation session {success_text(result.successes, result.scenarios)} aligned, "
+        f"median {result.median_acquisitions:g} acquisitions (best {trainer.best_successes})"
+    ]
+    _emit(payload, args.json, lines + ([test_line(test)] if test else []))
     return 0
 
 
@@ -201,18 +211,19 @@ def cmd_adapt(args: argparse.Namespace) -> int:
 
 
 def cmd_report(args: argparse.Namespace) -> int:
-    from alignrl.plots import write_run_report
+    from alignrl.runs.report import write_run_report
 
     report = write_run_report(Path(args.run), Path(args.out) if args.out else None)
     figures = report.figures
     payload = {
         "run": args.run,
         "report": str(report.markdown),
+        "html": str(report.html),
         "figures": [str(path) for path in figures.written],
         "skipped": figures.skipped,
     }
     lines = [
-        f"{args.run}: report in {report.markdown}",
+        f"{args.run}: report in {report.markdown} and {report.html}",
         *(f"  {path}" for path in figures.written),
         *(f"  not plotted: {name} ({why})" for name, why in figures.skipped.items()),
     ]
@@ -307,7 +318,9 @@ def add_training_parsers(verbs: argparse._SubParsersAction[argparse.ArgumentPars
     adapt.add_argument("--json", action="store_true", help="machine-readable summary")
     adapt.set_defaults(handler=cmd_adapt)
 
-    report = verbs.add_parser("report", help="training figures and a Markdown report of a run")
+    report = verbs.add_parser(
+        "report", help="training figures and a Markdown and HTML report of a run"
+    )
     report.add_argument("run", metavar="RUN", help="a run directory of `alignrl train`")
     report.add_argument("--out", metavar="DIR", help="where to write (default: RUN/report)")
     report.add_argument("--json", action="store_true", help="machine-readable summary")

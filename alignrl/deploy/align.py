@@ -32,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from alignrl.animation import Scene
 from alignrl.apparatus.audit import plain
 from alignrl.apparatus.base import Apparatus, ApparatusError, knows_best_quality
 from alignrl.apparatus.shield import (
@@ -58,6 +59,7 @@ __all__ = [
     "EXIT_NOT_ALIGNED",
     "AlignResult",
     "align",
+    "alignment_scene",
     "operator_signals",
 ]
 
@@ -371,6 +373,22 @@ def align(
         final_width_px=final_width,
         threshold_px=threshold,
         **measured,
+    )
+
+
+def alignment_scene(
+    result: AlignResult, task: Task, knobs: Mapping[str, tuple[float, float]]
+) -> Scene:
+    """What the frames of a filmed alignment (alignrl/apparatus/filming.py) share: the knobs
+    of the task it was judged on with their intervals (`knobs`: the apparatus's), the spec,
+    which images were the alignment's own (the rest: the final judging image), and how it
+    ended."""
+    return Scene(
+        knobs={knob: knobs[knob] for knob in task.knobs},
+        title=f"{result.policy} on {result.apparatus}" + (" (dry run)" if result.dry_run else ""),
+        threshold_px=result.threshold_px,
+        acquisitions=result.acquisitions,
+        ending=f"{result.outcome}: {result.reason}",
     )
 
 

@@ -7,6 +7,13 @@ for a person, model_card.md, in alignrl.deploy.model_card (`render_model_card`).
 An export of an export (a shipped champion, a folder `alignrl export` wrote) keeps the record
 of the card it came with: its evaluations, lineage and training history.
 
+The evaluations a card records are a run's own periodic sessions, those its best checkpoint
+and its champion are chosen on: *validation* sessions (`evaluations.session`), whose best
+figure flatters what it chose. The card says so, names the session the exported checkpoint
+was chosen on (`evaluations.chosen_on`, where it was chosen by one), and gives every session's
+successes with their 95 % Wilson interval (`success_low`, `success_high`: rates). A test
+figure comes from a session that chose nothing: `alignrl evaluate` (docs/evaluation.md).
+
 Knob values and steps are in the apparatus's units (volts for a lens); edge widths in pixels.
 """
 
@@ -17,6 +24,7 @@ import datetime
 import json
 import math
 import shlex
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -34,6 +42,7 @@ from alignrl.deploy.formats import EXPORT_FORMATS, ONNX_OPSET
 from alignrl.deploy.graph import PolicyGraph
 from alignrl.deploy.model_card import render_model_card
 from alignrl.deploy.parity import Parity
+from alignrl.intervals import CONFIDENCE, wilson
 from alignrl.runs.sources import PolicySource
 from alignrl.training import EVALUATION_SEED
 
@@ -115,13 +124,73 @@ def _recorded(source: PolicySource, key: str) -> dict[str, Any] | None:
     return source.card[key]
 
 
+def _with_interval(row: Mapping[str, Any]) -> dict[str, Any]:
+    """A session's row with the 95 % Wilson interval of its successes (rates), where it
+    counts successes out of scenarios."""
+    successes, scenarios = row.get("successes"), row.get("scenarios")
+    if not (isinstance(successes, int) and isinstance(scenarios, int) and scenarios > 0):
+        return dict(row)
+    if not 0 <= successes <= scenarios:
+        return dict(row)
+    low, high = wilson(successes, scenarios)
+    return {**row, "success_low": low, "success_high": high}
+
+
+def _chosen_on(
+    rows: list[dict[str, Any]],
+    kind: str | None,
+    member_file: str,
+    iteration: Any,
+    env_steps: Any,
+) -> dict[str, Any] | None:
+    """The row of the session the exported checkpoint was chosen on: a league keeps each
+    member's best/ checkpoint from its best session (best.json's iteration), a training run
+    its best.pt from its best session (at env_steps). None for any other checkpoint (a
+    snapshot, last.pt, a member file outside a run): no session chose it."""
+    path = Path(member_file)
+    if kind == "league" and path.parent.name == "best":
+        key, value = "iteration", iteration
+    elif kind == "training" and path.name == "best.pt":
+        key, value = "env_steps", env_steps
+    else:
+        return None
+    found = [row for row in rows if value is not None and row.get(key) == value]
+    return found[-1] if found else None
+
+
+def _labelled(evaluations: dict[str, Any], chosen_on: dict[str, Any] | None) -> dict[str, Any]:
+    """The evaluations of a card with what they are: validation sessions, each row's
+    interval, the session the checkpoint was chosen on. A record that says it already (the
+    card of an export) keeps its own."""
+    rows = [_with_interval(row) for row in evaluations["rows"]]
+    return {
+        "session": "validation",
+        "confidence": CONFIDENCE,
+        **evaluations,
+        "rows": rows,
+        "chosen_on": evaluations.get("chosen_on", chosen_on and _with_interval(chosen_on)),
+    }
+
+
 def _evaluations(source: PolicySource) -> dict[str, Any]:
     recorded = _recorded(source, "evaluations")
     if recorded is not None:  # an export of an export: the sessions its card records
-        return recorded
+        card = source.card or {}
+        was, training = card.get("source") or {}, card.get("training") or {}
+        chosen_on = _chosen_on(
+            [dict(row) for row in recorded.get("rows") or []],
+            was.get("kind"),
+            str(was.get("member_file") or ""),
+            training.get("league_iteration"),
+            training.get("env_steps"),
+        )
+        return _labelled(recorded, chosen_on)
     config, member = source.config, source.agent.id
     if source.run_dir is None:
-        return {"source": None, "produced_by": None, "command": None, "note": None, "rows": []}
+        return _labelled(
+            {"source": None, "produced_by": None, "command": None, "note": None, "rows": []},
+            None,
+        )
     path = source.run_dir / "metrics" / "evaluations.csv"
     rows = read_rows(path)
     sessions = source.sessions
@@ -160,13 +229,21 @@ def _evaluations(source: PolicySource) -> dict[str, Any]:
         if options
         else None
     )
-    return {
+    chosen_on = _chosen_on(
+        rows,
+        source.kind,
+        str(source.member_file),
+        (source.best or {}).get("iteration"),
+        source.env_steps,
+    )
+    evaluations = {
         "source": str(path) if path.exists() else None,
         "produced_by": produced_by,
         "command": command,
         "note": note,
         "rows": rows,
     }
+    return _labelled(evaluations, chosen_on)
 
 
 def _lineage(source: PolicySource) -> dict[str, Any]:

@@ -4,8 +4,10 @@ A card is data from a file, so nothing in it is believed unchecked: every field 
 type and range, the fields agree with each other (the knobs' steps with the task's rule, the
 shapes with the member), and the thresholds it is judged on may tighten the task's own spec,
 never loosen it. The knob intervals it lists are those the policy was trained on, for the
-record: the shield's limits always come from the apparatus and the site limits. The card is
-written by alignrl.deploy.card (keys documented in docs/deploy.md).
+record: the shield's limits always come from the apparatus and the site limits. The record
+of its evaluations is read for what it claims: the kind of session (validation or test) and
+intervals that are rates. The card is written by alignrl.deploy.card (keys documented in
+docs/deploy.md).
 
 Knob values and steps are in the apparatus's units (volts for a lens); edge widths in pixels.
 """
@@ -23,6 +25,7 @@ from alignrl.deploy.formats import EXPORT_FORMATS, ONNX_OPSET
 from alignrl.deploy.graph import graph_signature
 from alignrl.envs.core import feature_layout
 from alignrl.envs.task import Task
+from alignrl.evaluation.report import SESSION_KINDS
 from alignrl.runs.sources import ExportError
 
 __all__ = ["CARD_FORMAT", "CARD_KEYS", "card_action", "card_feature_layout", "check_card"]
@@ -218,6 +221,7 @@ def check_card(card: Any, path: Path) -> Task:
             raise read.fail(name, f"is a {type(card[name]).__name__}, where a mapping belongs")
     if card["parity"].get("passed") is not True:
         raise read.fail("parity.passed", "is not true: an export that failed parity is no policy")
+    _evaluations(read, card["evaluations"])
 
     task = _task(read, card["task"])
     spec = _member(read, card["member"])
@@ -257,6 +261,29 @@ def check_card(card: Any, path: Path) -> Task:
     read.equal(card["inputs"], signature["inputs"], "inputs", "history, features and memory")
     read.equal(card["outputs"], signature["outputs"], "outputs", "history, features and memory")
     return task
+
+
+def _evaluations(read: _CardReader, evaluations: dict[str, Any]) -> None:
+    """What the evaluations claim, where the card says it (older cards do not): the kind of
+    session, the interval's confidence, and each row's interval (rates, low <= high), the
+    session the checkpoint was chosen on among them."""
+    session = evaluations.get("session")
+    if session is not None and session not in SESSION_KINDS:
+        kinds = " or ".join(SESSION_KINDS)
+        raise read.fail("evaluations.session", f"is {_shown(session)}, not {kinds}")
+    if "confidence" in evaluations:
+        read.number(evaluations["confidence"], "evaluations.confidence", above=0, at_most=1)
+    rows = evaluations.get("rows", [])
+    if not isinstance(rows, list):
+        raise read.fail("evaluations.rows", f"is a {type(rows).__name__}, not a list")
+    chosen = evaluations.get("chosen_on")
+    named = [(f"evaluations.rows[{index}]", row) for index, row in enumerate(rows)]
+    for field, row in [*named, *([("evaluations.chosen_on", chosen)] if chosen else [])]:
+        if not isinstance(row, dict):
+            raise read.fail(field, f"is a {type(row).__name__}, where a mapping belongs")
+        if "success_low" in row or "success_high" in row:
+            low = read.number(row.get("success_low"), f"{field}.success_low", at_least=0)
+            read.number(row.get("success_high"), f"{field}.success_high", at_least=low, at_most=1)
 
 
 def _member(read: _CardReader, member: Any) -> MemberSpec:

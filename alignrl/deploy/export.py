@@ -1,7 +1,10 @@
 """Policy export: a trained aligner as one self-contained file, ONNX, TorchScript or
 safetensors (alignrl.deploy.formats), with its model card (alignrl.deploy.card).
 
-`export_policy` writes a folder atomically (a staging folder beside it, then one rename):
+`export_policy` writes a folder atomically (a staging folder beside it, then one rename), by
+default (`default_out`) beside the run it came from, RUN/exports/<member>-<format>/, and a
+policy outside any run (a member file on its own, an export, a shipped champion) under
+runs/exports/<name>-<format>/: never into the working directory itself.
 
     policy.onnx | policy.pt   the graph (policy.pt: torch.jit.save of the traced module)
     policy.safetensors        or the acting network's tensors alone (Agent.policy_state),
@@ -48,11 +51,33 @@ from alignrl.deploy.formats import (
 from alignrl.deploy.graph import PolicyGraph, PolicyInterface
 from alignrl.deploy.learner_state import write_checked
 from alignrl.deploy.parity import PARITY_HISTORIES, PARITY_TOLERANCE, Parity, check_parity
-from alignrl.runs.sources import ExportError, PolicySource
+from alignrl.runs.sources import CHAMPION_PREFIX, ExportError, PolicySource
 from alignrl.runs.state import KNOBS_FILE
 from alignrl.runs.state import knob_limits as limits_on
 
-__all__ = ["ExportResult", "export_command", "export_policy", "knob_limits"]
+__all__ = [
+    "EXPORTS_FOLDER",
+    "ExportResult",
+    "default_out",
+    "export_command",
+    "export_policy",
+    "knob_limits",
+]
+
+EXPORTS_FOLDER = "exports"  # RUN/exports/, runs/exports/: where exports go without --out
+
+
+def default_out(
+    source: PolicySource, named: str, export_format: str, runs_dir: str | Path = "runs"
+) -> Path:
+    """Where `alignrl export` writes `source` (the spec `named`) without --out: beside its
+    run, RUN/exports/<member>-<format>; a policy outside any run (a member file on its own, an
+    export, a shipped champion) under `runs_dir`/exports/<name>-<format>, <name> the
+    champion's or the member's."""
+    if source.run_dir is not None:
+        return source.run_dir / EXPORTS_FOLDER / f"{source.agent.id}-{export_format}"
+    name = named.removeprefix(CHAMPION_PREFIX) if named.startswith(CHAMPION_PREFIX) else None
+    return Path(runs_dir) / EXPORTS_FOLDER / f"{name or source.agent.id}-{export_format}"
 
 
 def knob_limits(

@@ -2,6 +2,12 @@
 alignrl.deploy.card, keys in docs/deploy.md): what the policy is, how to feed it, its knobs
 and limits, how it was trained, its evaluation sessions as tables, parity and lineage.
 
+Every success count of the evaluations is shown with its 95 % Wilson interval, and the
+section says what the sessions were: validation sessions, the run's own, one of which chose
+the exported checkpoint (so its figure flatters it), not a test of the policy. A card written
+before the label existed (a shipped champion's) is read the same way: its sessions are a
+run's.
+
 Knob values and steps are in the apparatus's units (volts for a lens); edge widths in pixels.
 """
 
@@ -10,7 +16,11 @@ from __future__ import annotations
 import json
 from typing import Any
 
+from alignrl.intervals import success_text
+
 __all__ = ["render_model_card"]
+
+INTERVAL_COLUMNS = ("success_low", "success_high")  # shown inside the successes cell
 
 
 def _cell(value: Any) -> str:
@@ -27,6 +37,76 @@ def _table(rows: list[dict[str, Any]], columns: list[str]) -> list[str]:
         "| " + " | ".join("---" for _ in columns) + " |",
         *("| " + " | ".join(_cell(row.get(c)) for c in columns) + " |" for row in rows),
     ]
+
+
+def _counted(row: dict[str, Any]) -> dict[str, Any]:
+    """A session's row for the table: successes with their interval ("83/100 (74-89 %)"),
+    where the row counts them out of its scenarios."""
+    successes, scenarios = row.get("successes"), row.get("scenarios")
+    shown = {key: value for key, value in row.items() if key not in INTERVAL_COLUMNS}
+    if isinstance(successes, int) and isinstance(scenarios, int) and 0 <= successes <= scenarios:
+        shown["successes"] = success_text(successes, scenarios) if scenarios else successes
+    return shown
+
+
+def _session_at(row: dict[str, Any]) -> str:
+    """When a run's session was held: its league iteration or training env steps."""
+    if row.get("iteration") is not None:
+        return f"iteration {row['iteration']}"
+    if row.get("env_steps") is not None:
+        return f"{row['env_steps']} env steps"
+    return "an unrecorded time"
+
+
+def _evaluations(evaluations: dict[str, Any], chosen_as: str) -> list[str]:
+    """The Evaluations section: what the sessions are, the one the checkpoint was chosen
+    on, the table of them all with intervals, and the command that runs one again."""
+    lines = ["## Evaluations", ""]
+    if not evaluations["rows"]:
+        return [*lines, "No evaluation session recorded for this member."]
+    session = evaluations.get("session", "validation")
+    chosen = evaluations.get("chosen_on")
+    lines.append(
+        f"These are **{session}** sessions"
+        + (
+            ": the run's own sessions, on which it chooses its best checkpoint and its "
+            "champion. The best of several sessions flatters what it chose; for a test "
+            "figure, run a session that chooses nothing (`alignrl evaluate --seeds 0 1 2` "
+            "on instruments the run never saw)."
+            if session == "validation"
+            else "."
+        )
+    )
+    if chosen:
+        figure = f"{_counted(chosen)['successes']} aligned"
+        lines += [
+            "",
+            f"The exported checkpoint was kept as the run's best on the {session} session "
+            f"at {_session_at(chosen)}: {figure}.",
+        ]
+    else:
+        lines += [
+            "",
+            f"The exported checkpoint ({chosen_as}) is not one a session of the run kept as "
+            "its best.",
+        ]
+    rows = [_counted(row) for row in evaluations["rows"]]
+    lines += [
+        "",
+        f"From `{evaluations['source']}`, written by {evaluations['produced_by']}. Successes "
+        "with their 95 % Wilson interval.",
+        "",
+        *_table(rows, list(rows[0])),
+        "",
+        "The same session on the exported weights:",
+        "",
+        "```",
+        evaluations["command"],
+        "```",
+    ]
+    if evaluations["note"]:
+        lines += ["", f"Note: {evaluations['note']}."]
+    return lines
 
 
 def _shape(entry: dict[str, Any]) -> str:
@@ -97,24 +177,7 @@ def render_model_card(card: dict[str, Any]) -> str:
         lines.append(f"- league iteration of its best evaluation: {training['league_iteration']}")
     adapted = training["adapted_on"]
     lines += [f"- adapted on: {json.dumps(adapted) if adapted else 'nothing yet'}", ""]
-    lines += ["## Evaluations", ""]
-    if evaluations["rows"]:
-        columns = list(evaluations["rows"][0])
-        lines += [
-            f"From `{evaluations['source']}`, written by {evaluations['produced_by']}.",
-            "",
-            *_table(evaluations["rows"], columns),
-            "",
-            "The same session on the exported weights:",
-            "",
-            "```",
-            evaluations["command"],
-            "```",
-        ]
-        if evaluations["note"]:
-            lines += ["", f"Note: {evaluations['note']}."]
-    else:
-        lines.append("No evaluation session recorded for this member.")
+    lines += _evaluations(evaluations, card["source"]["chosen_as"])
     lines += [
         "",
         "## Parity",

@@ -13,6 +13,9 @@ Card
 * Termination: stop (> 0) or the step limit. info: secret (optimum - setting per knob, as a
   fraction of the interval: for critics only), acquisitions, edge_width_px, threshold_px,
   and at the end success.
+* Rendering: `render_mode="rgb_array"` (default None): `render()` gives the episode so far as
+  an (H, W, 3) uint8 frame, the last image beside the walk on the focus curve
+  (alignrl/animation.py; the frames of `alignrl align --gif`).
 """
 
 from __future__ import annotations
@@ -24,7 +27,9 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from alignrl.animation import Reading, Scene, draw_frame
 from alignrl.apparatus.base import Apparatus
+from alignrl.apparatus.filming import take_reading
 from alignrl.apparatus.registry import make_apparatus
 from alignrl.envs.core import AlignmentEpisodes, observation_bounds
 from alignrl.envs.task import Task, get_task
@@ -103,7 +108,8 @@ def episode_info(episodes: AlignmentEpisodes, index: int, done: bool) -> dict[st
 class AlignmentEnv(gym.Env):
     """One aligner, one apparatus (see the module docstring for the card)."""
 
-    metadata = {"render_modes": []}  # noqa: RUF012 (gymnasium reads a class attribute)
+    # gymnasium reads a class attribute; render_fps: how fast a recorder plays the frames
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 2}  # noqa: RUF012
 
     def __init__(
         self,
@@ -113,8 +119,16 @@ class AlignmentEnv(gym.Env):
         complexity: float = 1.0,
         misalignment: MisalignmentPolicy | None = None,
         apparatus_args: dict | None = None,
+        render_mode: str | None = None,
     ) -> None:
         super().__init__()
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(
+                f"render_mode {render_mode!r}: AlignmentEnv renders "
+                f"{', '.join(self.metadata['render_modes'])} (or None, the default)"
+            )
+        self.render_mode = render_mode
+        self.readings: list[Reading] = []  # the episode so far, kept where it renders
         self.episodes = single_episode(apparatus, task, history, complexity, apparatus_args)
         self.task, self.apparatus = self.episodes.task, self.episodes.apparatus[0]
         self.misalignment = misalignment
@@ -146,10 +160,51 @@ class AlignmentEnv(gym.Env):
         else:
             action = self.np_random.uniform(-1.0, 1.0, self.episodes.k)
         self.episodes.misalign(self._index, action)
+        self.readings = []
+        self._film_step()
         return self.episodes.observation(0), episode_info(self.episodes, 0, done=False)
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        steps = int(self.episodes.steps[0])
         reward, done = self.episodes.step(self._index, np.asarray(action)[None])
+        if self.episodes.steps[0] > steps:  # an acquisition (a stop takes none)
+            self._film_step()
         terminated = bool(done[0])
         info = episode_info(self.episodes, 0, done=terminated)
         return self.episodes.observation(0), float(reward[0]), terminated, False, info
+
+    # --- rendering ----------------------------------------------------------------------
+
+    def _film_step(self) -> None:
+        """Keep the reading just taken, for render(): nothing where the env does not render."""
+        if self.render_mode is None:
+            return
+        settings = dict(zip(self.task.knobs, self.episodes.setting[0].tolist(), strict=True))
+        width = float(self.episodes.width[0])
+        self.readings.append(
+            take_reading(
+                self.apparatus,
+                settings,
+                width if np.isfinite(width) else None,
+                images=self.task.acquisitions_per_step,
+            )
+        )
+
+    def render(self) -> np.ndarray | None:
+        """With render_mode "rgb_array": the episode so far as an (H, W, 3) uint8 frame, the
+        last acquired image beside the walk on the focus curve (alignrl/animation.py)."""
+        if self.render_mode is None:
+            return None
+        if not self.readings:
+            raise gym.error.ResetNeeded("render() before reset(): there is nothing to draw yet")
+        episodes = self.episodes
+        threshold = float(episodes.threshold[0])
+        scene = Scene(
+            knobs={
+                knob: (float(episodes.low[0, i]), float(episodes.high[0, i]))
+                for i, knob in enumerate(self.task.knobs)
+            },
+            title=f"AlignmentEnv: {self.task.name}",
+            threshold_px=threshold if np.isfinite(threshold) else None,
+        )
+        return draw_frame(self.readings, scene)

@@ -49,7 +49,7 @@ from typing import Protocol, TypeGuard, runtime_checkable
 
 import numpy as np
 
-from alignrl.apparatus.base import Apparatus
+from alignrl.apparatus.base import Apparatus, knows_optimum
 from alignrl.envs import rewards
 from alignrl.envs.task import Task
 
@@ -57,6 +57,7 @@ __all__ = [
     "PAYOFFS",
     "Designable",
     "Reference",
+    "can_twin",
     "designer_input_shape",
     "designs_columns",
     "fractions_of",
@@ -93,9 +94,27 @@ def fractions_of(actions: np.ndarray) -> np.ndarray:
     return 0.5 * (np.clip(np.asarray(actions, float), -1.0, 1.0) + 1.0)
 
 
+def can_twin(unit: Apparatus) -> bool:
+    """Whether `unit` can give a twin of its column: a simulator that knows its optimum and
+    either offers `twin` or is a plain object to copy. A unit behind the safety shield never
+    can: a driver (loaded by import path, so always shielded) may be a microscope, and a copy
+    of it would reach the same instrument around the shield."""
+    from alignrl.apparatus.shield import ShieldedApparatus
+
+    if not knows_optimum(unit):
+        return False
+    return callable(getattr(unit, "twin", None)) or not isinstance(unit, ShieldedApparatus)
+
+
 def twin_of(unit: Apparatus) -> Apparatus:
     """An independent copy of `unit` in its present state, noise stream included (the
-    apparatus's own `twin`, else a deep copy): the same column and the same random numbers."""
+    apparatus's own `twin`, else a deep copy): the same column and the same random numbers.
+    ValueError where `unit` cannot give one (`can_twin`)."""
+    if not can_twin(unit):
+        raise ValueError(
+            f"{type(unit).__name__} cannot give a twin of its column: only a simulator that "
+            "knows its optimum can, never a driver behind the shield"
+        )
     twin = getattr(unit, "twin", None)
     return twin() if callable(twin) else copy.deepcopy(unit)
 

@@ -42,12 +42,13 @@ from gymnasium import spaces
 from pettingzoo import AECEnv
 from pettingzoo.utils import wrappers
 
-from alignrl.apparatus.base import Apparatus, ApparatusError, knows_optimum
+from alignrl.apparatus.base import Apparatus, ApparatusError
 from alignrl.envs.alignment import aligner_spaces, episode_info, misaligner_spaces, single_episode
 from alignrl.envs.core import AlignmentEpisodes
 from alignrl.envs.design import (
     PAYOFFS,
     Reference,
+    can_twin,
     designer_input_shape,
     designs_columns,
     fractions_of,
@@ -108,10 +109,10 @@ class DuelBatch:
         if payoff == "regret":
             if reference is None:
                 raise ValueError("the regret payoff needs a reference to measure it against")
-            if not all(knows_optimum(unit) for unit in units):
+            if not all(can_twin(unit) for unit in units):
                 raise ValueError(
                     "the regret payoff plays a twin of each column: it needs simulated "
-                    "apparatus (a real microscope has no twin)"
+                    "apparatus (a real microscope, or any driver behind the shield, has no twin)"
                 )
         self.design_names: tuple[str, ...] = ()
         if design:

@@ -14,7 +14,11 @@ The contract (what `alignrl evaluate --set` and `alignrl baselines --set` print)
 * the totals pool the alignments of all instruments: successes out of all alignments, the
   median and 90th percentile of the acquisitions of every alignment, and the worst
   instrument (the lowest share of successes; the first in set order on a tie), since one
-  column a policy cannot align is what a microscopist meets, whatever the mean says.
+  column a policy cannot align is what a microscopist meets, whatever the mean says;
+* every success count carries its 95 % Wilson interval (alignrl.intervals);
+* the same set at several seeds (`--seeds`): each seed's SetResult as above, and
+  `set_seeds_aggregate`, the aggregate of the per-seed totals (alignrl.evaluation.report's
+  `seeds_aggregate`) with each instrument's alignments pooled over the seeds.
 
 Acquisitions count every image a controller took (the verification image not counted), as in
 alignrl.evaluation.session. Pure logic apart from the apparatus it opens: no printing.
@@ -34,20 +38,23 @@ from alignrl.apparatus.limits import ShieldOptions
 from alignrl.apparatus.registry import make_apparatus
 from alignrl.envs.task import Task
 from alignrl.evaluation.controllers import Controller, TaskController
-from alignrl.evaluation.report import session_summary
+from alignrl.evaluation.report import seeds_aggregate, session_summary
 from alignrl.evaluation.session import (
     AcquisitionStatistics,
     ScenarioResult,
     SessionResult,
     run_session,
 )
+from alignrl.intervals import success_interval, success_text
 
 __all__ = [
     "SetResult",
     "instrument_spec",
+    "pooled_over_seeds",
     "run_set",
     "set_heading",
     "set_notes",
+    "set_seeds_aggregate",
     "set_summary",
     "set_table",
 ]
@@ -128,25 +135,28 @@ class SetResult(AcquisitionStatistics):
         """Successes on the worst instrument."""
         return self.session(self.worst).successes
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self, session: str = "test") -> dict[str, Any]:
         """The JSON object of `alignrl evaluate --set --json` (keys in docs/cli.md): the set,
-        one session object per instrument in set order (`instruments`, each as `alignrl
-        evaluate --json` prints it, with `instrument` its name) and the pooled `total`."""
+        what the sessions were for (`session`), one session object per instrument in set
+        order (`instruments`, each as `alignrl evaluate --json` prints it, with `instrument`
+        its name) and the pooled `total`."""
         return {
             "set": self.set_name,
             "controller": self.controller,
+            "session": session,
             "task": self.task.name,
             "analytic": self.analytic,
             "seed": self.seed,
             "scenarios": self.scenarios,
             "instruments": [
-                {**session_summary(session, instrument_spec(name)), "instrument": name}
-                for name, session in zip(self.instruments, self.sessions, strict=True)
+                {**session_summary(result, instrument_spec(name), session), "instrument": name}
+                for name, result in zip(self.instruments, self.sessions, strict=True)
             ],
             "total": {
                 "instruments": len(self.instruments),
                 "alignments": self.alignments,
                 "successes": self.successes,
+                "success_interval": success_interval(self.successes, self.alignments),
                 "median_acquisitions": self.median_acquisitions,
                 "p90_acquisitions": round(self.p90_acquisitions, 2),
                 "budget_exhausted": self.budget_exhausted,
@@ -217,7 +227,73 @@ def run_set(
 
 
 def _cell(successes: int, alignments: int, median: float) -> str:
-    return f"{successes}/{alignments} at {median:g}"
+    return f"{success_text(successes, alignments)} at {median:g}"
+
+
+def set_seeds_aggregate(results: Sequence[SetResult]) -> dict[str, Any]:
+    """One controller's set at several seeds (one SetResult per seed): the aggregate of the
+    per-seed totals (`seeds_aggregate`: the IQM of the per-seed success rates over all
+    instruments with its bootstrap interval, the pooled successes with their Wilson
+    interval, the median acquisitions), `instruments`, each instrument's alignments pooled
+    over the seeds (`instrument`, `alignments`, `successes`, `success_interval`,
+    `median_acquisitions`), and the worst of them (`worst_instrument`, `worst_successes`:
+    the lowest share, the first in set order on a tie). ValueError where the seeds ran
+    different instruments."""
+    pooled = pooled_over_seeds(results, results[0].controller if results else "")
+    instruments = [
+        {
+            "instrument": entry["instrument"],
+            "alignments": entry["scenarios"],
+            "successes": entry["successes"],
+            "success_interval": success_interval(entry["successes"], entry["scenarios"]),
+            "median_acquisitions": entry["median_acquisitions"],
+        }
+        for entry in pooled["instruments"]
+    ]
+    worst = min(instruments, key=lambda entry: entry["successes"] / entry["alignments"])
+    return {
+        **seeds_aggregate(results),
+        "instruments": instruments,
+        "worst_instrument": worst["instrument"],
+        "worst_successes": worst["successes"],
+    }
+
+
+def pooled_over_seeds(results: Sequence[SetResult], label: str) -> dict[str, Any]:
+    """A column of `set_table` (named `label`) that pools each instrument's alignments over
+    the seeds of `results` (one SetResult per seed of one controller): per instrument and in
+    total, the successes out of all its alignments and their median acquisitions."""
+    if not results:
+        raise ValueError("pooled_over_seeds needs at least one seed's set result")
+    for result in results[1:]:
+        if result.instruments != results[0].instruments:
+            raise ValueError(
+                f"seed {result.seed} ran {', '.join(result.instruments)}, seed "
+                f"{results[0].seed} {', '.join(results[0].instruments)}: pooling needs the "
+                "same instruments at every seed"
+            )
+    instruments = []
+    for index, name in enumerate(results[0].instruments):
+        sessions = [result.sessions[index] for result in results]
+        acquisitions = np.concatenate([session.acquisitions() for session in sessions])
+        instruments.append(
+            {
+                "instrument": name,
+                "scenarios": sum(session.scenarios for session in sessions),
+                "successes": sum(session.successes for session in sessions),
+                "median_acquisitions": float(np.median(acquisitions)),
+            }
+        )
+    every = np.concatenate([result.acquisitions() for result in results])
+    return {
+        "controller": label,
+        "instruments": instruments,
+        "total": {
+            "alignments": sum(result.alignments for result in results),
+            "successes": sum(result.successes for result in results),
+            "median_acquisitions": float(np.median(every)),
+        },
+    }
 
 
 def set_table(results: Sequence[SetResult | Mapping[str, Any]]) -> list[str]:
@@ -264,32 +340,36 @@ def set_table(results: Sequence[SetResult | Mapping[str, Any]]) -> list[str]:
     return [line(rows[0]), rule + " |", *(line(row) for row in rows[1:])]
 
 
-def set_heading(result: SetResult) -> str:
-    """What ran where: the set, its size, the readings, the scenarios and the seed."""
+def set_heading(result: SetResult, seeds: Sequence[int] | None = None) -> str:
+    """What ran where: the set, its size, the readings, the scenarios and the seed (or the
+    `seeds`, where the set ran at several)."""
     readings = "analytic readings" if result.analytic else "images"
+    seed = f"seed {result.seed}" if seeds is None else f"seeds {', '.join(map(str, seeds))}"
     return (
         f"on set:{result.set_name} ({len(result.instruments)} instruments, {readings}): "
-        f"{result.scenarios} scenarios each, seed {result.seed}"
+        f"{result.scenarios} scenarios each, {seed}"
     )
 
 
 def set_summary(result: SetResult) -> str:
-    """One line per controller: pooled successes and acquisitions, and the worst instrument."""
+    """One line per controller: pooled successes (95 % Wilson interval) and acquisitions,
+    and the worst instrument."""
     worst = result.session(result.worst)
     return (
-        f"{result.controller}: {result.successes}/{result.alignments} aligned, acquisitions "
-        f"median {result.median_acquisitions:g} (p90 {result.p90_acquisitions:.1f}), worst "
-        f"{result.worst} {worst.successes}/{worst.scenarios}"
+        f"{result.controller}: {success_text(result.successes, result.alignments)} aligned, "
+        f"acquisitions median {result.median_acquisitions:g} (p90 "
+        f"{result.p90_acquisitions:.1f}), worst {result.worst} "
+        f"{success_text(worst.successes, worst.scenarios)}"
     )
 
 
-def set_notes(results: Sequence[SetResult]) -> list[str]:
-    """What the table does not show, per controller and instrument: alignments stopped by
-    the budget, verification images without edges."""
+def set_notes(results: Sequence[SetResult], seeded: bool = False) -> list[str]:
+    """What the table does not show, per controller and instrument (and seed, where
+    `seeded`): alignments stopped by the budget, verification images without edges."""
     notes = []
     for result in results:
         for name, session in zip(result.instruments, result.sessions, strict=True):
-            where = f"{result.controller} on {name}"
+            where = f"{result.controller} on {name}" + (f", seed {result.seed}" if seeded else "")
             if session.budget_exhausted:
                 notes.append(
                     f"{where}: {session.budget_exhausted} alignments spent their whole budget "

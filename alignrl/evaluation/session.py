@@ -55,6 +55,8 @@ from alignrl.evaluation.controllers import (
 
 __all__ = [
     "DEFAULT_BUDGET",
+    "TEST_SEED",
+    "VALIDATION_SEED",
     "ScenarioResult",
     "SessionResult",
     "default_budget",
@@ -66,6 +68,11 @@ __all__ = [
 
 DEFAULT_BUDGET = 50  # acquisitions per alignment; an operator gives up long before
 START_STREAM = 1  # second entropy word of the start-setting generator (see start_setting)
+# The session seeds of training runs and leagues, far from the training envs' (seed * 1000 +
+# starts): validation sessions (VALIDATION_SEED) choose best checkpoints and champions; the test
+# session (TEST_SEED) reports what they chose and chooses nothing (issue 23).
+VALIDATION_SEED = 1_000_000
+TEST_SEED = 2_000_000
 
 
 @dataclass(frozen=True)
@@ -182,6 +189,11 @@ class SessionResult(AcquisitionStatistics):
 
     @property
     def scenarios(self) -> int:
+        return len(self.records)
+
+    @property
+    def alignments(self) -> int:
+        """Alignments run: the scenarios (a set result's `alignments` pools its instruments)."""
         return len(self.records)
 
     @property

@@ -10,19 +10,20 @@ from alignrl.league.matchmaking import (
     Pairing,
     Snapshot,
 )
-from alignrl.league.ratings import EloConfig, PayoffTable, Ratings, expected_score
+from alignrl.league.ratings import PayoffTable, Rating, RatingConfig, Ratings, anchor_scores
 
 __all__ = [
     "PFSP_WEIGHTINGS",
     "STRATEGIES",
     "TEAMS",
-    "EloConfig",
     "Matchmaker",
     "MatchmakingConfig",
     "OpponentPool",
     "Pairing",
     "PayoffTable",
+    "Rating",
+    "RatingConfig",
     "Ratings",
     "Snapshot",
-    "expected_score",
+    "anchor_scores",
 ]

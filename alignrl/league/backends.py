@@ -21,6 +21,7 @@ from alignrl.league.matches import (
     Chooser,
     MatchResult,
     learn_from_starts,
+    make_anchors,
     make_duel,
     play_round,
 )
@@ -46,6 +47,7 @@ class Backend(Protocol):
         learning: set[str],
         on_episode: Callable[[bool], None] | None = None,
         deterministic: bool = False,
+        anchored: bool = False,
     ) -> MatchResult: ...
 
     def close(self) -> None: ...
@@ -54,7 +56,8 @@ class Backend(Protocol):
 class InProcessBackend:
     """Plays matches on `envs` apparatus in this process, in rounds of a DuelBatch: every
     slot starts a match, the aligner steps the unfinished ones until all are done; learning
-    members store and learn after every step."""
+    members store and learn after every step. The anchors (classical controllers of fixed
+    rating) play beside the aligner where asked, if the apparatus can give twins."""
 
     def __init__(self, config: LeagueConfig) -> None:
         apparatus = make_apparatus_copies(config.apparatus, config.apparatus_args, config.envs)
@@ -62,6 +65,7 @@ class InProcessBackend:
         self.episodes = AlignmentEpisodes(apparatus, self.task, config.history)
         self.duel = make_duel(self.episodes, config.design, config.payoff, config.reference)
         self.duel.set_complexity(config.complexity)
+        self.anchors = make_anchors(list(config.anchor_ratings()), apparatus)
 
     @property
     def complexity(self) -> float:
@@ -79,10 +83,11 @@ class InProcessBackend:
         learning: set[str],
         on_episode: Callable[[bool], None] | None = None,
         deterministic: bool = False,
+        anchored: bool = False,
     ) -> MatchResult:
         """`matches` matches; members whose id is in `learning` store and learn, the others
         act with their stochastic policy (their mean action if `deterministic`: how they are
-        judged) and change nothing."""
+        judged) and change nothing. `anchored`: the anchors align the same columns too."""
         duel, result = self.duel, MatchResult()
         result.updates = {member.id: [] for member in (aligner, misaligner)}
 
@@ -110,7 +115,14 @@ class InProcessBackend:
             count = min(duel.n, remaining)
             remaining -= count
             seeds = [int(s) for s in rng.integers(0, 2**31 - 1, count)]
-            played = play_round(duel, seeds, chooser(misaligner), chooser(aligner), learn_step)
+            played = play_round(
+                duel,
+                seeds,
+                chooser(misaligner),
+                chooser(aligner),
+                learn_step,
+                self.anchors if anchored else (),
+            )
             # The curriculum's complexity is read when a round begins: reporting each match
             # at the end of its round changes nothing.
             for slot in played.finish_order:
@@ -122,6 +134,7 @@ class InProcessBackend:
                     payoff,
                     played.rated[slot],
                     played.designs[slot],
+                    played.anchors_of(slot),
                 )
                 if on_episode:
                     on_episode(bool(played.successes[slot]))

@@ -29,6 +29,7 @@ from alignrl.checkpoints import (
 
 __all__ = [
     "STATE_FORMAT",
+    "check_state_format",
     "latest_checkpoint",
     "read_checkpoint",
     "remove_partial_files",
@@ -36,7 +37,8 @@ __all__ = [
     "write_checkpoint",
 ]
 
-STATE_FORMAT = "alignrl-league-1"
+# 2: openskill ratings (mu, sigma) with anchors; 1 held Elo ratings, which cannot be resumed.
+STATE_FORMAT = "alignrl-league-2"
 # The folders of a league run that atomic writes go to (their killed temporaries are cleared).
 WRITTEN_FOLDERS = ("checkpoints", "snapshots", "best", "metrics", "initial")
 
@@ -85,14 +87,23 @@ def remove_partial_files(run_dir: Path) -> None:
         remove_partial_writes(run_dir / folder)
 
 
+def check_state_format(state: dict[str, Any], path: Path) -> None:
+    """CheckpointError unless `state` is a league state this alignrl reads."""
+    if state.get("format") != STATE_FORMAT:
+        raise CheckpointError(
+            f"{path}: league state format {state.get('format')!r}, this alignrl reads "
+            f"{STATE_FORMAT!r} (a league of an earlier alignrl, rated by Elo, cannot be "
+            "resumed or reported: start it again)"
+        )
+
+
 def read_checkpoint(
     folder: Path, envs: int, device: str
 ) -> tuple[dict[str, Any], dict[str, Agent]]:
     """The league state of the checkpoint `folder` and its members (each with `envs`
     experience slots on `device`)."""
     state = load_checkpoint(folder / "league.pt", device)
-    if state.get("format") != STATE_FORMAT:
-        raise CheckpointError(f"{folder}/league.pt: format {state.get('format')!r}")
+    check_state_format(state, folder / "league.pt")
     members = {
         member_id: Agent.load(folder / "members" / f"{member_id}.pt", envs, device)
         for member_id in state["members"]

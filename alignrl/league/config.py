@@ -19,6 +19,7 @@ from pydantic import Field, field_validator, model_validator
 
 from alignrl.apparatus.registry import spec_form
 from alignrl.config import (
+    SEED_LIMIT,
     ConfigError,
     Count,
     LearnerConfig,
@@ -30,6 +31,7 @@ from alignrl.config import (
     read_layered,
     read_yaml,
 )
+from alignrl.evaluation.session import TEST_SEED, VALIDATION_SEED
 
 __all__ = [
     "LeagueConfig",
@@ -134,8 +136,65 @@ class MatchmakingConfig(_Strict):
 
 
 class RatingConfig(_Strict):
-    initial: float = Field(1200.0, description="rating of a new member")
-    k_factor: float = Field(16.0, gt=0, le=100, description="Elo step size")
+    """openskill Plackett-Luce ratings (alignrl.league.ratings); its defaults."""
+
+    mu: float = Field(25.0, allow_inf_nan=False, description="mean rating of a new member")
+    sigma: float = Field(
+        25.0 / 3, gt=0, allow_inf_nan=False, description="spread (uncertainty) of a new rating"
+    )
+    beta: float = Field(
+        25.0 / 6, gt=0, allow_inf_nan=False, description="spread of one match's performance"
+    )
+    tau: float = Field(
+        25.0 / 300,
+        ge=0,
+        allow_inf_nan=False,
+        description="spread added before every match, so that a rating follows a member "
+        "that learns",
+    )
+    anchors: dict[str, float] | None = Field(
+        None,
+        description="classical controllers rated beside the aligners at a fixed mean, each "
+        "aligning the same columns from the same starts; null: the hyperbola fit at mu on a "
+        "one-knob task, none on the others; {}: none",
+    )
+
+
+class SessionsConfig(_Strict):
+    """The league's evaluation sessions on eval_apparatus: validation sessions choose, the
+    test session reports (docs/league.md)."""
+
+    validation_seed: Count = Field(
+        VALIDATION_SEED,
+        ge=0,
+        lt=SEED_LIMIT,
+        description="seed of the validation sessions' scenarios and starts: they choose the "
+        "best members, the champion and the checkpoints kept",
+    )
+    test_seed: Count = Field(
+        TEST_SEED,
+        ge=0,
+        lt=SEED_LIMIT,
+        description="seed of the test session that reports the champion at the end: never "
+        "used for a choice; must differ from validation_seed",
+    )
+    test_scenarios: Count | None = Field(
+        None, ge=1, description="alignments of the test session; null: schedule.eval_scenarios"
+    )
+    test_classical: list[str] | None = Field(
+        None,
+        description="classical controllers beside the champion on the test session; null: "
+        "the task's (alignrl baselines)",
+    )
+
+    @model_validator(mode="after")
+    def _test_is_not_validation(self) -> SessionsConfig:
+        if self.test_seed == self.validation_seed:
+            raise ValueError(
+                f"test_seed and validation_seed are both {self.test_seed}: the test session "
+                "must not replay the scenarios that chose the champion; give it another seed"
+            )
+        return self
 
 
 # A copied learning rate is multiplied by one of these: 0 would stop its learning, a negative
@@ -150,7 +209,9 @@ class PBTConfig(_Strict):
         (0.8, 1.25), description="factors a copied learning rate is multiplied by"
     )
     min_gap: float = Field(
-        50.0, ge=0, description="rating lead a member needs over the one it replaces"
+        2.0,
+        ge=0,
+        description="lead a member's rating ordinal (mu - 3 sigma) needs over the one it replaces",
     )
 
 
@@ -226,7 +287,14 @@ class LeagueConfig(RunConfig):
     matchmaking: MatchmakingConfig = Field(
         default_factory=MatchmakingConfig, description="how each match's opponent is drawn"
     )
-    ratings: RatingConfig = Field(default_factory=RatingConfig, description="Elo ratings")
+    ratings: RatingConfig = Field(
+        default_factory=RatingConfig, description="ratings (openskill) and their anchors"
+    )
+    sessions: SessionsConfig = Field(
+        default_factory=SessionsConfig,
+        description="seeds and size of the validation sessions (choose) and the test session "
+        "(reports)",
+    )
     pbt: PBTConfig = Field(
         default_factory=PBTConfig, description="population-based training (exploit/explore)"
     )
@@ -243,6 +311,41 @@ class LeagueConfig(RunConfig):
     reference: Literal["hyperbola", "golden-section"] = Field(
         "hyperbola", description="the controller the regret payoff is measured against"
     )
+
+    @model_validator(mode="after")
+    def _classical_controllers_align_the_task(self) -> LeagueConfig:
+        from alignrl.evaluation.baselines import get_baseline
+        from alignrl.evaluation.controllers import check_controller
+
+        task = self.resolved_task()
+        keys = [("ratings.anchors", name) for name in self.ratings.anchors or {}]
+        keys += [("sessions.test_classical", name) for name in self.sessions.test_classical or []]
+        for key, name in keys:
+            try:
+                check_controller(get_baseline(name), task)
+            except ValueError as error:
+                raise ValueError(f"{key}: {error}") from None
+        return self
+
+    def anchor_ratings(self) -> dict[str, float]:
+        """The anchors and their fixed mean ratings (`ratings.anchors`, or its default)."""
+        if self.ratings.anchors is not None:
+            return dict(self.ratings.anchors)
+        # The hyperbola fit takes under a millisecond a match on the shipped recordings; the
+        # multi-knob routines tens of images (stigmator-search 40 ms on the analytic column,
+        # 13 min more for experiments/stigmation.yaml's 19,200 rated matches): chosen only.
+        if len(self.resolved_task().knobs) == 1:
+            return {"hyperbola": self.ratings.mu}
+        return {}
+
+    def test_classical(self) -> list[str]:
+        """The classical controllers of the test session (`sessions.test_classical`, or the
+        task's: none for a task without its own)."""
+        if self.sessions.test_classical is not None:
+            return list(self.sessions.test_classical)
+        from alignrl.evaluation.baselines import TASK_BASELINES
+
+        return list(TASK_BASELINES.get(self.resolved_task().name, {}))
 
     def design_names(self) -> tuple[str, ...]:
         """What a designing misaligner chooses (alignrl.envs.design), read from one apparatus
@@ -343,4 +446,11 @@ def load_league(
     clash = {m.id for m in aligners.members} & {m.id for m in misaligners.members}
     if clash:
         raise ConfigError(f"{layers.source}: ids used in both teams: {', '.join(sorted(clash))}")
+    named = {m.id for m in aligners.members} | {m.id for m in misaligners.members}
+    anchors = sorted(named & set(config.anchor_ratings()))
+    if anchors:
+        raise ConfigError(
+            f"{layers.source}: member ids {', '.join(anchors)} are the names of anchors "
+            "(ratings.anchors): rename the members"
+        )
     return config, aligners, misaligners

@@ -6,12 +6,16 @@ One iteration:
 2. they play `schedule.matches` matches: the misaligner chooses each start, the aligner
    aligns from it; the aligner learns from the seed's reward, the misaligner is paid what the
    aligner did not recover (the zero-sum payoff of alignrl.envs.rewards);
-3. both are rated (Elo, the aligner's score is its success rate) and the payoff recorded;
+3. both are rated (openskill, one update per match: the aligner's score is its success) and
+   the payoff recorded; the anchors (classical controllers of fixed rating) align the same
+   columns from the same starts, and each match against them rates the aligner only;
 4. every active member that played stores its experience and learns (snapshots are frozen);
 5. the curriculum steps with the aligner's successes.
 On a schedule: frozen snapshots join the opponent pool, the weakest members copy stronger ones
 (population-based training, with perturbed learning rates and recorded lineage), the best
-aligners by rating run an evaluation session, and the league is checkpointed.
+aligners by rating run a validation session, and the league is checkpointed. Once finished,
+the champion (the best by validation) is reported on a test session of its own
+(alignrl.league.sessions).
 
 A run lives in runs/<name>/:
 
@@ -21,7 +25,8 @@ A run lives in runs/<name>/:
     checkpoints/iteration-NNNNNN/                   league.pt + members/<id>.pt (atomic)
     snapshots/<id>@<iteration>.pt                   frozen members of the opponent pool
     initial/<id>.pt                                 the members as they started
-    best/<id>.pt, best/best.json                    the best aligners by evaluation session
+    best/<id>.pt, best/best.json                    the best aligners by validation session
+    test.json                                       the champion's test session (at the end)
     metrics/iterations.csv, metrics/evaluations.csv, metrics/lineage.csv
     metrics/members/<id>/updates.csv|episodes.csv   per-member learner figures (alignrl report)
     tensorboard/
@@ -53,8 +58,9 @@ import yaml
 
 from alignrl.agents.agent import Agent
 from alignrl.checkpoints import CheckpointError, atomic_write_text
-from alignrl.config import dump_experiment
+from alignrl.config import ConfigError, dump_experiment
 from alignrl.envs import Curriculum
+from alignrl.intervals import success_text
 from alignrl.league.backends import Backend, backend_class
 from alignrl.league.checkpointing import (
     STATE_FORMAT,
@@ -66,10 +72,17 @@ from alignrl.league.checkpointing import (
 )
 from alignrl.league.config import LeagueConfig, Roster, parse_league
 from alignrl.league.logs import LeagueLogs
-from alignrl.league.matches import UniformStarts, WorkerFailedError
+from alignrl.league.matches import MatchResult, UniformStarts, WorkerFailedError
 from alignrl.league.matchmaking import Matchmaker, MatchmakingConfig, OpponentPool
 from alignrl.league.pbt import choose_replacements, copy_id, copy_member, learning_rate
-from alignrl.league.ratings import EloConfig, PayoffTable, Ratings
+from alignrl.league.ratings import PayoffTable, Rating, RatingConfig, Ratings
+from alignrl.league.sessions import (
+    VALIDATION,
+    champion_test_session,
+    policy_session,
+    write_test,
+)
+from alignrl.league.standings import leaderboard
 from alignrl.league.warm_starts import member_spec, start_from, warm_starts
 from alignrl.runs.state import (
     CONFIG_FILE,
@@ -79,10 +92,10 @@ from alignrl.runs.state import (
     rng_state,
     run_config_data,
 )
-from alignrl.training import evaluate_policy
 
 # WorkerFailedError (alignrl.league.matches) is named here for the CLI, which catches it;
-# STATE_FORMAT (alignrl.league.checkpointing) for older importers.
+# STATE_FORMAT (alignrl.league.checkpointing) for older importers, leaderboard
+# (alignrl.league.standings) for its callers.
 __all__ = ["STATE_FORMAT", "League", "WorkerFailedError", "leaderboard"]
 
 
@@ -94,9 +107,11 @@ class League:
     from the other team (PFSP, uniform or latest; snapshots included), plays and rates
     their matches and lets the active members learn; on a schedule `run` freezes snapshots,
     lets the weakest copy the strongest (`exploit_and_explore`), judges the top aligners on
-    held-out scenarios (`evaluate`) and checkpoints. All randomness comes from one numpy
-    generator and torch's stream, both checkpointed, so a resumed league plays on as if it
-    had never stopped."""
+    validation sessions (`evaluate`) and checkpoints; once finished, `test` reports the
+    champion on a test session that chose nothing. Ratings are openskill's, pinned to the
+    anchors: classical controllers that align twins of the same columns from the same starts
+    and whose ratings never move. All randomness comes from one numpy generator and torch's
+    stream, both checkpointed, so a resumed league plays on as if it had never stopped."""
 
     def __init__(
         self, config: LeagueConfig, aligners: Roster, misaligners: Roster, run_dir: Path
@@ -108,8 +123,23 @@ class League:
         self.rng = np.random.default_rng(config.seed)
         self.backend: Backend = backend_class(config.backend)(config)
         self.members: dict[str, Agent] = {}
-        self.ratings = Ratings(EloConfig(config.ratings.initial, config.ratings.k_factor))
+        rating = config.ratings
+        self.ratings = Ratings(RatingConfig(rating.mu, rating.sigma, rating.beta, rating.tau))
+        anchors = config.anchor_ratings()
+        clash = sorted(set(anchors) & {m.id for r in (aligners, misaligners) for m in r.members})
+        if clash:
+            raise ConfigError(
+                f"member ids {', '.join(clash)} are the names of anchors (ratings.anchors): "
+                "rename the members"
+            )
+        for anchor, mu in anchors.items():
+            self.ratings.pin(anchor, mu)
         self.payoff = PayoffTable()
+        # The matches against the anchors: (aligner, anchor) -> the aligner's score; per
+        # anchor [matches, those it aligned within spec]; rated matches without anchors.
+        self.anchor_payoff = PayoffTable()
+        self.anchor_record: dict[str, list[int]] = {anchor: [0, 0] for anchor in anchors}
+        self.unanchored = 0
         self.pool = OpponentPool(config.matchmaking.max_snapshots)
         mm = config.matchmaking
         self.matchmaker = Matchmaker(
@@ -135,7 +165,7 @@ class League:
 
     # --- members ------------------------------------------------------------------------
 
-    def _add_member(self, agent: Agent, rating: float | None = None) -> None:
+    def _add_member(self, agent: Agent, rating: Rating | None = None) -> None:
         self.members[agent.id] = agent
         self.pool.add_member(agent.id, agent.spec.team)
         if agent.id not in self.ratings:
@@ -225,8 +255,15 @@ class League:
             "iteration": self.iteration,
             "env_steps": self.env_steps,
             "members": {i: agent.spec.to_dict() for i, agent in self.members.items()},
-            "ratings": self.ratings.state_dict(),
+            "ratings": json.dumps(self.ratings.state_dict()),
             "payoff": self.payoff.state_dict(),
+            "anchors": json.dumps(
+                {
+                    "payoff": self.anchor_payoff.state_dict(),
+                    "record": self.anchor_record,
+                    "unanchored": self.unanchored,
+                }
+            ),
             "pool": self.pool.state_dict(),
             "best": json.dumps(self.best),
             "curriculum": self.curriculum.state_dict() if self.curriculum else {},
@@ -260,8 +297,15 @@ class League:
         self._snapshot_cache = {}
         self.pool = OpponentPool(self.config.matchmaking.max_snapshots)
         self.pool.load_state_dict(state["pool"])
-        self.ratings.load_state_dict(state["ratings"])
+        self.ratings.load_state_dict(json.loads(state["ratings"]))
+        for anchor, mu in self.config.anchor_ratings().items():
+            if anchor not in self.ratings:  # named after the checkpoint: pinned from now on
+                self.ratings.pin(anchor, mu)
         self.payoff.load_state_dict(state["payoff"])
+        anchors = json.loads(state["anchors"])
+        self.anchor_payoff.load_state_dict(anchors["payoff"])
+        self.anchor_record = {name: list(record) for name, record in anchors["record"].items()}
+        self.unanchored = int(anchors["unanchored"])
         self.best = json.loads(state["best"])
         self.iteration, self.env_steps = int(state["iteration"]), int(state["env_steps"])
         if self.curriculum and state["curriculum"]:
@@ -292,7 +336,7 @@ class League:
         if pairing.learner == pairing.aligner:
             uniform = min(round(matches * self.config.schedule.uniform_starts), matches - 1)
         result = self.backend.play(
-            aligner, misaligner, matches - uniform, self.rng, learning, on_episode
+            aligner, misaligner, matches - uniform, self.rng, learning, on_episode, anchored=True
         )
         played = result
         if uniform:
@@ -308,13 +352,16 @@ class League:
         # Ratings, payoffs and the success rate logged: the rated matches, the misaligner's.
         # The aligner's rated score: its success, or under the regret payoff how it fared
         # against the reference (alignrl.envs.design).
-        self.ratings.update(pairing.aligner, pairing.misaligner, result.score_rate)
+        self.ratings.update(pairing.aligner, pairing.misaligner, result.rated)
         self.payoff.add(pairing.aligner, pairing.misaligner, result.matches, sum(result.rated))
+        self._rate_against_anchors(pairing.aligner, result)
         self.ratings.record(self.iteration)
         self.payoff.record(self.iteration)
         first_episode = (self.iteration - 1) * self.config.schedule.matches + 1
+        # The pairing's id, not the player's: a snapshot loaded from file carries its live
+        # member's id, and its matches are not that member's episodes.
         self.logs.write_members(
-            played, self.members, aligner.id, self.env_steps, first_episode, complexity
+            played, self.members, pairing.aligner, self.env_steps, first_episode, complexity
         )
         self.logs.write_designs(
             self.iteration, aligner.id, misaligner.id, result, self.design_names
@@ -329,8 +376,8 @@ class League:
             "success_rate": round(result.success_rate, 4),
             "mean_acquisitions": round(float(np.mean(played.acquisitions)), 3),
             "aligner_payoff": round(float(np.mean(result.payoffs)), 4),
-            "aligner_rating": round(self.ratings.rating(pairing.aligner), 2),
-            "misaligner_rating": round(self.ratings.rating(pairing.misaligner), 2),
+            "aligner_rating": round(self.ratings.rating(pairing.aligner).mu, 2),
+            "misaligner_rating": round(self.ratings.rating(pairing.misaligner).mu, 2),
             "complexity": round(complexity, 4),
             "seconds": round(time.perf_counter() - started, 3),
         }
@@ -338,8 +385,19 @@ class League:
         self.logs.add_scalar("league/success_rate", result.success_rate, self.iteration)
         self.logs.add_scalar("league/complexity", complexity, self.iteration)
         for player, rating in self.ratings.ranking(list(self.members)):
-            self.logs.add_scalar(f"rating/{player}", rating, self.iteration)
+            self.logs.add_scalar(f"rating/{player}", rating.mu, self.iteration)
         return row
+
+    def _rate_against_anchors(self, aligner: str, result: MatchResult) -> None:
+        """Each anchor's matches of the batch rate the aligner (never the anchor)."""
+        for anchor, scores in result.anchor_scores.items():
+            self.ratings.update(aligner, anchor, scores)
+            self.anchor_payoff.add(aligner, anchor, len(scores), sum(scores))
+            record = self.anchor_record.setdefault(anchor, [0, 0])
+            record[0] += len(scores)
+            record[1] += sum(result.anchor_successes[anchor])
+        if self.anchor_record:
+            self.unanchored += result.matches - result.anchored
 
     # --- snapshots, PBT, evaluation ---------------------------------------------------
 
@@ -360,7 +418,8 @@ class League:
         (alignrl.league.pbt)."""
         pbt, changes = self.config.pbt, []
         for team in ("aligner", "misaligner"):
-            ranking = self.ratings.ranking(self.pool.active(team))
+            # Ranked, and the lead measured, by the ordinal mu - 3 sigma.
+            ranking = [(m, r.ordinal) for m, r in self.ratings.ranking(self.pool.active(team))]
             rates = {member: learning_rate(self.members[member].spec) for member, _ in ranking}
             for replacement in choose_replacements(
                 ranking, rates, pbt.fraction, pbt.min_gap, pbt.perturb, self.rng
@@ -387,24 +446,28 @@ class League:
                 changes.append(change)
         return changes
 
-    def session(self, agent: Agent, scenarios: int | None = None, name: str | None = None):
-        """A held-out evaluation session of `agent` (mean actions) on the league's
-        eval_apparatus, judged at the task's spec; training's random streams are untouched."""
+    def session(
+        self,
+        agent: Agent,
+        scenarios: int | None = None,
+        name: str | None = None,
+        seed: int | None = None,
+    ):
+        """A session of `agent` (mean actions) on the league's eval_apparatus, judged at the
+        task's spec, on the validation scenarios unless `seed` names others; training's
+        random streams are untouched."""
         cfg = self.config
-        with torch.random.fork_rng(devices=[]):
-            return evaluate_policy(
-                lambda observation: agent.act(observation, deterministic=True),
-                cfg.eval_apparatus,
-                cfg.eval_apparatus_args,
-                cfg.resolved_task(),
-                cfg.history,
-                scenarios or cfg.schedule.eval_scenarios,
-                name=name or agent.id,
-            )
+        return policy_session(
+            agent,
+            cfg,
+            cfg.sessions.validation_seed if seed is None else seed,
+            scenarios or cfg.schedule.eval_scenarios,
+            name or agent.id,
+        )
 
     def evaluate(self) -> list[dict[str, Any]]:
-        """The top aligners by rating run an evaluation session each; the best by
-        evaluation are kept in best/."""
+        """The top aligners by rating run a validation session each; the best by validation
+        are kept in best/ (the first is the champion)."""
         cfg, rows = self.config, []
         top = self.ratings.ranking(self.pool.active("aligner"))[: cfg.schedule.keep_best]
         for member_id, rating in top:
@@ -416,7 +479,7 @@ class League:
                 "scenarios": result.scenarios,
                 "median_acquisitions": result.median_acquisitions,
                 "p90_acquisitions": result.p90_acquisitions,
-                "rating": round(rating, 2),
+                "rating": round(rating.mu, 2),
             }
             rows.append(row)
             previous = self.best.get(member_id)
@@ -424,7 +487,7 @@ class League:
                 previous["successes"],
                 -previous["median_acquisitions"],
             ):
-                self.best[member_id] = row
+                self.best[member_id] = {**row, "session": VALIDATION}
                 self.members[member_id].save(self.run_dir / "best" / f"{member_id}.pt")
         self.logs.evaluations.write(rows)
         ranked = sorted(
@@ -442,29 +505,22 @@ class League:
         self.best = {member: row for member, row in self.best.items() if member in keep}
         return rows
 
-    def champion(self) -> dict[str, Any] | None:
-        """The best aligner by evaluation session, side by side with the same member as it
-        started (untrained), on the same held-out scenarios."""
+    def test(self) -> dict[str, Any] | None:
+        """The champion (the best by validation session) on the test session, beside the
+        same member as it started (untrained) and the classical controllers, all on the same
+        scenarios of the test seed, which chose nothing; written to test.json. None before the
+        first validation session."""
         path = self.run_dir / "best" / "best.json"
-        if not path.exists():
-            return None
-        ranked = json.loads(path.read_text())
+        ranked = json.loads(path.read_text()) if path.exists() else []
         if not ranked:
             return None
-        best = ranked[0]
-        champion = Agent.load(self.run_dir / "best" / f"{best['member']}.pt")
-        base = best["member"].split("-pbt")[0]
+        chosen = ranked[0]
+        champion = Agent.load(self.run_dir / "best" / f"{chosen['member']}.pt")
+        base = chosen["member"].split("-pbt")[0]
         untrained = Agent.load(self.run_dir / "initial" / f"{base}.pt")
-        sessions = {}
-        for label, agent in (("champion", champion), ("untrained", untrained)):
-            result = self.session(agent)
-            sessions[label] = {
-                "member": agent.id,
-                "successes": result.successes,
-                "scenarios": result.scenarios,
-                "median_acquisitions": result.median_acquisitions,
-            }
-        return sessions
+        data = champion_test_session(self.config, champion, untrained, chosen, self.iteration)
+        write_test(self.run_dir, data)
+        return data
 
     def close(self) -> None:
         """Release the backend's workers (a Ray backend's actors); the run directory is
@@ -518,7 +574,8 @@ class League:
                     if log:
                         log(
                             f"iteration {it}: {evaluation['member']} aligned "
-                            f"{evaluation['successes']}/{evaluation['scenarios']} held-out, "
+                            f"{success_text(evaluation['successes'], evaluation['scenarios'])} "
+                            "on validation, "
                             f"median {evaluation['median_acquisitions']:g} acquisitions"
                         )
             if it % schedule.checkpoint_every == 0 or last:
@@ -542,27 +599,3 @@ def _training_knobs(config: LeagueConfig) -> list[dict[str, Any]] | None:
     except (ApparatusError, ImportError, OSError, ValueError):
         return None
     return knob_limits(config.resolved_task(), apparatus.knobs)
-
-
-def leaderboard(league: League) -> list[dict[str, Any]]:
-    """Every active member and kept snapshot, per team, best rated first."""
-    rows = []
-    for team in ("aligner", "misaligner"):
-        for player in league.pool.candidates(team):
-            spec = league.player(player).spec
-            best = league.best.get(player, {})
-            rows.append(
-                {
-                    "member": player,
-                    "team": team,
-                    "architecture": spec.architecture,
-                    "learner": spec.algorithm,
-                    "rating": round(league.ratings.rating(player), 1),
-                    "snapshot": league.pool.is_snapshot(player),
-                    "successes": best.get("successes"),
-                    "scenarios": best.get("scenarios"),
-                    "median_acquisitions": best.get("median_acquisitions"),
-                    "parent": spec.parent,
-                }
-            )
-    return sorted(rows, key=lambda row: (row["team"], -row["rating"]))

@@ -16,19 +16,28 @@ and what happens to each step, is the caller's:
 Payoffs are the aligner's, in the zero-sum game: its return (the seed's rewards) minus what
 the start was worth (the duel's reward to the misaligner's move); the misaligner's is the
 negative.
+
+Anchors (`make_anchors`: classical controllers with a fixed rating, alignrl.league.ratings)
+play beside the aligner where they are asked to: once the misaligner has placed a start, each
+aligns a twin of the column in its very state (alignrl.envs.design.twin_of), and each match
+gives the aligner a score against each anchor (`anchor_scores`). The league's apparatus and
+random streams are untouched by them. An apparatus without a twin (a real microscope) plays
+no anchors.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from alignrl.agents.agent import Agent, MemberSpec
+from alignrl.apparatus.base import Apparatus, ApparatusError
 from alignrl.config import ConfigError
 from alignrl.envs.core import AlignmentEpisodes
+from alignrl.envs.design import Reference, can_twin, twin_of
 from alignrl.envs.duel import (
     ALIGNER,
     MISALIGNER,
@@ -36,6 +45,7 @@ from alignrl.envs.duel import (
     misaligner_input_shape,
     misaligner_inputs,
 )
+from alignrl.league.ratings import anchor_scores
 
 __all__ = [
     "AlignerSteps",
@@ -49,6 +59,7 @@ __all__ = [
     "exploration_generator",
     "learn_from_matches",
     "learn_from_starts",
+    "make_anchors",
     "make_duel",
     "play_round",
     "record_matches",
@@ -125,6 +136,9 @@ class MatchResult:
         self.payoffs: list[float] = []
         self.rated: list[float] = []  # the aligner's rated score per match (envs.design)
         self.designs: list[np.ndarray] = []  # the box fractions a designer chose, per match
+        # Per anchor, of the matches it played: the aligner's score against it, its success.
+        self.anchor_scores: dict[str, list[float]] = {}
+        self.anchor_successes: dict[str, list[bool]] = {}
         self.updates: dict[str, list[dict[str, float]]] = {}
 
     def add(
@@ -135,9 +149,11 @@ class MatchResult:
         payoff: float,
         rated: float | None = None,
         design: np.ndarray | None = None,
+        anchors: Mapping[str, tuple[float, bool]] | None = None,
     ) -> None:
         """One finished match (`rated`: its success unless given; `design`: where the
-        misaligner designed the column)."""
+        misaligner designed the column; `anchors`: per anchor that played it, the aligner's
+        score against it and whether it met the spec)."""
         self.successes.append(bool(success))
         self.acquisitions.append(int(acquisitions))
         self.returns.append(float(aligner_return))
@@ -145,6 +161,14 @@ class MatchResult:
         self.rated.append(float(success) if rated is None else float(rated))
         if design is not None and np.size(design):
             self.designs.append(np.asarray(design, float))
+        for name, (score, anchor_success) in (anchors or {}).items():
+            self.anchor_scores.setdefault(name, []).append(float(score))
+            self.anchor_successes.setdefault(name, []).append(bool(anchor_success))
+
+    @property
+    def anchored(self) -> int:
+        """Matches every anchor played (0 without anchors)."""
+        return min((len(scores) for scores in self.anchor_scores.values()), default=0)
 
     @property
     def matches(self) -> int:
@@ -164,6 +188,11 @@ class MatchResult:
         both = MatchResult()
         for name in ("successes", "acquisitions", "returns", "payoffs", "rated", "designs"):
             setattr(both, name, getattr(self, name) + getattr(other, name))
+        for name in ("anchor_scores", "anchor_successes"):
+            joined = {anchor: list(rows) for anchor, rows in getattr(self, name).items()}
+            for anchor, rows in getattr(other, name).items():
+                joined.setdefault(anchor, []).extend(rows)
+            setattr(both, name, joined)
         both.updates = {m: list(rows) for m, rows in self.updates.items()}
         for member, rows in other.updates.items():
             both.updates.setdefault(member, []).extend(rows)
@@ -200,6 +229,15 @@ class Round:
     finish_order: list[int]  # slots in the order their matches ended
     rated: np.ndarray  # (n,) the aligner's rated score (its success, or against the reference)
     designs: np.ndarray  # (n, d) box fractions a designer chose (d = 0: it places starts only)
+    # anchor -> ((n,) the aligner's score against it, (n,) bool whether it met the spec)
+    anchors: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+
+    def anchors_of(self, slot: int) -> dict[str, tuple[float, bool]]:
+        """Per anchor, the aligner's score against it in `slot` and the anchor's success."""
+        return {
+            name: (float(scores[slot]), bool(successes[slot]))
+            for name, (scores, successes) in self.anchors.items()
+        }
 
 
 @dataclass
@@ -218,6 +256,8 @@ class MatchTrajectory:
     steps: AlignerSteps  # from the first step to the last
     rated: float  # the aligner's rated score
     design: np.ndarray  # (d,) the box fractions the designer chose (empty: starts only)
+    # anchor -> (the aligner's score against it, whether the anchor met the spec)
+    anchors: dict[str, tuple[float, bool]] = field(default_factory=dict)
 
     @property
     def payoff(self) -> float:
@@ -238,20 +278,64 @@ def make_duel(episodes: AlignmentEpisodes, design: bool, payoff: str, reference:
         raise ConfigError(f"design: {design}, payoff: {payoff}: {error}") from None
 
 
+def make_anchors(names: Sequence[str], units: Sequence[Apparatus]) -> list[Reference]:
+    """The anchors `names` (classical controllers, checked against the task by the league's
+    config) that play beside the aligners on `units`; none where an apparatus cannot give a
+    twin of its column (a real microscope)."""
+    from alignrl.evaluation.baselines import get_baseline
+    from alignrl.evaluation.references import ControllerReference
+
+    if not all(can_twin(unit) for unit in units):
+        return []
+    return [ControllerReference(get_baseline(name)) for name in names]
+
+
+def _anchors_align(
+    duel: DuelBatch, anchors: Sequence[Reference]
+) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Each anchor aligns a twin of every column of the round from its start (the aligner
+    has not acted yet): per anchor, (n,) whether it met the spec and (n,) its final cost, px
+    (the task's no-edges width where its last image failed)."""
+    episodes, slots = duel.episodes, duel.slots
+    played = {}
+    for anchor in anchors:
+        reference = duel.reference if duel.payoff == "regret" else None
+        if reference is not None and reference.name == anchor.name:
+            cost = duel.reference_cost[slots].copy()  # the regret's reference played them
+        else:
+            cost = np.full(len(slots), np.nan)
+            for position, slot in enumerate(slots):
+                try:
+                    cost[position], _ = anchor.align(
+                        twin_of(episodes.apparatus[slot]), episodes.task
+                    )
+                except ApparatusError:  # a fault of the twin: the anchor failed there
+                    pass
+        success = np.isfinite(cost) & (cost <= episodes.threshold[slots])
+        played[anchor.name] = (
+            success,
+            np.where(np.isfinite(cost), cost, episodes.task.no_edges_px),
+        )
+    return played
+
+
 def play_round(
     duel: DuelBatch,
     seeds: Sequence[int],
     choose_start: Chooser,
     choose_action: Chooser,
     on_step: Callable[[AlignerSteps], None],
+    anchors: Sequence[Reference] = (),
 ) -> Round:
     """One match per seed on slots 0..len(seeds)-1 of `duel`, played to the end; `on_step`
-    sees every aligner step as it happens."""
+    sees every aligner step as it happens; `anchors` align twins of the same columns from the
+    same starts."""
     duel.reset(seeds)
     slots = duel.slots
     rows = misaligner_inputs(duel.observe(MISALIGNER))
     starts, starts_pre_tanh = choose_start(rows, slots)
     duel.step(starts)
+    anchored = _anchors_align(duel, anchors)
     scores = duel.rewards[MISALIGNER][slots]
     returns = np.zeros(len(slots))
     finish_order: list[int] = []
@@ -276,17 +360,22 @@ def play_round(
             )
         )
         finish_order += [int(slot) for slot in active[done]]
+    successes, final_cost = duel.successes(), duel.episodes.cost[slots]
     return Round(
         rows,
         starts,
         starts_pre_tanh,
         scores,
         returns,
-        duel.successes(),
+        successes,
         duel.acquisitions(),
         finish_order,
         duel.rated(),
         duel.designs[slots].copy(),
+        {
+            name: (anchor_scores(successes, final_cost, success, cost), success)
+            for name, (success, cost) in anchored.items()
+        },
     )
 
 
@@ -365,11 +454,12 @@ def record_matches(
     learns: tuple[bool, bool],
     deterministic: bool = False,
     on_step: Callable[[AlignerSteps], None] | None = None,
+    anchors: Sequence[Reference] = (),
 ) -> list[MatchTrajectory]:
     """One match per seed, in rounds of `duel.n`, recorded in the order of `seeds`.
     `learns`: whether the aligner and the misaligner learn from these matches (they then
-    explore). Each match's randomness comes from its own seed alone, so it plays the same
-    on any worker, beside any other matches."""
+    explore); `anchors` play beside the aligner. Each match's randomness comes from its own
+    seed alone, so it plays the same on any worker, beside any other matches."""
     aligner_learns, misaligner_learns = learns
     trajectories = []
     for first in range(0, len(seeds), duel.n):
@@ -388,6 +478,7 @@ def record_matches(
             _seeded_chooser(misaligner, generators, misaligner_learns, deterministic),
             _seeded_chooser(aligner, generators, aligner_learns, deterministic),
             keep,
+            anchors,
         )
         for slot, seed in enumerate(chunk):
             pre_tanh = played.starts_pre_tanh
@@ -404,6 +495,7 @@ def record_matches(
                     steps=_per_match(steps, slot),
                     rated=float(played.rated[slot]),
                     design=played.designs[slot],
+                    anchors=played.anchors_of(slot),
                 )
             )
     return trajectories
@@ -430,6 +522,7 @@ def learn_from_matches(
             match.payoff,
             match.rated,
             match.design,
+            match.anchors,
         )
         if on_episode:
             on_episode(match.success)

@@ -1,35 +1,99 @@
-"""How strong each league player is: Elo ratings and the aligner-versus-misaligner payoff table.
+"""How strong each league player is: ratings with their uncertainty, the fixed-rating anchors
+they are measured against, and the aligner-versus-misaligner payoff table.
 
-Ratings are Elo-style (logistic, base 10, scale 400): a player rated 400 points above another
-is expected to score 10:1 against it. One league iteration plays a batch of matches between one
-aligner and one misaligner; the batch's mean score (the aligner's success rate, in [0, 1])
-updates both ratings once, by equal and opposite amounts, because the game is zero-sum (seed
-section 3). A player is any id: an active member ("aligner-0") or a frozen snapshot of one
-("aligner-0@3", frozen at iteration 3).
+Ratings are openskill's Plackett-Luce (Weng & Lin 2011, "A Bayesian approximation method for
+online ranking"): a player's skill is a normal belief, mean mu and spread sigma, and every
+match moves the mean by how surprising its outcome was and shrinks the spread. Before each
+match the spread grows by `tau`, so that a rating follows a member that learns. A rating is
+shown as mu ± sigma and sorted by its ordinal, mu - 3 sigma: a member rated on few matches
+ranks below one that earned the same mu on many.
+
+One league iteration plays a batch of matches between one aligner and one misaligner; each
+match is one rating update, its outcome the aligner's rated score of that match (1 a win, 0
+a loss, 1/2 a draw: its success, or under the regret payoff how it fared against the
+reference, alignrl.envs.design). A player is any id: an active member ("aligner-0") or a
+frozen snapshot of one ("aligner-0@3", frozen at iteration 3).
+
+Anchors are classical controllers (the hyperbola fit ...) with a rating fixed for good: they
+align twins of the same columns from the same starts as the aligners (alignrl.league.matches),
+and every aligner-versus-anchor match (`anchor_scores`) moves the aligner's rating only. An
+aligner rated above the hyperbola anchor does better than the hyperbola fit on the starts it
+played; without anchors the two teams' ratings would float against each other only.
 
 The payoff table keeps, per (aligner, misaligner) pair, how many matches they played and the
 aligner's total score, so the aligner's win rate against each misaligner is exact rather than
 inferred from ratings; prioritized fictitious self-play (matchmaking.py) samples from it.
 
-Both keep their state as plain data (str, int, float, lists, dicts), stored in checkpoints and
-JSON alike.
+All of it keeps its state as plain data (str, int, float, lists, dicts), stored in checkpoints
+and JSON alike.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
+from openskill.models import PlackettLuce
 
-__all__ = ["EloConfig", "PayoffTable", "Ratings", "expected_score"]
+__all__ = [
+    "ALIKE_RELATIVE",
+    "PayoffTable",
+    "Rating",
+    "RatingConfig",
+    "Ratings",
+    "anchor_scores",
+]
+
+# openskill's defaults: a new player at 25 ± 25/3; beta, the spread of one match's
+# performance, 25/6; tau, the spread added before every match, 25/300.
+DEFAULT_MU = 25.0
+ANCHOR_SIGMA = 0.0  # an anchor's rating is known exactly: it never learns
+SPREADS = 3.0  # ordinal = mu - SPREADS sigma: 99.9 % sure the skill is at least that
+# Where neither met the spec, final widths within 5 % of each other count alike (a draw):
+# beyond the 2 % re-measurement noise of the shipped recordings.
+ALIKE_RELATIVE = 0.05
+SCORES = (0.0, 0.5, 1.0)  # a match's outcome for its first player: loss, draw, win
 
 
-def expected_score(rating_a: float, rating_b: float, scale: float = 400.0) -> float:
-    """Elo's expected score of a against b, in (0, 1); expected(a, b) + expected(b, a) = 1."""
-    return 1.0 / (1.0 + 10.0 ** ((rating_b - rating_a) / scale))
+class Rating(NamedTuple):
+    """A player's skill belief: mean `mu` and spread `sigma`, rating points."""
+
+    mu: float
+    sigma: float
+
+    @property
+    def ordinal(self) -> float:
+        """mu - 3 sigma: what sorts the leaderboard (a conservative estimate of the skill)."""
+        return self.mu - SPREADS * self.sigma
+
+    def text(self) -> str:
+        """`27.3 ± 1.4`."""
+        return f"{self.mu:.1f} ± {self.sigma:.1f}"
+
+
+@dataclass(frozen=True)
+class RatingConfig:
+    mu: float = DEFAULT_MU  # a new member's mean rating
+    sigma: float = DEFAULT_MU / 3  # its spread
+    beta: float = DEFAULT_MU / 6  # the spread of one match's performance
+    tau: float = DEFAULT_MU / 300  # spread added before every match (members learn)
+
+    def __post_init__(self) -> None:
+        if not math.isfinite(self.mu):
+            raise ValueError(f"ratings: mu must be a finite number, got {self.mu}")
+        for name in ("sigma", "beta"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"ratings: {name} must be a positive number, got {value}")
+        if not (math.isfinite(self.tau) and self.tau >= 0):
+            raise ValueError(f"ratings: tau must be a number >= 0, got {self.tau}")
+
+    @property
+    def initial(self) -> Rating:
+        return Rating(self.mu, self.sigma)
 
 
 def _check_iteration(iteration: int, last: int | None, what: str) -> int:
@@ -42,33 +106,48 @@ def _check_iteration(iteration: int, last: int | None, what: str) -> int:
     return iteration
 
 
-@dataclass(frozen=True)
-class EloConfig:
-    initial: float = 1200.0  # rating of a player before its first match
-    k_factor: float = 16.0  # largest change one update can make (score 1 against a sure loss)
-    scale: float = 400.0  # rating difference at which the stronger is expected to score 10:1
-
-    def __post_init__(self) -> None:
-        if not math.isfinite(self.initial):
-            raise ValueError(f"Elo initial rating must be a finite number, got {self.initial}")
-        if not (math.isfinite(self.k_factor) and self.k_factor > 0):
-            raise ValueError(f"Elo k_factor must be a positive number, got {self.k_factor}")
-        if not (math.isfinite(self.scale) and self.scale > 0):
-            raise ValueError(f"Elo scale must be a positive number, got {self.scale}")
+def anchor_scores(
+    aligner_success: np.ndarray,
+    aligner_width: np.ndarray,
+    anchor_success: np.ndarray,
+    anchor_width: np.ndarray,
+    alike: float = ALIKE_RELATIVE,
+) -> np.ndarray:
+    """The aligner's score against an anchor on each of the same columns from the same
+    starts: 1 where only the aligner met the spec, 0 where only the anchor did, 1/2 where
+    both did. Where neither did, the narrower final width wins, by more than `alike` of the
+    wider one; else 1/2. Widths in px (the task's cost; NaN, no image: wider than any)."""
+    mine, theirs = np.asarray(aligner_success, bool), np.asarray(anchor_success, bool)
+    mine_px = np.nan_to_num(np.asarray(aligner_width, float), nan=np.inf)
+    theirs_px = np.nan_to_num(np.asarray(anchor_width, float), nan=np.inf)
+    wider = np.maximum(mine_px, theirs_px)
+    with np.errstate(invalid="ignore", divide="ignore"):  # unmeasured ones: inf - inf
+        difference = theirs_px - mine_px  # > 0: the aligner ended narrower
+        # Both measured: relative to the wider; one unmeasured: the measured one is
+        # narrower; both unmeasured (NaN): alike.
+        gap = np.where(np.isfinite(wider), difference / wider, np.sign(difference))
+    gap = np.nan_to_num(gap, nan=0.0)
+    narrower = np.where(gap > alike, 1.0, np.where(gap < -alike, 0.0, 0.5))
+    return np.where(mine == theirs, np.where(mine, 0.5, narrower), mine.astype(float))
 
 
 class Ratings:
-    """Elo ratings of league players, with a history of them for the report's rating plot.
+    """The ratings of league players and anchors, with a history for the report's plot.
 
-    Every id counts as rated at `config.initial` until it plays; `update` then stores it.
-    `add` seeds a player explicitly, e.g. a member copied by population-based training or a
-    fresh snapshot, which should start from its source's rating rather than the initial one.
+    Every id counts as rated at the config's initial rating until it plays; `update` then
+    stores it. `add` seeds a player explicitly, e.g. a member copied by population-based
+    training or a fresh snapshot, which starts from its source's rating; `pin` adds an anchor,
+    whose rating no match changes.
     """
 
-    def __init__(self, config: EloConfig | None = None) -> None:
-        self.config = config or EloConfig()
-        self._ratings: dict[str, float] = {}
-        self.history: list[tuple[int, str, float]] = []  # (iteration, id, rating) rows
+    def __init__(self, config: RatingConfig | None = None) -> None:
+        self.config = config or RatingConfig()
+        self._model = PlackettLuce(
+            mu=self.config.mu, sigma=self.config.sigma, beta=self.config.beta, tau=self.config.tau
+        )
+        self._ratings: dict[str, Rating] = {}
+        self._anchors: set[str] = set()
+        self.history: list[tuple[int, str, float, float]] = []  # (iteration, id, mu, sigma)
         self._last_recorded: int | None = None
 
     def __contains__(self, player: str) -> bool:
@@ -77,73 +156,119 @@ class Ratings:
     def __len__(self) -> int:
         return len(self._ratings)
 
-    def rating(self, player: str) -> float:
+    @property
+    def anchors(self) -> list[str]:
+        """The anchors, in the order they were pinned."""
+        return [player for player in self._ratings if player in self._anchors]
+
+    def is_anchor(self, player: str) -> bool:
+        return player in self._anchors
+
+    def rating(self, player: str) -> Rating:
         """The player's rating; the initial one for a player not rated yet."""
         return self._ratings.get(player, self.config.initial)
 
-    def add(self, player: str, rating: float | None = None) -> float:
+    def add(self, player: str, rating: Rating | None = None) -> Rating:
         """Rate a new player at `rating` (default: the initial rating); returns it."""
         if player in self._ratings:
             raise ValueError(
-                f"{player!r} is already rated ({self._ratings[player]:.1f}); give a copied "
+                f"{player!r} is already rated ({self._ratings[player].text()}); give a copied "
                 "member or a snapshot an id of its own"
             )
-        value = self.config.initial if rating is None else float(rating)
-        if not math.isfinite(value):
-            raise ValueError(f"rating of {player!r} must be a finite number, got {rating}")
+        value = self.config.initial if rating is None else Rating(*map(float, rating))
+        if not (math.isfinite(value.mu) and math.isfinite(value.sigma) and value.sigma >= 0):
+            raise ValueError(f"rating of {player!r} must be finite numbers, got {rating}")
         self._ratings[player] = value
         return value
 
-    def expected(self, a: str, b: str) -> float:
-        """The score a is expected to make against b, in (0, 1)."""
-        return expected_score(self.rating(a), self.rating(b), self.config.scale)
+    def pin(self, anchor: str, mu: float) -> Rating:
+        """Add an anchor whose rating stays `mu` (spread 0) whatever it plays."""
+        rating = self.add(anchor, Rating(float(mu), ANCHOR_SIGMA))
+        self._anchors.add(anchor)
+        return rating
 
-    def update(self, a: str, b: str, score_a: float) -> tuple[float, float]:
-        """Rate one batch of matches in which a scored `score_a` (b scored 1 - score_a).
+    def win_probability(self, a: str, b: str) -> float:
+        """The chance that a beats b, by their ratings."""
+        return float(self._model.predict_win([[self._skill(a)], [self._skill(b)]])[0])
 
-        Returns the new ratings of a and b. What a gains b loses: the league is zero-sum.
-        """
+    def update(self, a: str, b: str, scores: Sequence[float]) -> tuple[Rating, Rating]:
+        """Rate matches between a and b, one update per match in order; `scores` are a's (1
+        a win, 0 a loss, 1/2 a draw). An anchor's rating never moves. Returns the new
+        ratings of a and b."""
         if a == b:
             raise ValueError(f"{a!r} cannot be rated against itself")
-        score = float(score_a)
-        if not 0.0 <= score <= 1.0:  # NaN fails this too
+        if self.is_anchor(a) and self.is_anchor(b):
+            raise ValueError(f"{a!r} and {b!r} are both anchors: no match between them is rated")
+        outcomes = [float(score) for score in scores]
+        wrong = [score for score in outcomes if score not in SCORES]  # NaN is wrong too
+        if wrong:
             raise ValueError(
-                f"score of {a!r} against {b!r} must be in [0, 1] (a success rate), got {score_a}"
+                f"scores of {a!r} against {b!r} must each be 1 (a win), 0 (a loss) or 0.5 "
+                f"(a draw), got {wrong[0]}"
             )
-        delta = self.config.k_factor * (score - self.expected(a, b))
-        self._ratings[a] = self.rating(a) + delta
-        self._ratings[b] = self.rating(b) - delta
-        return self._ratings[a], self._ratings[b]
+        first, second = self.rating(a), self.rating(b)
+        for score in outcomes:
+            ranks = [0, 0] if score == 0.5 else ([0, 1] if score == 1.0 else [1, 0])
+            [[new_first], [new_second]] = self._model.rate(
+                [[self._model.rating(*first)], [self._model.rating(*second)]], ranks=ranks
+            )
+            if not self.is_anchor(a):
+                first = Rating(float(new_first.mu), float(new_first.sigma))
+            if not self.is_anchor(b):
+                second = Rating(float(new_second.mu), float(new_second.sigma))
+        self._ratings[a], self._ratings[b] = first, second
+        return first, second
 
-    def ranking(self, ids: Iterable[str] | None = None) -> list[tuple[str, float]]:
-        """(id, rating) best first, ties by id; `ids` limits it (unrated ones at the initial)."""
+    def _skill(self, player: str) -> Any:
+        return self._model.rating(*self.rating(player))
+
+    def ranking(self, ids: Iterable[str] | None = None) -> list[tuple[str, Rating]]:
+        """(id, rating) best first by ordinal, ties by id; `ids` limits it (unrated ones at
+        the initial rating)."""
         chosen = self._ratings if ids is None else ids
-        return sorted(((i, self.rating(i)) for i in chosen), key=lambda row: (-row[1], row[0]))
+        return sorted(
+            ((i, self.rating(i)) for i in chosen), key=lambda row: (-row[1].ordinal, row[0])
+        )
 
     def record(self, iteration: int) -> None:
         """Append every rated player's current rating to `history`, stamped `iteration`."""
         self._last_recorded = _check_iteration(iteration, self._last_recorded, "ratings")
-        self.history.extend((self._last_recorded, i, r) for i, r in self._ratings.items())
+        self.history.extend(
+            (self._last_recorded, i, r.mu, r.sigma) for i, r in self._ratings.items()
+        )
 
     def state_dict(self) -> dict[str, Any]:
         return {
-            "ratings": dict(self._ratings),
-            "history": [[iteration, i, r] for iteration, i, r in self.history],
+            "ratings": {i: [r.mu, r.sigma] for i, r in self._ratings.items()},
+            "anchors": self.anchors,
+            "history": [list(row) for row in self.history],
             "last_recorded": self._last_recorded,
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        self._ratings = {str(i): float(r) for i, r in state["ratings"].items()}
-        self.history = [(int(it), str(i), float(r)) for it, i, r in state["history"]]
+        ratings = state["ratings"]
+        if any(not isinstance(value, list | tuple) for value in ratings.values()):
+            raise ValueError(
+                "ratings were saved as single numbers (Elo, an alignrl before openskill "
+                "ratings): this league cannot be resumed; start it again"
+            )
+        self._ratings = {
+            str(i): Rating(float(mu), float(sigma)) for i, (mu, sigma) in ratings.items()
+        }
+        self._anchors = {str(anchor) for anchor in state["anchors"]}
+        self.history = [
+            (int(it), str(i), float(mu), float(sigma)) for it, i, mu, sigma in state["history"]
+        ]
         last = state["last_recorded"]
         self._last_recorded = None if last is None else int(last)
 
 
 class PayoffTable:
-    """Matches played and the aligner's total score for each (aligner, misaligner) pair.
+    """Matches played and the aligner's total score for each (aligner, opponent) pair (a
+    misaligner; the league keeps a second table for the anchors).
 
-    The aligner's win rate against a misaligner is its total score over its matches; the
-    misaligner's is one minus that. `record` keeps a compact history for plots: at each
+    The aligner's win rate against an opponent is its total score over its matches; the
+    opponent's is one minus that. `record` keeps a compact history for plots: at each
     recorded iteration, the running totals of only the pairs that changed since the last one.
     """
 
@@ -155,7 +280,7 @@ class PayoffTable:
 
     def add(self, aligner: str, misaligner: str, matches: int, aligner_score_sum: float) -> None:
         """Count `matches` more matches in which the aligner scored `aligner_score_sum` in all."""
-        pair = f"aligner {aligner!r} against misaligner {misaligner!r}"
+        pair = f"aligner {aligner!r} against {misaligner!r}"
         if isinstance(matches, bool) or not isinstance(matches, int | np.integer) or matches < 1:
             raise ValueError(f"{pair}: matches must be a whole number >= 1, got {matches}")
         score = float(aligner_score_sum)
@@ -169,6 +294,10 @@ class PayoffTable:
 
     def matches(self, aligner: str, misaligner: str) -> int:
         return self._totals.get((aligner, misaligner), (0, 0.0))[0]
+
+    def pairs(self) -> list[tuple[str, str]]:
+        """Every (aligner, opponent) pair that played, in the order they first met."""
+        return list(self._totals)
 
     def win_rate(self, aligner: str, misaligner: str) -> float | None:
         """The aligner's mean score against the misaligner; None if they never played."""

@@ -64,6 +64,7 @@ from alignrl.league.matches import (
     UniformStarts,
     WorkerFailedError,
     learn_from_matches,
+    make_anchors,
     make_duel,
     record_matches,
 )
@@ -101,12 +102,14 @@ class MatchWorker:
         history: int,
         threads: int,
         duel: tuple[bool, str, str] = (False, "improvement", "hyperbola"),
+        anchors: tuple[str, ...] = (),
     ) -> None:
         torch.set_num_threads(threads)
         self.index, self.apparatus = index, apparatus
         units = make_apparatus_copies(apparatus, apparatus_args, envs)
         self.episodes = AlignmentEpisodes(units, task, history)
         self.duel = make_duel(self.episodes, *duel)  # (design, payoff, reference)
+        self.anchors = make_anchors(anchors, units)  # none on a microscope: no twins there
         self._members: dict[str, Agent] = {}  # team -> acting copy, reused while the spec holds
         self._steps_to_failure: int | None = None
 
@@ -132,13 +135,16 @@ class MatchWorker:
         complexity: float,
         learns: tuple[bool, bool],
         deterministic: bool,
+        anchored: bool = False,
     ) -> list[MatchTrajectory]:
-        """One match per seed (see alignrl.league.matches.record_matches)."""
+        """One match per seed (see alignrl.league.matches.record_matches); `anchored`: the
+        anchors align the same columns too, where this worker's apparatus has twins."""
         aligner = self._member("aligner", policies["aligner"])
         misaligner = self._member("misaligner", policies["misaligner"])
         self.duel.set_complexity(complexity)
+        anchors = self.anchors if anchored else []
         return record_matches(
-            self.duel, seeds, aligner, misaligner, learns, deterministic, self._count
+            self.duel, seeds, aligner, misaligner, learns, deterministic, self._count, anchors
         )
 
     def _member(self, team: str, state: dict[str, Any]) -> Agent | UniformStarts:
@@ -259,6 +265,7 @@ class RayBackend:
             self.config.history,
             self.config.threads,
             (self.config.design, self.config.payoff, self.config.reference),
+            tuple(self.config.anchor_ratings()),
         )
 
     def fail_after(self, worker: int, steps: int) -> None:
@@ -286,6 +293,7 @@ class RayBackend:
         learning: set[str],
         on_episode: Callable[[bool], None] | None = None,
         deterministic: bool = False,
+        anchored: bool = False,
     ) -> MatchResult:
         """`matches` matches on the workers, then learning here: the same contract as
         alignrl.league.backends.InProcessBackend.play."""
@@ -304,7 +312,7 @@ class RayBackend:
 
         def submit(index: int) -> Any:
             return self._actors[index].play.remote(
-                policies, shares[index], self._complexity, learns, deterministic
+                policies, shares[index], self._complexity, learns, deterministic, anchored
             )
 
         played = self._gather({index: submit(index) for index in shares}, submit)

@@ -1,50 +1,66 @@
 """The report of a league run: runs/<name>/report.md and report.html, figures in report/.
 
 It reads what the league leaves in its run directory (alignrl.league.report_data: the last
-checkpoint's ratings and payoff table, the metrics CSVs, the rosters, best/best.json,
-config.yaml) and writes nothing else. Ratings are Elo points (ratings.py); an aligner's win
-rate is its mean score, the share of matches it aligned within spec. Iterations are league
-iterations: one batch of matches between one aligner and one misaligner. Env steps are the
-image acquisitions of all matches so far. The league's figures are drawn by
-alignrl.league.report_figures; each member's learner figures are those of a training run
-(alignrl/plots.py), drawn from metrics/members/<id>/. A figure whose data is not there yet (a
-run killed early) is left out, and the report says why. The document is built once as blocks
-and written as Markdown and as HTML (alignrl.league.report_document).
+checkpoint's ratings, payoff table and anchors' record, the metrics CSVs, the rosters,
+best/best.json, test.json, config.yaml) and writes nothing else. Ratings are openskill's mu ±
+sigma (ratings.py), pinned to the anchors; an aligner's win rate is its mean score, the share
+of matches it aligned within spec. Every success figure says which session it comes from
+(validation sessions choose, the test session reports: alignrl.league.sessions) and carries
+its 95 % Wilson interval. Iterations are league iterations: one batch of matches between one
+aligner and one misaligner. The league's env steps are the image acquisitions of all matches
+so far; a member's own are the transitions it learned from (report_data.member_env_steps),
+and its curves are drawn on them. The league's figures are drawn by
+alignrl.league.report_figures, every member in one colour throughout; each member's learner
+figures are those of a training run (alignrl/plots.py), drawn from metrics/members/<id>/. The
+classical controllers of the test session are the reference lines of the success and
+acquisitions figures. A figure whose data is not there yet (a run killed early) is left out,
+and the report says why. The document is built once as blocks and written as Markdown and as
+HTML (alignrl.report_document).
 """
 
 from __future__ import annotations
 
 from collections.abc import Collection, Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from alignrl.checkpoints import atomic_write_text, remove_partial_writes
+import numpy as np
+
+from alignrl.checkpoints import remove_partial_writes
+from alignrl.intervals import success_text
 from alignrl.league.matchmaking import SNAPSHOT_MARK
-from alignrl.league.report_data import LeagueRun, read_league_run
-from alignrl.league.report_document import (
-    Block,
-    Facts,
-    Heading,
-    Image,
-    Paragraph,
-    Table,
-    to_html,
-    to_markdown,
+from alignrl.league.report_data import (
+    LeagueRun,
+    classical_references,
+    member_env_steps,
+    member_sessions,
+    on_own_env_steps,
+    rated_matches,
+    read_league_run,
 )
 from alignrl.league.report_figures import (
     LEAGUE_FIGURES,
+    MEMBER_STEPS_LABEL,
+    TEST_FIGURE,
     PayoffGrid,
+    colour_of,
     curriculum_figure,
     designs_figure,
     evaluations_figure,
+    learning_figure,
+    member_colours,
     member_teams,
     payoff_figure,
     payoff_grid,
     rating_histories,
     ratings_figure,
     team_of,
+    test_session_figure,
 )
-from alignrl.plots import FIGURES, read_metrics_folder, save_png, write_figures
+from alignrl.plots import FIGURES, Reference, save_png, write_figures
+from alignrl.report_document import Block, Facts, Heading, Image, Paragraph, Table, write_documents
+from alignrl.run_tables import RunMetrics, read_metrics_folder
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -57,6 +73,7 @@ __all__ = [
     "PayoffGrid",
     "curriculum_figure",
     "evaluations_figure",
+    "member_colours",
     "member_teams",
     "payoff_figure",
     "payoff_grid",
@@ -75,33 +92,70 @@ MEMBER_FIGURES = {"aligner": tuple(FIGURES), "misaligner": ("losses.png",)}
 # --- figure files ---------------------------------------------------------------------
 
 
-def _league_figures(run: LeagueRun) -> tuple[dict[str, Figure], dict[str, str]]:
+@dataclass(frozen=True)
+class _Drawing:
+    """What every figure of one report shares: one colour per member, each member's own env
+    steps, the classical controllers of the test session."""
+
+    colours: dict[str, str]
+    steps: dict[str, tuple[np.ndarray, np.ndarray]]  # report_data.member_env_steps
+    references: list[Reference]
+
+    @classmethod
+    def of(cls, run: LeagueRun) -> _Drawing:
+        copies = set(run.lineage["member"])
+        rosters = [member for member in run.teams if member not in copies]
+        steps = member_env_steps(run.iterations, run.lineage, rosters, run.uniform_starts)
+        return cls(member_colours(run.teams), steps, classical_references(run.test))
+
+    def member_metrics(self, run: LeagueRun, member: str) -> RunMetrics:
+        """A member's tables and validation sessions at its own env steps."""
+        metrics = read_metrics_folder(run.run_dir, f"metrics/members/{member}")
+        return on_own_env_steps(metrics, member_sessions(run, member), self.steps.get(member))
+
+
+def _league_figures(run: LeagueRun, drawing: _Drawing) -> tuple[dict[str, Figure], dict[str, str]]:
     """Every league figure the run allows, and why each other one is left out."""
     built: dict[str, Figure] = {}
     skipped: dict[str, str] = {}
-    checkpoint = run.checkpoint
+    checkpoint, colours = run.checkpoint, drawing.colours
     if checkpoint is None:
         skipped["ratings.png"] = skipped["payoff.png"] = "no checkpoint yet (checkpoints/LATEST)"
     else:
         if checkpoint.ratings.history:
-            built["ratings.png"] = ratings_figure(checkpoint.ratings, run.teams, run.replaced)
+            built["ratings.png"] = ratings_figure(
+                checkpoint.ratings, run.teams, run.replaced, colours
+            )
         else:
             skipped["ratings.png"] = "the last checkpoint holds no rated iteration"
         grid = payoff_grid(checkpoint.payoff, checkpoint.ratings)
         if grid.aligners:
-            built["payoff.png"] = payoff_figure(grid)
+            built["payoff.png"] = payoff_figure(grid, colours)
         else:
             skipped["payoff.png"] = "the last checkpoint holds no match"
+    curves = {}
+    for member in (m for m, team in run.teams.items() if team == "aligner"):
+        if (run.run_dir / "metrics" / "members" / member).is_dir():
+            metrics = drawing.member_metrics(run, member)
+            if len(metrics.episodes):
+                curves[member] = (metrics.episodes, metrics.evaluations)
+    if curves:
+        built["learning.png"] = learning_figure(curves, colours, drawing.references)
+    else:
+        skipped["learning.png"] = "no aligner has played a match yet (metrics/members/)"
     if len(run.iterations):
-        built["curriculum.png"] = curriculum_figure(run.iterations)
+        rated = rated_matches(run.iterations, run.uniform_starts)
+        built["curriculum.png"] = curriculum_figure(run.iterations, rated)
     else:
         skipped["curriculum.png"] = run.why_empty("metrics/iterations.csv")
     if len(run.evaluations):
-        built["evaluations.png"] = evaluations_figure(run.evaluations)
+        built["evaluations.png"] = evaluations_figure(run.evaluations, colours, drawing.references)
     else:
         skipped["evaluations.png"] = run.why_empty("metrics/evaluations.csv")
     if run.designs is not None:  # (only a league whose misaligners design the column)
         built["designs.png"] = designs_figure(run.designs)
+    if run.test is not None:
+        built[TEST_FIGURE[0]] = test_session_figure(run.test, colours)
     return built, skipped
 
 
@@ -117,20 +171,28 @@ def _members_with_metrics(run_dir: Path, rows: Sequence[Mapping[str, Any]]) -> l
 
 
 def _write_member_figures(
-    run: LeagueRun, rows: Sequence[Mapping[str, Any]], out: Path
+    run: LeagueRun, drawing: _Drawing, rows: Sequence[Mapping[str, Any]], out: Path
 ) -> tuple[dict[str, list[str]], dict[str, str]]:
-    """Each member's training figures into out/members/<id>/: the names written per member,
-    and why each figure that applies to the member was left out."""
+    """Each member's training figures into out/members/<id>/, in its colour and on its own
+    env steps: the names written per member, and why each figure that applies to the member
+    was left out."""
     written: dict[str, list[str]] = {}
     skipped: dict[str, str] = {}
     for member in _members_with_metrics(run.run_dir, rows):
         folder = f"metrics/members/{member}"
-        figures = write_figures(read_metrics_folder(run.run_dir, folder), out / member)
+        team = team_of(member, run.teams)
+        figures = write_figures(
+            drawing.member_metrics(run, member),
+            out / member,
+            colour=colour_of(member, drawing.colours),
+            steps_label=MEMBER_STEPS_LABEL,
+            references=drawing.references if team == "aligner" else (),
+        )
         if not figures.written:
             skipped[f"members/{member}/"] = f"nothing to draw yet: {folder}/ has no rows"
             continue
         written[member] = [path.name for path in figures.written]
-        applies = MEMBER_FIGURES[team_of(member, run.teams)]
+        applies = MEMBER_FIGURES[team]
         skipped |= {
             f"members/{member}/{name}": why
             for name, why in figures.skipped.items()
@@ -152,10 +214,20 @@ def _duration(seconds: float) -> str:
     return f"{seconds:.1f} s"
 
 
-def _per_100(successes: float, scenarios: float) -> str:
-    """Successes per 100 scenarios, with the raw count when the session was not 100."""
-    rate = f"{100.0 * successes / scenarios:.0f}"
-    return rate if scenarios == 100 else f"{rate} ({successes:g}/{scenarios:g})"
+def _sessions(config: Mapping[str, Any]) -> str:
+    """Which sessions choose and which reports, with their seeds."""
+    from alignrl.league.config import TEST_SEED, VALIDATION_SEED
+
+    sessions = config.get("sessions") or {}
+    schedule = config.get("schedule") or {}
+    size = schedule.get("eval_scenarios", "?")
+    test_size = sessions.get("test_scenarios") or size
+    return (
+        f"validation sessions of seed {sessions.get('validation_seed', VALIDATION_SEED)} "
+        f"({size} held-out scenarios each) choose the best members and the champion; the test "
+        f"session of seed {sessions.get('test_seed', TEST_SEED)} ({test_size} scenarios, other "
+        "scenarios and starts) reports the champion and chose nothing"
+    )
 
 
 def _summary(run: LeagueRun) -> Facts:
@@ -184,6 +256,7 @@ def _summary(run: LeagueRun) -> Facts:
             "(the iterations' seconds; evaluations and checkpoints not included)",
         ),
     ]
+    facts.append(("Sessions", _sessions(run.config)))
     if run.warm_starts:
         started = "; ".join(f"{member} from {source}" for member, source in run.warm_starts.items())
         facts.append(("Warm starts", f"{started} (init_from: trained before the league)"))
@@ -194,7 +267,11 @@ def _leaderboard_table(rows: Sequence[Mapping[str, Any]]) -> Table:
     def evaluation(row: Mapping[str, Any]) -> str:
         if row["successes"] is None:
             return "-"
-        return _per_100(row["successes"], row["scenarios"])
+        return success_text(row["successes"], row["scenarios"])
+
+    def rating(row: Mapping[str, Any]) -> str:
+        shown = f"{row['rating']:.1f} ± {row['sigma']:.1f}"
+        return f"{shown} (fixed)" if row["anchor"] else shown
 
     median = "median_acquisitions"
     return Table(
@@ -203,8 +280,8 @@ def _leaderboard_table(rows: Sequence[Mapping[str, Any]]) -> Table:
             "team",
             "architecture",
             "learner",
-            "rating",
-            "held-out successes /100",
+            "rating (mu ± sigma)",
+            "best validation session (95 % interval)",
             "median acquisitions",
             "parent",
         ],
@@ -214,7 +291,7 @@ def _leaderboard_table(rows: Sequence[Mapping[str, Any]]) -> Table:
                 row["team"],
                 row["architecture"],
                 row["learner"],
-                f"{row['rating']:.1f}",
+                rating(row),
                 evaluation(row),
                 "-" if row[median] is None else f"{row[median]:g}",
                 row["parent"] or "",
@@ -222,6 +299,84 @@ def _leaderboard_table(rows: Sequence[Mapping[str, Any]]) -> Table:
             for row in rows
         ],
     )
+
+
+def _anchors(run: LeagueRun) -> list[Block]:
+    if run.checkpoint is None or not run.checkpoint.anchors["anchors"]:
+        return []
+    records = run.checkpoint.anchors
+    blocks: list[Block] = [
+        Heading(2, "Anchors"),
+        Paragraph(
+            "Classical controllers on the leaderboard at a fixed rating: in every rated match "
+            "each aligns a twin of the same column from the same start as the aligner, and the "
+            "aligner scores 1 where only it meets the spec, 0 where only the anchor does, 1/2 "
+            "where both do (where neither does, the narrower final width wins). These matches "
+            "move the aligner's rating, never the anchor's, so an aligner rated above an "
+            "anchor does better than it on the starts the misaligners chose."
+        ),
+        Table(
+            [
+                "anchor",
+                "rating",
+                "aligned within spec (league matches, 95 % interval)",
+                "aligners' mean score against it",
+            ],
+            [
+                [
+                    row["anchor"],
+                    f"{row['rating']:.1f} (fixed)",
+                    success_text(row["successes"], row["matches"]) if row["matches"] else "-",
+                    ", ".join(f"{a} {v:.2f}" for a, v in row["aligner_scores"].items()) or "-",
+                ]
+                for row in records["anchors"]
+            ],
+        ),
+    ]
+    if records["unanchored_matches"]:
+        blocks.append(
+            Paragraph(
+                f"{records['unanchored_matches']} rated matches were played without anchors: "
+                "their apparatus gives no twin of its column (a real microscope)."
+            )
+        )
+    return blocks
+
+
+def _test(run: LeagueRun, figures: Collection[str]) -> list[Block]:
+    blocks: list[Block] = [Heading(2, "Test session")]
+    test = run.test
+    if test is None:
+        return [*blocks, Paragraph("No test session yet: it runs when the league has finished.")]
+    chosen = test["chosen_by"]
+    blocks += [
+        Paragraph(
+            f"The champion, {chosen['member']}, was chosen by the validation sessions (seed "
+            f"{chosen['seed']}: {success_text(chosen['successes'], chosen['scenarios'])} at "
+            f"iteration {chosen['iteration']}). The test session, {test['scenarios']} held-out "
+            f"scenarios of seed {test['seed']} (other scenarios and starts, at iteration "
+            f"{test['iteration']}), chose nothing: it reports the champion beside the same "
+            "member as it started (untrained) and the classical controllers, all on the same "
+            "scenarios from the same starts."
+        ),
+        Table(
+            ["", "member", "successes (95 % interval)", "median acquisitions", "p90 acquisitions"],
+            [
+                [
+                    row["label"],
+                    row["member"] or "-",
+                    success_text(row["successes"], row["scenarios"]),
+                    f"{row['median_acquisitions']:g}",
+                    f"{row['p90_acquisitions']:.1f}",
+                ]
+                for row in test["rows"]
+            ],
+        ),
+    ]
+    name, title, caption = TEST_FIGURE
+    if name in figures:
+        blocks += [Paragraph(caption), Image(title, f"{FIGURE_FOLDER}/{name}")]
+    return blocks
 
 
 def _lineage(run: LeagueRun) -> Block:
@@ -245,21 +400,21 @@ def _lineage(run: LeagueRun) -> Block:
 
 def _best(run: LeagueRun) -> Block:
     if not run.best:
-        return Paragraph("No evaluation session yet (best/best.json is missing).")
+        return Paragraph("No validation session yet (best/best.json is missing).")
     return Table(
         [
             "member",
             "iteration",
-            "held-out successes /100",
+            "validation successes (95 % interval)",
             "median acquisitions",
             "p90 acquisitions",
-            "rating then",
+            "rating then (mu)",
         ],
         [
             [
                 row["member"],
                 str(row["iteration"]),
-                _per_100(row["successes"], row["scenarios"]),
+                success_text(row["successes"], row["scenarios"]),
                 f"{row['median_acquisitions']:g}",
                 f"{row['p90_acquisitions']:.1f}",
                 f"{row['rating']:.1f}",
@@ -285,8 +440,14 @@ def _figures(
             Heading(2, "Members"),
             Paragraph(
                 "Each member's learner figures, as in a training run's report (seed figs. "
-                "6.1.1-6.1.7). The env steps are the whole league's. A misaligner's matches are "
-                "logged as its aligners' episodes, so a misaligner has only its losses."
+                "6.1.1-6.1.7), in the member's colour. Their env steps are the member's own, "
+                "the transitions it learned from: an aligner's, the images of its matches; a "
+                "misaligner's, one step per match whose start it chose; a copy made by "
+                "population-based training continues from its parent's count. An aligner's "
+                "success and acquisitions figures show its validation sessions and, as "
+                "horizontal lines, the classical controllers on the test session. A "
+                "misaligner's matches are logged as its aligners' episodes, so a misaligner "
+                "has only its losses."
             ),
         ]
     for member, names in member_figures.items():
@@ -311,10 +472,13 @@ def write_league_report(run_dir: str | Path, leaderboard_rows: Sequence[Mapping[
     run = read_league_run(Path(run_dir))
     out = run.run_dir / FIGURE_FOLDER
     remove_partial_writes(out)
-    built, skipped = _league_figures(run)
+    drawing = _Drawing.of(run)
+    built, skipped = _league_figures(run, drawing)
     for name, figure in built.items():
         save_png(figure, out / name)
-    member_figures, member_skipped = _write_member_figures(run, leaderboard_rows, out / "members")
+    member_figures, member_skipped = _write_member_figures(
+        run, drawing, leaderboard_rows, out / "members"
+    )
 
     title = f"League report: {run.config.get('name', run.run_dir.name)}"
     blocks: list[Block] = [
@@ -322,21 +486,22 @@ def write_league_report(run_dir: str | Path, leaderboard_rows: Sequence[Mapping[
         _summary(run),
         Heading(2, "Leaderboard"),
         Paragraph(
-            "Every active member and kept snapshot, per team, best rated first. "
-            f"'x{SNAPSHOT_MARK}N' is member x frozen at iteration N: it plays but never learns. "
-            "Held-out successes and median acquisitions are the member's best evaluation "
-            "session."
+            "Every active member, kept snapshot and anchor, per team, best first by the "
+            "rating's ordinal mu - 3 sigma (openskill ratings: mu the skill, sigma how unsure "
+            f"it is). 'x{SNAPSHOT_MARK}N' is member x frozen at iteration N: it plays but never "
+            "learns. The successes (with their 95 % Wilson interval) and median acquisitions "
+            "are the member's best validation session."
         ),
         _leaderboard_table(leaderboard_rows),
+        *_anchors(run),
+        *_test(run, built),
         Heading(2, "Lineage"),
         _lineage(run),
-        Heading(2, "Best aligners"),
+        Heading(2, "Best aligners (validation sessions)"),
         _best(run),
         *_figures(run, built, member_figures),
     ]
     if skipped or member_skipped:
         blocks += [Heading(2, "Not plotted"), Facts([*skipped.items(), *member_skipped.items()])]
-    markdown = run.run_dir / "report.md"
-    atomic_write_text(run.run_dir / "report.html", to_html(title, blocks))
-    atomic_write_text(markdown, to_markdown(blocks))
+    markdown, _ = write_documents(run.run_dir / "report", title, blocks)
     return markdown

@@ -1,9 +1,15 @@
 """The figures of a league report (alignrl.league.report), and what they show as plain data.
 
-`rating_histories`, `payoff_grid` and `member_teams` turn the league's ratings, payoff table
-and rosters into arrays and mappings (tested by hand); `ratings_figure`, `payoff_figure`,
-`curriculum_figure` and `evaluations_figure` draw them. Ratings are Elo points; a win rate is
-the share of matches an aligner aligned within spec; iterations are league iterations.
+`rating_histories`, `payoff_grid`, `member_teams` and `member_colours` turn the league's
+ratings, payoff table and rosters into arrays and mappings (tested by hand);
+`ratings_figure`, `payoff_figure`, `learning_figure`, `curriculum_figure`,
+`evaluations_figure` and `test_session_figure` draw them. Every figure draws a member in the
+one colour `member_colours` gives it, and a snapshot `x@N` in its member's colour, dashed or
+lighter; the classical controllers are dark grey, the anchors black. Ratings are openskill's
+mu ± sigma (alignrl.league.ratings), anchors fixed; a win rate is the share of matches an
+aligner aligned within spec; iterations are league iterations; a member's own env steps are
+the transitions it learned from (alignrl.league.report_data.member_env_steps); a success
+figure of a session carries its 95 % Wilson interval.
 Matplotlib is imported only inside functions (alignrl.plots draws on the Agg canvas).
 """
 
@@ -15,10 +21,27 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
+from alignrl.intervals import success_text
 from alignrl.league.matchmaking import SNAPSHOT_MARK, TEAMS
 from alignrl.league.ratings import PayoffTable, Ratings
-from alignrl.plots import ReportError, new_figure, rolling_mean
+from alignrl.plots import (
+    REFERENCE_COLOUR,
+    REFERENCE_STYLES,
+    Reference,
+    draw_acquisition_references,
+    draw_acquisitions,
+    draw_session_points,
+    draw_success,
+    draw_success_references,
+    new_figure,
+    place_legend,
+    rolling_mean,
+    rolling_success_interval,
+    success_points,
+)
+from alignrl.run_tables import ReportError
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -27,47 +50,77 @@ if TYPE_CHECKING:
 
 __all__ = [
     "LEAGUE_FIGURES",
+    "MEMBER_STEPS_LABEL",
+    "TEST_FIGURE",
     "PayoffGrid",
+    "colour_of",
     "curriculum_figure",
     "designs_figure",
     "evaluations_figure",
+    "learning_figure",
+    "member_colours",
     "member_teams",
     "payoff_figure",
     "payoff_grid",
     "rating_histories",
     "ratings_figure",
     "team_of",
+    "test_session_figure",
 ]
 
 ITERATION_WINDOW = 10  # iterations per point of the smoothed win rate
-LEGEND_INSIDE_MAX = 6  # a legend with more entries goes beside the axes, not over the lines
 ITERATION_LABEL = "league iteration"
+MEMBER_STEPS_LABEL = "the member's own env steps (transitions it learned from)"
+SNAPSHOT_ALPHA = 0.55  # a snapshot is drawn lighter than its member
+DODGE = 0.05  # evaluations.png: shift between members, a share of the spacing of sessions
+CLASSICAL_BAR = "0.65"  # a classical controller's bar: grey, light enough for its error bar
 
 
 # The league's own figures, in the order of the report, with heading and caption.
 LEAGUE_FIGURES: dict[str, tuple[str, str]] = {
     "ratings.png": (
-        "Elo ratings",
-        "Every player's Elo rating after each iteration, one panel per team. Active members "
-        "are solid lines, members replaced by population-based training thin ones, snapshots "
-        "dashed in the colour of their member (a snapshot starts at its member's rating).",
+        "Ratings",
+        "Every player's rating (openskill's mean mu) after each iteration, one panel per team, "
+        "the band mu ± sigma around each active member, each member in its own colour (the "
+        "same in every figure of this report). Active members are solid lines, members "
+        "replaced by population-based training thin ones; snapshots are dashed, lighter, in "
+        "the colour of their member and marked @N at their end (a snapshot starts at its "
+        "member's rating). The anchors, classical controllers of fixed rating that align the "
+        "same starts as the aligners, are black lines in the aligners' panel: an aligner "
+        "above one does better than it on those starts.",
     ),
     "payoff.png": (
         "Payoff table",
         "The aligner's win rate against each misaligner, with the matches they played in "
         "brackets; grey where the two never met. Rows are aligners, columns misaligners, each "
-        "best rated first, snapshots included.",
+        "best rated first, snapshots included (their names lighter and slanted); each name in "
+        "its member's colour.",
+    ),
+    "learning.png": (
+        "Aligners' learning curves",
+        "Each aligner against its own env steps, the images of the matches it learned from "
+        "(not the league's: members play in turns). Left, the share of its last 100 matches "
+        "it aligned within spec (line, the band its 95 % Wilson interval) and its validation "
+        "sessions (points with their 95 % Wilson intervals); right, its images per match "
+        "(mean of the last 100) and its validation sessions' medians. The horizontal lines "
+        "are the classical controllers on the test session (its scenarios, not the "
+        "validation sessions'): where the aligners stand against no learning.",
     ),
     "curriculum.png": (
         "Curriculum and win rate",
         "The misalignment window (complexity, as a share of the knob interval) at the start of "
-        "each iteration, and the share of the iteration's matches its aligner won (points; "
-        f"the line is the mean of the last {ITERATION_WINDOW} iterations).",
+        "each iteration, and the share of the iteration's rated matches its aligner won "
+        f"(points; the line is the share of the rated matches of the last {ITERATION_WINDOW} "
+        "iterations, the band its 95 % Wilson interval).",
     ),
     "evaluations.png": (
-        "Held-out evaluations",
-        "Successes per 100 held-out scenarios of the aligners evaluated at each evaluation "
-        "session (the best rated ones at the time).",
+        "Validation sessions",
+        "Successes per 100 held-out scenarios of the validation sessions (the seed that "
+        "chooses the best members and the champion) of the aligners judged at each (the best "
+        "rated ones at the time), with their 95 % Wilson intervals, against league iterations "
+        "(members judged at the same iteration drawn a little apart). "
+        "The horizontal lines are the classical controllers on the test session (other "
+        "scenarios of the same held-out set), with their intervals in the legend.",
     ),
     "designs.png": (
         "Where the designers put the column",
@@ -78,6 +131,16 @@ LEAGUE_FIGURES: dict[str, tuple[str, str]] = {
         "darkens a single row.",
     ),
 }
+# Drawn in the report's test session section, not among the figures.
+TEST_FIGURE = (
+    "test.png",
+    "Test session",
+    "The champion beside the same member untrained and the classical controllers, on the "
+    "same scenarios of the test session, which chose nothing: successes per 100 with their "
+    "95 % Wilson intervals (left), median acquisitions with the 90th percentile marked "
+    "(right). The champion is in its member's colour, untrained lighter and hatched, the "
+    "classical controllers grey.",
+)
 DESIGN_COLUMNS = ("iteration", "aligner", "misaligner", "match", "aligner_payoff", "success")
 DESIGN_BINS = 10
 
@@ -85,14 +148,18 @@ DESIGN_BINS = 10
 # --- what the figures show, as plain data -----------------------------------------------
 
 
-def rating_histories(ratings: Ratings) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """Per player, in order of first appearance: the iterations its rating was recorded at,
-    and those ratings."""
-    rows: dict[str, list[tuple[int, float]]] = {}
-    for iteration, player, rating in ratings.history:
-        rows.setdefault(player, []).append((iteration, rating))
+def rating_histories(ratings: Ratings) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Per player, anchors included, in order of first appearance: the iterations its rating
+    was recorded at, and its mu and sigma there."""
+    rows: dict[str, list[tuple[int, float, float]]] = {}
+    for iteration, player, mu, sigma in ratings.history:
+        rows.setdefault(player, []).append((iteration, mu, sigma))
     return {
-        player: (np.array([i for i, _ in points]), np.array([r for _, r in points]))
+        player: (
+            np.array([i for i, _, _ in points]),
+            np.array([mu for _, mu, _ in points]),
+            np.array([sigma for _, _, sigma in points]),
+        )
         for player, points in rows.items()
     }
 
@@ -148,6 +215,29 @@ def team_of(player: str, teams: Mapping[str, str]) -> str:
     return teams[member]
 
 
+def member_colours(teams: Mapping[str, str]) -> dict[str, str]:
+    """One colour (hex) per member the league ever had, in the order of `teams` (the
+    rosters, then the copies as they were made), so that a member has the same colour in
+    every figure and in every report of the run. Matplotlib's tab10 for up to 9 members,
+    tab20 beyond, without their greys (grey is the classical controllers'); past 18 members
+    the colours repeat."""
+    from matplotlib import colormaps
+    from matplotlib.colors import to_hex
+
+    greys = (7,) if len(teams) <= 9 else (14, 15)
+    palette = colormaps["tab10" if len(teams) <= 9 else "tab20"].colors
+    colours = [to_hex(colour) for index, colour in enumerate(palette) if index not in greys]
+    return {member: colours[index % len(colours)] for index, member in enumerate(teams)}
+
+
+def colour_of(player: str, colours: Mapping[str, str]) -> str:
+    """The colour of a player: its member's (a snapshot `x@N` is drawn in x's)."""
+    member = player.split(SNAPSHOT_MARK)[0]
+    if member not in colours:
+        raise ReportError(f"{player!r} is no member of the league's rosters or lineage")
+    return colours[member]
+
+
 # --- figures --------------------------------------------------------------------------
 
 
@@ -161,46 +251,63 @@ def _label_iterations(axes: Axes, title: str, y_label: str) -> None:
     axes.grid(True, alpha=0.3)
 
 
-def _legend(axes: Axes, handles: list[Any] | None = None) -> bool:
-    """A legend inside the axes, or beside them when it is long; True if beside."""
-    entries = len(handles if handles is not None else axes.get_legend_handles_labels()[0])
-    beside = entries > LEGEND_INSIDE_MAX
-    options: dict[str, Any] = (
-        {"loc": "upper left", "bbox_to_anchor": (1.02, 1.0), "ncols": 1 + entries // 25}
-        if beside
-        else {"loc": "best"}
-    )
-    axes.legend(handles=handles, fontsize="small", **options)
-    return beside
+def _draw_snapshots(
+    axes: Axes,
+    histories: Mapping[str, tuple[np.ndarray, ...]],
+    snapshots: list[str],
+    colour: str,
+) -> Any:
+    """A member's snapshots: dashed and lighter in its colour, each marked @N at its end;
+    the legend entry that names them all."""
+    from matplotlib.lines import Line2D
+
+    for snapshot in snapshots:
+        iterations, values, _ = histories[snapshot]
+        axes.plot(iterations, values, "--", color=colour, lw=0.9, alpha=SNAPSHOT_ALPHA)
+        mark = snapshot[snapshot.index(SNAPSHOT_MARK) :]
+        axes.annotate(
+            mark,
+            (iterations[-1], values[-1]),
+            xytext=(2, 0),
+            textcoords="offset points",
+            fontsize=6,
+            color=colour,
+            va="center",
+        )
+    member = snapshots[0].split(SNAPSHOT_MARK)[0]
+    marks = ", ".join(snapshot[snapshot.index(SNAPSHOT_MARK) :] for snapshot in snapshots)
+    label = f"{member} snapshots ({marks})"
+    return Line2D([], [], color=colour, ls="--", lw=0.9, alpha=SNAPSHOT_ALPHA, label=label)
 
 
 def ratings_figure(
-    ratings: Ratings, teams: Mapping[str, str], replaced: Mapping[str, int]
+    ratings: Ratings,
+    teams: Mapping[str, str],
+    replaced: Mapping[str, int],
+    colours: Mapping[str, str],
 ) -> Figure:
     """`replaced`: the iteration each replaced member left the league, where its line ends
-    (the ratings keep recording it, unchanged)."""
-    from matplotlib import colormaps
-    from matplotlib.lines import Line2D
-
+    (the ratings keep recording it, unchanged); `colours`: member_colours."""
     histories = rating_histories(ratings)
+    anchors = set(ratings.anchors)
     figure, panels = new_figure(len(TEAMS))
-    beside = False
     for axes, team in zip(panels, TEAMS, strict=True):
-        players = [player for player in histories if team_of(player, teams) == team]
-        members = list(dict.fromkeys(player.split(SNAPSHOT_MARK)[0] for player in players))
-        palette = colormaps["tab10" if len(members) <= 10 else "tab20"]
-        colours = {member: palette(index % palette.N) for index, member in enumerate(members)}
+        players = [p for p in histories if p not in anchors and team_of(p, teams) == team]
         handles: list[Any] = []
+        snapshots: dict[str, list[str]] = {}
         for player in players:
-            iterations, values = histories[player]
             member = player.split(SNAPSHOT_MARK)[0]
             if player != member:
-                axes.plot(iterations, values, "--", color=colours[member], lw=0.9, alpha=0.8)
+                snapshots.setdefault(member, []).append(player)
                 continue
+            iterations, values, spreads = histories[player]
             retired = player in replaced
             if retired:
                 kept = iterations <= replaced[player]
-                iterations, values = iterations[kept], values[kept]
+                iterations, values, spreads = iterations[kept], values[kept], spreads[kept]
+            else:
+                band = (values - spreads, values + spreads)
+                axes.fill_between(iterations, *band, color=colours[member], alpha=0.12, lw=0)
             (line,) = axes.plot(
                 iterations,
                 values,
@@ -210,18 +317,27 @@ def ratings_figure(
                 label=f"{player} (replaced)" if retired else player,
             )
             handles.append(line)
-        if len(players) > len(handles):
-            handles.append(Line2D([], [], color="grey", ls="--", lw=0.9, label="snapshots"))
-        _label_iterations(axes, f"{team.capitalize()}s", "Elo rating")
-        beside |= _legend(axes, handles)
-    if beside:
-        figure.set_size_inches(8.5, figure.get_size_inches()[1])
+        for member, frozen in snapshots.items():
+            handles.append(_draw_snapshots(axes, histories, frozen, colours[member]))
+        if team == TEAMS[0]:  # the anchors rate the aligners
+            for index, anchor in enumerate(ratings.anchors):
+                style = (":", "-.", "--")[index % 3]
+                line = axes.axhline(
+                    ratings.rating(anchor).mu,
+                    color="black",
+                    ls=style,
+                    lw=1.2,
+                    label=f"{anchor} (anchor)",
+                )
+                handles.append(line)
+        _label_iterations(axes, f"{team.capitalize()}s", "rating (mu)")
+        place_legend(axes, handles)
     return figure
 
 
-def payoff_figure(grid: PayoffGrid) -> Figure:
+def payoff_figure(grid: PayoffGrid, colours: Mapping[str, str]) -> Figure:
     """A heatmap of the aligners' win rates with the numbers in the cells; the cells and
-    their text shrink as the grid grows."""
+    their text shrink as the grid grows; each name in its member's colour."""
     from matplotlib import colormaps
 
     rows, columns = grid.win_rates.shape
@@ -246,6 +362,12 @@ def payoff_figure(grid: PayoffGrid) -> Figure:
         )
     axes.set_xticks(range(columns), grid.misaligners, rotation=40, ha="right")
     axes.set_yticks(range(rows), grid.aligners)
+    for label in [*axes.get_xticklabels(), *axes.get_yticklabels()]:
+        player = label.get_text()
+        label.set_color(colour_of(player, colours))
+        if SNAPSHOT_MARK in player:
+            label.set_alpha(SNAPSHOT_ALPHA + 0.2)
+            label.set_fontstyle("italic")
     axes.set_xlabel("misaligner")
     axes.set_ylabel("aligner")
     axes.set_title(LEAGUE_FIGURES["payoff.png"][0])
@@ -253,9 +375,69 @@ def payoff_figure(grid: PayoffGrid) -> Figure:
     return figure
 
 
-def curriculum_figure(iterations: pd.DataFrame) -> Figure:
+def learning_figure(
+    curves: Mapping[str, tuple[pd.DataFrame, pd.DataFrame]],
+    colours: Mapping[str, str],
+    references: Sequence[Reference],
+) -> Figure:
+    """`curves`: per aligner, its matches (episodes.csv) and its validation sessions, both at
+    its own env steps (alignrl.league.report_data.on_own_env_steps). One legend below both
+    panels: the aligners by colour, what each mark is, the classical controllers."""
+    from matplotlib.lines import Line2D
+
+    figure, (success, acquisitions) = new_figure(2, columns=2)
+    for member, (episodes, sessions) in curves.items():
+        draw_success(success, episodes, sessions, run=member, colour=colours[member])
+        draw_acquisitions(acquisitions, episodes, sessions, run=member, colour=colours[member])
+    draw_success_references(success, references)
+    draw_acquisition_references(acquisitions, references)
+    for axes in (success, acquisitions):
+        axes.set_xlabel(MEMBER_STEPS_LABEL)
+        axes.get_legend().remove()
+    grey = "0.45"
+    handles = [Line2D([], [], color=colours[member], lw=3, label=member) for member in curves]
+    handles += [
+        Line2D([], [], color=grey, label="its last 100 matches (band: 95 % interval)"),
+        Line2D(
+            [],
+            [],
+            color=grey,
+            marker="o",
+            ls="none",
+            mec="black",
+            label="validation sessions (95 % interval; right: median)",
+        ),
+        Line2D(
+            [],
+            [],
+            color=grey,
+            marker="^",
+            mfc="none",
+            ls="none",
+            label="validation sessions' 90th percentile",
+        ),
+    ]
+    handles += [
+        Line2D(
+            [],
+            [],
+            color=REFERENCE_COLOUR,
+            ls=REFERENCE_STYLES[index % len(REFERENCE_STYLES)],
+            label=f"{ref.name} ({ref.session}): {success_text(ref.successes, ref.scenarios)}, "
+            f"median {ref.median_acquisitions:g} images",
+        )
+        for index, ref in enumerate(references)
+    ]
+    figure.legend(handles=handles, loc="outside lower center", ncols=2, fontsize="small")
+    figure.set_size_inches(10.4, 4.0 + 0.12 * len(handles))
+    return figure
+
+
+def curriculum_figure(iterations: pd.DataFrame, rated: ArrayLike) -> Figure:
     """Complexity and win rate share one axis: both are shares, and the curriculum raises or
-    lowers the complexity by the aligners' successes, so the two are read together."""
+    lowers the complexity by the aligners' successes, so the two are read together. `rated`:
+    each iteration's rated matches, those its success_rate is the share of
+    (report_data.rated_matches)."""
     figure, (axes,) = new_figure()
     x = iterations["iteration"]
     axes.plot(
@@ -268,28 +450,88 @@ def curriculum_figure(iterations: pd.DataFrame) -> Figure:
     (points,) = axes.plot(
         x, iterations["success_rate"], ".", alpha=0.35, label="aligner win rate, each iteration"
     )
-    axes.plot(
-        x,
-        rolling_mean(iterations["success_rate"], ITERATION_WINDOW),
-        color=points.get_color(),
-        label=f"aligner win rate, last {ITERATION_WINDOW} iterations",
-    )
+    rated = np.asarray(rated, dtype=float)
+    wins = np.rint(iterations["success_rate"].to_numpy() * rated)
+    share = rolling_mean(wins, ITERATION_WINDOW) / rolling_mean(rated, ITERATION_WINDOW)
+    low, high = rolling_success_interval(wins, ITERATION_WINDOW, rated)
+    colour = points.get_color()
+    axes.plot(x, share, color=colour, label=f"aligner win rate, last {ITERATION_WINDOW} iterations")
+    axes.fill_between(x, low, high, color=colour, alpha=0.15, lw=0)
     axes.set_ylim(-0.03, 1.05)
     _label_iterations(axes, LEAGUE_FIGURES["curriculum.png"][0], "share")
-    _legend(axes)
+    place_legend(axes)
     return figure
 
 
-def evaluations_figure(evaluations: pd.DataFrame) -> Figure:
+def evaluations_figure(
+    evaluations: pd.DataFrame, colours: Mapping[str, str], references: Sequence[Reference]
+) -> Figure:
+    """The validation sessions' successes per 100, each with its Wilson interval, and the
+    classical controllers of `references` across them."""
     figure, (axes,) = new_figure()
-    for member, rows in evaluations.groupby("member", sort=False):
-        axes.plot(
-            rows["iteration"], 100.0 * rows["successes"] / rows["scenarios"], "o-", label=member
+    groups = list(evaluations.groupby("member", sort=False))
+    # Members judged at the same iteration side by side, not on top of each other: a small
+    # shift each, a share of the iterations between sessions.
+    held = np.unique(evaluations["iteration"])
+    spacing = float(np.min(np.diff(held))) if len(held) > 1 else 1.0
+    for index, (member, rows) in enumerate(groups):
+        shift = DODGE * spacing * (index - (len(groups) - 1) / 2)
+        colour = colour_of(str(member), colours)
+        draw_session_points(
+            axes,
+            rows["iteration"] + shift,
+            rows["successes"],
+            rows["scenarios"],
+            str(member),
+            colour,
+            fmt="o-",
+            capsize=3,
         )
     axes.set_ylim(-3, 103)
     _label_iterations(axes, LEAGUE_FIGURES["evaluations.png"][0], "successes per 100 scenarios")
-    if _legend(axes):
-        figure.set_size_inches(8.5, figure.get_size_inches()[1])
+    draw_success_references(axes, references)
+    place_legend(axes)
+    return figure
+
+
+def test_session_figure(test: Mapping[str, Any], colours: Mapping[str, str]) -> Figure:
+    """test.json's rows as bars: successes per 100 with their Wilson intervals, and median
+    acquisitions with the 90th percentile marked."""
+    rows = test["rows"]
+    figure, (success, acquisitions) = new_figure(2, columns=2)
+    names = [f"{row['label']}\n{row['member']}" if row["member"] else row["label"] for row in rows]
+    colours_of_rows = [
+        colour_of(row["member"], colours) if row["member"] else CLASSICAL_BAR for row in rows
+    ]
+    untrained = [row["label"] == "untrained" for row in rows]
+    rates, errors = success_points(
+        [row["successes"] for row in rows], [row["scenarios"] for row in rows]
+    )
+    for axes, values in (
+        (success, rates),
+        (acquisitions, [r["median_acquisitions"] for r in rows]),
+    ):
+        bars = axes.bar(range(len(rows)), values, color=colours_of_rows, edgecolor="black", lw=0.6)
+        for bar, lighter in zip(bars, untrained, strict=True):
+            if lighter:
+                bar.set_alpha(0.5)
+                bar.set_hatch("//")
+        axes.set_xticks(range(len(rows)), names, fontsize="small")
+        axes.grid(True, axis="y", alpha=0.3)
+    success.errorbar(range(len(rows)), rates, yerr=errors, fmt="none", ecolor="black", capsize=4)
+    success.set_ylim(0, 103)
+    success.set_ylabel("successes per 100 scenarios (95 % interval)")
+    acquisitions.plot(
+        range(len(rows)),
+        [r["p90_acquisitions"] for r in rows],
+        "v",
+        color="black",
+        label="90th percentile",
+    )
+    acquisitions.set_ylabel("median acquisitions per alignment")
+    acquisitions.legend(fontsize="small")
+    figure.suptitle(f"{TEST_FIGURE[1]}: {test['scenarios']} scenarios of seed {test['seed']}")
+    figure.set_size_inches(min(14.0, max(9.0, 2.2 * len(rows))), 4.0)
     return figure
 
 

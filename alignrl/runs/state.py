@@ -18,13 +18,14 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Mapping
+from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
 
-from alignrl.checkpoints import atomic_write_text
+from alignrl.checkpoints import atomic_write, atomic_write_text, remove_partial_writes
 from alignrl.config import ConfigError, ExperimentConfig, parse_experiment, read_yaml
 from alignrl.envs.task import Task
 
@@ -37,6 +38,8 @@ __all__ = [
     "TensorBoardLog",
     "checked_knobs",
     "config_of_checkpoint",
+    "cut_events",
+    "flat_hparams",
     "knob_limits",
     "read_training_config",
     "record_knobs",
@@ -44,6 +47,7 @@ __all__ = [
     "restore_rng",
     "rng_state",
     "run_config_data",
+    "run_hparams",
     "run_provenance",
     "with_provenance",
 ]
@@ -95,20 +99,34 @@ def restore_rng(rng: np.random.Generator, state: Mapping[str, Any]) -> None:
 
 # --- TensorBoard ----------------------------------------------------------------------------
 
+EVENT_FILES = "*tfevents*"  # what TensorBoard reads as an event file (its io_wrapper)
+# The hparams plugin's summary of a session's hyperparameters
+# (tensorboard.plugins.hparams.metadata.SESSION_START_INFO_TAG).
+HPARAMS_TAG = "_hparams_/session_start_info"
+
 
 class TensorBoardLog:
-    """A run's TensorBoard events in `folder`. The writer opens on first use (TensorBoard takes
-    seconds to import); a resumed run calls `resume_after(step)` before it logs, so that the
-    events a kill left after its checkpoint are dropped (purge_step) and written again."""
+    """A run's TensorBoard events in `folder` (one TensorBoard run). The writer opens on first
+    use (TensorBoard takes seconds to import).
+
+    A resumed run calls `resume_after(step)` before it logs: the event files are cut back to
+    the events at steps up to its checkpoint's (`cut_events`), as the metrics CSVs are, and the
+    writer opens with purge_step past it. Both, because TensorBoard's readers differ: the
+    Python one honours purge_step, the Rust data server (its default loader) ignores it and
+    drops only the points a tag writes again, so an event the resumed run does not repeat
+    (an episode that now ends at another step) would stay beside the new ones."""
 
     def __init__(self, folder: Path) -> None:
         self.folder = folder
         self.purge_step: int | None = None
+        self.has_hparams = False  # the run's hyperparameters are in its events
         self._writer: SummaryWriter | None = None
 
     def resume_after(self, step: int) -> None:
+        """Drop every event after `step` (all of them for -1) before the first is written."""
         if self._writer is not None:
             raise RuntimeError(f"{self.folder}: resume_after must come before the first event")
+        self.has_hparams = HPARAMS_TAG in cut_events(self.folder, step)
         self.purge_step = step + 1
 
     def _open(self) -> SummaryWriter:
@@ -121,8 +139,28 @@ class TensorBoardLog:
     def add_scalar(self, tag: str, value: float, step: int) -> None:
         self._open().add_scalar(tag, value, step)
 
+    def add_scalars(self, prefix: str, values: Mapping[str, float | None], step: int) -> None:
+        """`prefix/name` for each of `values` that is a number (None: not measured)."""
+        for name, value in values.items():
+            if value is not None:
+                self.add_scalar(f"{prefix}/{name}", float(value), step)
+
     def add_histogram(self, tag: str, values: np.ndarray, step: int) -> None:
         self._open().add_histogram(tag, np.asarray(values, float), step)
+
+    def add_hparams(self, hparams: Mapping[str, Any], step: int = 0) -> None:
+        """The run's hyperparameters for TensorBoard's HParams dashboard, written once per run
+        (a run that has them already, resumed, writes nothing). Only the session's start is
+        written, no experiment summary: the dashboard then gathers the hyperparameters of
+        every run it shows (runs with other keys side by side) and takes each run's scalars
+        as its metrics."""
+        if self.has_hparams:
+            return
+        from torch.utils.tensorboard.summary import hparams as hparams_summaries
+
+        _, session_start, _ = hparams_summaries(dict(hparams), {})
+        self._open().file_writer.add_summary(session_start, step)
+        self.has_hparams = True
 
     def flush(self) -> None:
         """The events so far on disk (before a checkpoint: they are what it has seen)."""
@@ -133,6 +171,69 @@ class TensorBoardLog:
         if self._writer is not None:
             self._writer.close()
             self._writer = None
+
+
+def cut_events(folder: Path, last_step: int) -> set[str]:
+    """Cut each event file in `folder` back to its events at steps up to `last_step` (a file
+    left without a summary goes; one that keeps everything is left as it is), and give the
+    tags of the summaries kept. A record a kill tore, at the end of a file, goes too, as do
+    the temporaries of a cut killed midway."""
+    from tensorboard.backend.event_processing.event_file_loader import RawEventFileLoader
+    from tensorboard.compat.proto.event_pb2 import Event
+
+    remove_partial_writes(folder, recursive=False)
+    kept_tags: set[str] = set()
+    for path in sorted(folder.glob(EVENT_FILES)) if folder.is_dir() else []:
+        if not path.is_file():
+            continue
+        size = path.stat().st_size
+        records = [(raw, Event.FromString(raw)) for raw in RawEventFileLoader(str(path)).Load()]
+        kept = [(raw, event) for raw, event in records if event.step <= last_step]
+        tags = {value.tag for _, event in kept for value in event.summary.value}
+        if not tags:
+            path.unlink()
+            continue
+        kept_tags |= tags
+        whole = sum(len(raw) + 16 for raw, _ in records) == size  # 16: a record's framing
+        if len(kept) < len(records) or not whole:
+            atomic_write(path, partial(_write_records, [raw for raw, _ in kept]))
+    return kept_tags
+
+
+def _write_records(records: list[bytes], handle: Any) -> None:
+    """`records` (serialized events) framed as TensorBoard frames them, into `handle`."""
+    from tensorboard.summary.writer.record_writer import RecordWriter
+
+    writer = RecordWriter(handle)
+    for raw in records:
+        writer.write(raw)
+
+
+# The settings of a run's config that are no hyperparameters: where it lives, how it started.
+NOT_HPARAMS = ("name", "provenance")
+
+
+def run_hparams(settings: Mapping[str, Any]) -> dict[str, float | str]:
+    """A run's config (config.yaml, as data) as TensorBoard hyperparameters
+    (`learner.learning_rate`, `budget.env_steps`, `schedule.iterations`, ...)."""
+    return flat_hparams({k: v for k, v in settings.items() if k not in NOT_HPARAMS})
+
+
+def flat_hparams(settings: Mapping[str, Any], prefix: str = "") -> dict[str, float | str]:
+    """Settings as TensorBoard's hyperparameters: nested keys joined by '.', numbers and
+    booleans as numbers, lists and text as text; null and empty settings left out."""
+    flat: dict[str, float | str] = {}
+    for key, value in settings.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, Mapping):
+            flat.update(flat_hparams(value, f"{name}."))
+        elif isinstance(value, bool | int | float):
+            flat[name] = float(value)
+        elif isinstance(value, str):
+            flat[name] = value
+        elif isinstance(value, list | tuple) and value:
+            flat[name] = json.dumps(value)
+    return flat
 
 
 # --- the run's config -----------------------------------------------------------------------

@@ -1,7 +1,8 @@
 """A report as a list of blocks, written twice: as Markdown (`to_markdown`) and as HTML
-(`to_html`), so that report.md and report.html cannot say different things. Headings,
-paragraphs, facts (a bulleted label: value list), tables of text cells and images linked
-relative to the document.
+(`to_html`), so that report.md and report.html cannot say different things; `write_documents`
+writes both. Headings, paragraphs, facts (a bulleted label: value list), tables of text cells
+and images linked relative to the document. The one home of the reports' HTML: a training
+run's (alignrl.runs.report) and a league's (alignrl.league.report).
 """
 
 from __future__ import annotations
@@ -9,9 +10,20 @@ from __future__ import annotations
 import html
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from urllib.parse import quote
 
-__all__ = ["Block", "Facts", "Heading", "Image", "Paragraph", "Table", "to_html", "to_markdown"]
+__all__ = [
+    "Block",
+    "Facts",
+    "Heading",
+    "Image",
+    "Paragraph",
+    "Table",
+    "to_html",
+    "to_markdown",
+    "write_documents",
+]
 
 
 @dataclass(frozen=True)
@@ -109,3 +121,14 @@ def to_html(title: str, blocks: Sequence[Block]) -> str:
                 parts.append(f'<p><img src="{escape(quote(path))}" alt="{escape(title)}"></p>')
     parts += ["</body>", "</html>", ""]
     return "\n".join(parts)
+
+
+def write_documents(stem: Path, title: str, blocks: Sequence[Block]) -> tuple[Path, Path]:
+    """Write `stem`.md and `stem`.html (each replaced atomically, the Markdown last: a reader
+    that finds it finds both); return their paths."""
+    from alignrl.checkpoints import atomic_write_text
+
+    markdown, page = stem.with_suffix(".md"), stem.with_suffix(".html")
+    atomic_write_text(page, to_html(title, blocks))
+    atomic_write_text(markdown, to_markdown(blocks))
+    return markdown, page
