@@ -163,3 +163,19 @@ def iteration_outcomes(run: Path) -> list[tuple[str, ...]]:
     that played alike agree on."""
     rows = read_csv(run / "metrics" / "iterations.csv")
     return [tuple(v for k, v in row.items() if k != "seconds") for row in rows]
+
+
+# The tiny training run of the training and TensorBoard tests (400 env steps of a small SAC).
+TINY_RUN: dict[str, Any] = {
+    "name": "tiny",
+    "envs": 2,
+    "learner": {
+        "encoder_kwargs": {"hidden": [16]},
+        "hidden": [16],
+        "batch_size": 32,
+        "learning_starts": 50,
+        "random_steps": 100,
+        "buffer_size": 1000,
+    },
+    "budget": {"env_steps": 400, "eval_every": 200, "eval_scenarios": 5, "checkpoint_every": 50},
+}

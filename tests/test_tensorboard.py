@@ -14,24 +14,16 @@ import collections
 from pathlib import Path
 
 import pytest
-from conftest import create_league, read_csv, write_league
+from conftest import TINY_RUN, create_league, read_csv, write_league
 
 from alignrl.config import parse_experiment
 from alignrl.league.loop import League
 from alignrl.runs.state import EVENT_FILES, HPARAMS_TAG, TensorBoardLog, cut_events
 from alignrl.training import Trainer
 
+# The tiny run of the training tests, evaluated every 100 steps and saved every 200.
 TINY = {
-    "name": "tiny",
-    "envs": 2,
-    "learner": {
-        "encoder_kwargs": {"hidden": [16]},
-        "hidden": [16],
-        "batch_size": 32,
-        "learning_starts": 50,
-        "random_steps": 100,
-        "buffer_size": 1000,
-    },
+    **TINY_RUN,
     "budget": {"env_steps": 400, "eval_every": 100, "eval_scenarios": 3, "checkpoint_every": 200},
 }
 

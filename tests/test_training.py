@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from conftest import read_csv, write_experiment
+from conftest import TINY_RUN, read_csv, write_experiment
 from test_tensorboard import assert_each_step_once
 
 from alignrl.checkpoints import load_checkpoint
@@ -23,19 +23,7 @@ from alignrl.config import parse_experiment
 from alignrl.intervals import wilson
 from alignrl.training import TEST_SEED, VALIDATION_SEED, Trainer
 
-TINY = {
-    "name": "tiny",
-    "envs": 2,
-    "learner": {
-        "encoder_kwargs": {"hidden": [16]},
-        "hidden": [16],
-        "batch_size": 32,
-        "learning_starts": 50,
-        "random_steps": 100,
-        "buffer_size": 1000,
-    },
-    "budget": {"env_steps": 400, "eval_every": 200, "eval_scenarios": 5, "checkpoint_every": 50},
-}
+TINY = TINY_RUN
 
 
 def test_a_run_directory_holds_config_checkpoints_and_metrics(
