@@ -289,3 +289,19 @@ def test_an_unknown_champion_lists_the_shipped_ones(
     error = capsys.readouterr().err
     assert error == f"alignrl: error: {expected}\n"
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("folder", CHAMPION_FOLDERS, ids=lambda folder: folder.name)
+def test_every_shipped_card_says_its_figures_are_validation_sessions_with_intervals(
+    folder: Path,
+) -> None:
+    """The figures a champion's card carries are the sessions that chose it (issue 23): the
+    card says so, gives each row its 95 % interval, and its model card says it in words."""
+    from alignrl.intervals import wilson
+
+    evaluations = json.loads((folder / "card.json").read_text())["evaluations"]
+    assert evaluations["session"] == "validation" and evaluations["confidence"] == 0.95
+    for row in evaluations["rows"]:
+        low, high = wilson(int(row["successes"]), int(row["scenarios"]))
+        assert (row["success_low"], row["success_high"]) == pytest.approx((low, high))
+    assert "These are **validation** sessions" in (folder / "model_card.md").read_text()
