@@ -179,3 +179,13 @@ TINY_RUN: dict[str, Any] = {
     },
     "budget": {"env_steps": 400, "eval_every": 200, "eval_scenarios": 5, "checkpoint_every": 50},
 }
+
+
+def without_seconds(value: Any) -> Any:
+    """A session's --json (or any nesting of it) without its "seconds" keys: what two runs of
+    the same session agree on, wall time aside."""
+    if isinstance(value, dict):
+        return {k: without_seconds(v) for k, v in value.items() if k != "seconds"}
+    if isinstance(value, list):
+        return [without_seconds(item) for item in value]
+    return value

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from conftest import without_seconds
 
 from alignrl.apparatus.instruments import instrument_names
 from alignrl.cli import main
@@ -31,14 +32,6 @@ SET = "validation"
 def _run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> Any:
     assert main([*argv, "--quiet", "--json"]) == 0
     return json.loads(capsys.readouterr().out)
-
-
-def _without_seconds(value: Any) -> Any:
-    if isinstance(value, dict):
-        return {k: _without_seconds(v) for k, v in value.items() if k != "seconds"}
-    if isinstance(value, list):
-        return [_without_seconds(item) for item in value]
-    return value
 
 
 def _check_wilson(figure: dict[str, Any], successes: int, total: int) -> None:
@@ -99,7 +92,7 @@ def test_each_seed_is_the_session_seed_s_runs(
     argv = ["evaluate", "--policy", "hill-climb", *CURVES, "--scenarios", str(SCENARIOS)]
     for index in (0, 2):
         single = _run([*argv, "--seed", str(SEEDS[index])], capsys)
-        assert _without_seconds(single) == _without_seconds(hill_climb_seeds["per_seed"][index])
+        assert without_seconds(single) == without_seconds(hill_climb_seeds["per_seed"][index])
 
 
 def test_evaluate_seeds_prints_each_seed_and_the_aggregate(
@@ -144,7 +137,7 @@ def test_baselines_seeds_aggregates_every_controller(capsys: pytest.CaptureFixtu
         sessions = [entry["controllers"][name] for entry in report["per_seed"]]
         _check_aggregate(aggregate, [(s["successes"], s["scenarios"]) for s in sessions])
     single = _run([*argv, "--seed", "2"], capsys)
-    assert _without_seconds(single) == _without_seconds(report["per_seed"][1])
+    assert without_seconds(single) == without_seconds(report["per_seed"][1])
     assert main([*argv, "--seeds", "1", "2", "4", "--quiet"]) == 0
     text = capsys.readouterr().out
     assert all(f"seed {seed}:" in text for seed in (1, 2, 4)) and "over the seeds:" in text
@@ -178,7 +171,7 @@ def test_evaluate_a_set_at_several_seeds(capsys: pytest.CaptureFixture[str]) -> 
     shares = [entry["successes"] / entry["alignments"] for entry in aggregate["instruments"]]
     assert aggregate["worst_instrument"] == names[shares.index(min(shares))]
     single = _run([*argv, "--seed", "5"], capsys)
-    assert _without_seconds(single) == _without_seconds(report["per_seed"][1])
+    assert without_seconds(single) == without_seconds(report["per_seed"][1])
     # The table: a column per seed and one that pools them, whose total is the aggregate's.
     assert main([*argv, "--seeds", "0", "5", "--quiet"]) == 0
     lines = capsys.readouterr().out.splitlines()

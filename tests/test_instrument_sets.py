@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from conftest import without_seconds
 
 import alignrl.evaluation.instrument_sets as instrument_sets
 from alignrl.apparatus.instruments import instrument_names, set_names
@@ -37,14 +38,6 @@ def hyperbola() -> SetResult:
 @pytest.fixture(scope="module")
 def golden() -> SetResult:
     return run_set(CLASSICAL["golden-section"](), SET, FOCUS, scenarios=SCENARIOS, analytic=True)
-
-
-def _without_seconds(value: Any) -> Any:
-    if isinstance(value, dict):
-        return {k: _without_seconds(v) for k, v in value.items() if k != "seconds"}
-    if isinstance(value, list):
-        return [_without_seconds(item) for item in value]
-    return value
 
 
 def _rows(table: list[str]) -> list[list[str]]:
@@ -98,7 +91,7 @@ def test_the_same_seed_gives_the_same_result_and_another_seed_another(
     hyperbola: SetResult,
 ) -> None:
     again = run_set(CLASSICAL["hyperbola"](), SET, FOCUS, scenarios=SCENARIOS, analytic=True)
-    assert _without_seconds(again.to_dict()) == _without_seconds(hyperbola.to_dict())
+    assert without_seconds(again.to_dict()) == without_seconds(hyperbola.to_dict())
     for ours, theirs in zip(again.sessions, hyperbola.sessions, strict=True):
         assert [r.shots for r in ours.records] == [r.shots for r in theirs.records]
     other = run_set(
@@ -187,7 +180,7 @@ def test_evaluate_a_classical_controller_over_a_set(
     assert report["total"]["successes"] == sum(e["successes"] for e in report["instruments"])
     assert report["total"]["alignments"] == SCENARIOS * len(NAMES)
     # The CLI runs what run_set runs: the same seed, the same sessions.
-    assert _without_seconds(report) == _without_seconds(hyperbola.to_dict())
+    assert without_seconds(report) == without_seconds(hyperbola.to_dict())
     # One progress bar over every alignment of every instrument.
     total = SCENARIOS * len(NAMES)
     assert f"{total}/{total}" in captured.err
