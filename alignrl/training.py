@@ -85,6 +85,20 @@ EVALUATION_SEED = VALIDATION_SEED  # its name before issue 23 (model cards cite 
 UPDATE_LOG_EVERY = 50  # updates between rows of updates.csv
 
 
+def with_budget(config: ExperimentConfig, env_steps: int) -> ExperimentConfig:
+    """`config` with a budget of `env_steps`, its provenance saying so (an override)."""
+    if env_steps < 1:
+        raise ValueError(f"a budget is a positive number of env steps, not {env_steps}")
+    budget = config.budget.model_copy(update={"env_steps": int(env_steps)})
+    from alignrl.config import Provenance
+
+    given = config.provenance or Provenance()
+    provenance = given.model_copy(
+        update={"overrides": [*given.overrides, f"budget.env_steps={env_steps}"]}
+    )
+    return config.model_copy(update={"budget": budget, "provenance": provenance})
+
+
 def evaluate_policy(
     act: Callable[[np.ndarray], np.ndarray],
     apparatus: str,
@@ -197,9 +211,14 @@ class Trainer:
         return trainer
 
     @classmethod
-    def resume(cls, run_dir: str | Path) -> Trainer:
+    def resume(cls, run_dir: str | Path, env_steps: int | None = None) -> Trainer:
+        """The run in `run_dir` from its last checkpoint. `env_steps` gives it a new budget,
+        above the checkpoint's steps (a finished run goes on): config.yaml records it, the
+        budget and an override `budget.env_steps=N` in its provenance."""
         run_dir = Path(run_dir)
         config = read_training_config(run_dir)
+        if env_steps is not None:
+            config = with_budget(config, env_steps)
         trainer = cls(config, run_dir)
         last = run_dir / "checkpoints" / "last.pt"
         if last.exists():
@@ -216,7 +235,14 @@ class Trainer:
                 f"{last}), so it cannot start from its source again here: remove {run_dir} "
                 "and run `alignrl adapt` again"
             )
+        if env_steps is not None and trainer.env_steps >= env_steps:
+            raise ValueError(
+                f"--steps {env_steps}: {run_dir} is at {trainer.env_steps} env steps already; "
+                "a new budget must be above that"
+            )
         trainer._cut_back_to_checkpoint()
+        if config.budget.env_steps != read_training_config(run_dir).budget.env_steps:
+            atomic_write_text(run_dir / CONFIG_FILE, dump_experiment(config))
         return trainer
 
     @property

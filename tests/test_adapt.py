@@ -367,6 +367,9 @@ def test_adapt_runs_from_the_command_line_and_resumes(small_source: Path, tmp_pa
     # A second start of the same run is refused; --resume continues it (here: already done).
     assert main([*common, "--steps", "120", *args]) == 2
     assert main(["adapt", "--resume", str(run), "--quiet", "--json"]) == 0
+    # --resume --steps N goes on to a new budget, with the source's learner as it left it.
+    assert main(["adapt", "--resume", str(run), "--steps", "160", "--quiet", "--json"]) == 0
+    assert Trainer.resume(run).env_steps == 160
 
 
 def _near_focus_successes(agent: Agent, gain: float, scenarios: int = 40) -> int:

@@ -5,13 +5,14 @@ same name and nothing else; `python -m alignrl` is the command."""
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 import yaml
-from conftest import SMALL_SAC, quiet_schedule, write_experiment, write_league
+from conftest import SMALL_SAC, quiet_schedule, read_csv, write_experiment, write_league
 
 from alignrl.cli import main
 from alignrl.config import ConfigError, load_experiment
@@ -126,6 +127,35 @@ def test_train_with_set_and_seed_records_them_with_the_command_and_commit(
     assert yaml.safe_load((runs / "tiny" / "config.yaml").read_text())["seed"] == 0
     assert main(["train", "--resume", str(runs / "tiny"), "--seed", "4"]) == 2
     assert "give --set or --seed or --resume" in capsys.readouterr().err
+
+
+def test_resume_with_steps_gives_a_finished_run_a_new_budget_on_record(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = write_experiment(tmp_path, TINY)
+    runs, run = tmp_path / "runs", tmp_path / "runs" / "tiny"
+    # --steps N on a new run is --set budget.env_steps=N.
+    assert main(["train", str(path), "--runs-dir", str(runs), "--quiet", "--steps", "40"]) == 0
+    recorded = yaml.safe_load((run / "config.yaml").read_text())
+    assert recorded["provenance"]["overrides"] == ["budget.env_steps=40"]
+    capsys.readouterr()
+    # Finished: --resume alone trains nothing; --resume --steps 80 goes on to 80.
+    assert main(["train", "--resume", str(run), "--quiet"]) == 0
+    assert "is finished at 40 env steps" in capsys.readouterr().err
+    assert main(["train", "--resume", str(run), "--quiet", "--json", "--steps", "80"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["env_steps"] == 80 and summary["test"] is not None
+    recorded = yaml.safe_load((run / "config.yaml").read_text())
+    assert recorded["budget"]["env_steps"] == 80
+    assert recorded["provenance"]["overrides"] == ["budget.env_steps=40", "budget.env_steps=80"]
+    sessions = [int(row["env_steps"]) for row in read_csv(run / "metrics" / "evaluations.csv")]
+    assert sessions == [40, 80]
+    # A budget at or below the steps already taken is refused; config.yaml is left as it was.
+    before = (run / "config.yaml").read_text()
+    assert main(["train", "--resume", str(run), "--quiet", "--steps", "80"]) == 2
+    assert "--steps 80: " in capsys.readouterr().err
+    assert (run / "config.yaml").read_text() == before
+    assert main(["train", "--resume", str(run), "--steps", "120", "--seed", "3"]) == 2
 
 
 def test_force_replaces_only_a_run(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

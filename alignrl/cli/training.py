@@ -48,12 +48,14 @@ def cmd_train(args: argparse.Namespace) -> int:
         if given:
             raise CommandError(
                 f"--resume RUN continues RUN with its own config and name: give {given[0]} or "
-                "--resume, not both"
+                "--resume, not both (--steps N gives it a new budget)"
             )
-        trainer = Trainer.resume(args.resume)
+        trainer = _resumed(args)
     else:
         if not args.config:
             raise CommandError("give an experiment config (experiments/X.yaml) or --resume RUN")
+        if args.steps is not None:
+            overrides.append(f"budget.env_steps={args.steps}")
         config = load_experiment(args.config, overrides)
         if args.name is not None:
             config = _renamed(config, args.name)
@@ -77,6 +79,13 @@ def cmd_train(args: argparse.Namespace) -> int:
             return _train_to_the_end(trainer, args, "alignrl adapt --resume")
         trainer = Trainer.create(config, args.runs_dir)
     return _train_to_the_end(trainer, args, "alignrl train --resume")
+
+
+def _resumed(args: argparse.Namespace) -> Any:
+    """The Trainer of --resume RUN, with the budget of --steps N where given."""
+    from alignrl.training import Trainer
+
+    return Trainer.resume(args.resume, env_steps=args.steps)
 
 
 def _train_to_the_end(trainer: Any, args: argparse.Namespace, resume: str) -> int:
@@ -146,7 +155,7 @@ def cmd_adapt(args: argparse.Namespace) -> int:
     from alignrl.training import Trainer
 
     if args.resume:
-        trainer = Trainer.resume(args.resume)
+        trainer = _resumed(args)
         if trainer.config.adaptation is None:
             raise CommandError(f"{args.resume} is a training run, not an adaptation: use train")
         return _train_to_the_end(trainer, args, "alignrl adapt --resume")
@@ -241,6 +250,13 @@ def add_training_parsers(verbs: argparse._SubParsersAction[argparse.ArgumentPars
     train.add_argument("--name", help="run name (default: the config's name)")
     train.add_argument("--runs-dir", default="runs", help="where run directories go")
     train.add_argument("--resume", metavar="RUN", help="continue runs/NAME from its checkpoint")
+    train.add_argument(
+        "--steps",
+        type=int,
+        metavar="N",
+        help="env steps to train (as --set budget.env_steps=N); with --resume, the run's new "
+        "budget: a finished run goes on to N",
+    )
     _add_override_options(train)
     train.add_argument(
         "--force", action="store_true", help="replace a run of the same name (it is removed)"
@@ -266,7 +282,11 @@ def add_training_parsers(verbs: argparse._SubParsersAction[argparse.ArgumentPars
         spec_help="the new apparatus spec (preset, csv:, sem:, import path)",
         args_help="JSON arguments of the apparatus",
     )
-    adapt.add_argument("--steps", type=int, help="adaptation env steps (acquisitions)")
+    adapt.add_argument(
+        "--steps",
+        type=int,
+        help="adaptation env steps (acquisitions); with --resume, the run's new budget",
+    )
     adapt.add_argument("--name", help="run name (default: <member>-on-<apparatus>)")
     adapt.add_argument("--runs-dir", default="runs", help="where run directories go")
     adapt.add_argument(
