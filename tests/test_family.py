@@ -171,14 +171,19 @@ def _histories(family: FocusFamily, task) -> np.ndarray:
     return _play(family, task)[0]
 
 
-def test_unit_free_observations_do_not_see_units() -> None:
+@pytest.mark.parametrize("fit", [False, True], ids=["plain", "fit-features"])
+def test_unit_free_observations_do_not_see_units(fit: bool) -> None:
     base = load_family(INSTRUMENT_DIR / VALIDATION_SET / "val-mid.yaml")
     other = _scaled(base, volts=37.0, shift=1000.0, pixels=2.5)
     # The same columns: the other one in other units, at other settings.
     one, two = FamilyColumn(base, 11, analytic=True), FamilyColumn(other, 11, analytic=True)
     assert two.knobs["defocus"][0] != pytest.approx(one.knobs["defocus"][0])
     assert two.best_quality() == pytest.approx(2.5 * one.best_quality(), rel=1e-6)
-    np.testing.assert_allclose(_histories(base, UNIT_FREE), _histories(other, UNIT_FREE), atol=1e-5)
+    task = dataclasses.replace(UNIT_FREE, fit_features=fit)
+    histories = _histories(base, task)
+    np.testing.assert_allclose(histories, _histories(other, task), atol=1e-4)
+    if fit:  # the fit placed an optimum somewhere, so the features were compared
+        assert histories[..., -3].max() == 1.0 and np.abs(histories[..., -2]).max() > 0
     # With the fixed reference width the pixel scale shows: the test can fail.
     fixed = get_task("focus")
     assert not np.allclose(_histories(base, fixed), _histories(other, fixed), atol=1e-3)

@@ -21,7 +21,8 @@ carries a unit (knobs and steps are fractions of the interval, readings ratios),
 network runs on any interval and any pixel scale. The extras are the task's further measures
 (alignrl/envs/task.py): log(directional width / width) per orientation bin (4, clipped to
 [-1, 1]) and tanh(wobble shift / ref) for x and y (2); a focus task has none, so its rows are
-as they always were. The secret (optimum - setting, as a fraction of the interval) goes to
+as they always were, unless its `fit_features` adds the three of a local focus-curve fit
+(alignrl/envs/fit_features.py). The secret (optimum - setting, as a fraction of the interval) goes to
 info["secret"], never into an observation.
 
 What the engine asks of an apparatus beyond the protocol, it asks through the capabilities
@@ -55,6 +56,7 @@ from alignrl.apparatus.base import (
 )
 from alignrl.apparatus.measures import measure_directional, measure_wobble
 from alignrl.envs import rewards
+from alignrl.envs.fit_features import FIT_FEATURES, fit_features
 from alignrl.envs.task import Task
 
 __all__ = ["AlignmentEpisodes", "EpisodeInfo", "align_others", "feature_layout", "known_optimum"]
@@ -533,11 +535,25 @@ class AlignmentEpisodes:
         rows[:, layout["action"]] = actions
         left = 1.0 - self.steps[indices] / self.task.episode_steps
         rows[:, layout["steps_left"]] = left[:, None]
-        if self.n_extra:
-            rows[:, layout["extras"]] = self._extra_features(indices, measured)
+        measures = self.task.measure_features
+        if measures:
+            extras = layout["extras"]
+            rows[:, extras.start : extras.start + measures] = self._extra_features(
+                indices, measured
+            )
         # Oldest first: shift the window left by one and append the new row.
         self.history[indices, :-1] = self.history[indices, 1:]
         self.history[indices, -1] = rows
+        if self.task.fit_features:
+            # Read from the window with its new row (alignrl/envs/fit_features.py).
+            window = self.history[indices]
+            step = 2.0 * self.max_step[indices, 0] / self.span[indices, 0]
+            self.history[indices, -1, layout["extras"].stop - FIT_FEATURES :] = fit_features(
+                window[:, :, layout["knobs"].start],
+                window[:, :, layout["quality"].start],
+                window[:, :, layout["valid"].start] * window[:, :, layout["measured"].start],
+                step,
+            )
 
     def _extra_features(self, indices: np.ndarray, measured: np.ndarray) -> np.ndarray:
         """Directional widths as log(w_bin / w) in [-1, 1], wobble shifts as tanh(shift /

@@ -26,6 +26,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from alignrl.envs.fit_features import FIT_FEATURES
+
 __all__ = ["MEASURES", "TASKS", "Criterion", "SuccessRule", "Task", "get_task"]
 
 MEASURES = ("width", "directional", "wobble")
@@ -147,6 +149,10 @@ class Task:
     # cannot reach the width spec alone (the aperture with the stigmators anywhere) is judged
     # on what it does fix (the wobble), and the width is left to the stage after it.
     judged: tuple[str, ...] | None = None
+    # Three more features per row, from a local fit of the focus curve to the window's
+    # readings (alignrl/envs/fit_features.py): where it puts the optimum, in maximum steps,
+    # and how much narrower it says the column gets. Single-knob tasks only.
+    fit_features: bool = False
 
     def __post_init__(self) -> None:
         if not self.knobs:
@@ -181,6 +187,11 @@ class Task:
             raise ValueError(
                 f"task {self.name!r}: measures must name 'width' and any of "
                 f"{', '.join(MEASURES[1:])}, each once; got {list(self.measures)}"
+            )
+        if self.fit_features and len(self.knobs) != 1:
+            raise ValueError(
+                f"task {self.name!r}: fit_features fits a focus curve along one knob; the task "
+                f"moves {len(self.knobs)} ({', '.join(self.knobs)})"
             )
         if not self.directional_relative > 1:
             raise ValueError(f"task {self.name!r}: directional_relative must be above 1")
@@ -246,7 +257,13 @@ class Task:
 
     @property
     def extra_features(self) -> int:
-        """Observation features beyond the width: 4 directional widths, 2 wobble shifts."""
+        """Observation features beyond the width: 4 directional widths, 2 wobble shifts, 3
+        of the focus-curve fit."""
+        return self.measure_features + FIT_FEATURES * self.fit_features
+
+    @property
+    def measure_features(self) -> int:
+        """The extra features the measures give (directional widths, wobble shifts)."""
         return DIRECTIONAL_BINS * self.directional + 2 * self.wobble
 
     @property

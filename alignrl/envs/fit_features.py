@@ -1,0 +1,85 @@
+"""What a local focus-curve fit says of an episode so far: observation features for a
+single-knob aligner (`Task.fit_features`), computed from its history window alone.
+
+The width near focus grows as a hyperbola of the focus error, w^2 = w0^2 + g^2 (x - x0)^2,
+so w^2 is a parabola in the setting x. From the measured rows of the window whose widths
+are within `LOCAL_RATIO` of the narrowest (far readings level off as the features blur into
+each other, docs/physics.md, and would bend the parabola), a least-squares parabola in w^2
+is fitted, each row weighted by 1/w^2 (a relative error per reading: the narrow readings
+near focus count most). Where it opens upwards, it places the optimum x0 and the floor w0.
+
+Three features, appended to the newest row of the history:
+
+    fit_valid   1 where the fit places an optimum (3 or more rows at distinct settings, a
+                parabola that opens upwards), else 0 and the two below are 0;
+    fit_step    (x0 - setting) in maximum steps: the action that would reach x0, clipped
+                to [-FIT_STEP_LIMIT, FIT_STEP_LIMIT];
+    fit_floor   log(w0 / the newest width), clipped to [FIT_FLOOR_MIN, 0]: how much
+                narrower the fit says the column can get; FIT_FLOOR_MIN where w0^2 <= 0.
+
+Settings come from the history's knob column (a fraction of the interval) and widths from
+its quality column (a log ratio to the episode's reference), so the features carry no unit:
+two columns that differ only in units and pixel scale give the same features. The fit knows
+nothing of hysteresis or drift; the network that reads it learns how far to trust it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["FIT_FEATURES", "fit_features"]
+
+FIT_FEATURES = 3
+LOCAL_RATIO = 3.0  # rows within this x the narrowest reading take part in the fit
+FIT_STEP_LIMIT = 2.0
+FIT_FLOOR_MIN = -3.0
+_MIN_SPREAD = 1e-6  # settings (in [-1, 1] units) closer than this are one setting
+
+
+def fit_features(
+    knobs: np.ndarray, quality: np.ndarray, measured: np.ndarray, step_in_knob_units: np.ndarray
+) -> np.ndarray:
+    """(N, 3) fit features of N history windows.
+
+    `knobs`, `quality`, `measured`: (N, H) columns of the windows (the knob as 2 x fraction
+    - 1, log(width / reference), 1 where a row is valid and measured); `step_in_knob_units`:
+    (N,) one maximum step in the knob column's units (2 x max step / interval). The newest
+    row is the last, and measured where a fit is to be read from it."""
+    n = knobs.shape[0]
+    out = np.zeros((n, FIT_FEATURES), np.float32)
+    for row in range(n):
+        out[row] = _one(knobs[row], quality[row], measured[row] > 0.5, step_in_knob_units[row])
+    return out
+
+
+def _one(x: np.ndarray, q: np.ndarray, measured: np.ndarray, step: float) -> np.ndarray:
+    features = np.zeros(FIT_FEATURES, np.float32)
+    if not measured[-1] or measured.sum() < 3 or not step > 0:
+        return features
+    setting, newest = float(x[-1]), float(q[-1])
+    x = x[measured].astype(np.float64)
+    q = q[measured].astype(np.float64)
+    local = q <= q.min() + np.log(LOCAL_RATIO)
+    x, q = x[local], q[local]
+    if x.size < 3 or np.unique(np.round(x / _MIN_SPREAD)).size < 3:
+        return features
+    w2 = np.exp(2.0 * q)
+    centre, scale = x.mean(), max(float(np.ptp(x)), _MIN_SPREAD)
+    u = (x - centre) / scale  # conditioned: the settings may sit within a hair of each other
+    weights = 1.0 / w2  # a relative error per reading
+    design = np.stack([u * u, u, np.ones_like(u)], axis=1) * weights[:, None]
+    try:
+        (a, b, c), *_ = np.linalg.lstsq(design, w2 * weights, rcond=None)
+    except np.linalg.LinAlgError:
+        return features
+    if not (np.isfinite([a, b, c]).all() and a > 0):
+        return features
+    optimum = centre - scale * b / (2.0 * a)
+    floor_sq = c - b * b / (4.0 * a)
+    features[0] = 1.0
+    features[1] = np.clip((optimum - setting) / step, -FIT_STEP_LIMIT, FIT_STEP_LIMIT)
+    if floor_sq > 0:
+        features[2] = np.clip(0.5 * np.log(floor_sq) - newest, FIT_FLOOR_MIN, 0.0)
+    else:
+        features[2] = FIT_FLOOR_MIN
+    return features
