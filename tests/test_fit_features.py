@@ -9,11 +9,11 @@ import dataclasses
 import numpy as np
 import pytest
 
+from alignrl.apparatus.registry import make_apparatus
 from alignrl.config import TaskOptions
 from alignrl.envs.core import AlignmentEpisodes, feature_layout
 from alignrl.envs.fit_features import FIT_FLOOR_MIN, FIT_STEP_LIMIT, fit_features
 from alignrl.envs.task import get_task
-from alignrl.apparatus.registry import make_apparatus
 
 
 def _window(settings: list[float], widths: list[float], reference: float, rows: int = 8):
@@ -81,7 +81,8 @@ def test_no_fit_where_the_readings_place_no_optimum(
 
 def test_the_features_ride_in_the_newest_row_and_a_fit_step_reaches_focus() -> None:
     task = dataclasses.replace(get_task("focus"), quality_reference="first", fit_features=True)
-    assert task.extra_features == 3 and dataclasses.replace(task, fit_features=False).extra_features == 0
+    assert task.extra_features == 3
+    assert dataclasses.replace(task, fit_features=False).extra_features == 0
     layout = feature_layout(1, 3)
     column = make_apparatus("instrument:val-mid", {"analytic": True})
     episodes = AlignmentEpisodes([column], task, history=10)

@@ -152,7 +152,6 @@ def _train_to_the_end(trainer: Any, args: argparse.Namespace, resume: str) -> in
 
 
 def cmd_adapt(args: argparse.Namespace) -> int:
-    from alignrl.training import Trainer
 
     if args.resume:
         trainer = _resumed(args)

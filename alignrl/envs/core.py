@@ -22,8 +22,8 @@ network runs on any interval and any pixel scale. The extras are the task's furt
 (alignrl/envs/task.py): log(directional width / width) per orientation bin (4, clipped to
 [-1, 1]) and tanh(wobble shift / ref) for x and y (2); a focus task has none, so its rows are
 as they always were, unless its `fit_features` adds the three of a local focus-curve fit
-(alignrl/envs/fit_features.py). The secret (optimum - setting, as a fraction of the interval) goes to
-info["secret"], never into an observation.
+(alignrl/envs/fit_features.py). The secret (optimum - setting, as a fraction of the
+interval) goes to info["secret"], never into an observation.
 
 What the engine asks of an apparatus beyond the protocol, it asks through the capabilities
 of alignrl/apparatus/base.py: the optimum and the best width where it knows them
