@@ -291,11 +291,7 @@ class TaskOptions(_Strict):
         description="quality observations relative to quality_ref_px (fixed) or to the "
         "episode's first width (first: unit-free)",
     )
-    fit_features: bool | None = Field(
-        None,
-        description="three more observation features of a single-knob task: where a local "
-        "fit of the focus curve puts the optimum and the floor (alignrl/envs/fit_features.py)",
-    )
+    fit_features: bool | None = Field(None, description="3 features of a local focus-curve fit")
     success_relative: float | None = Field(None, gt=1, description="threshold x best width")
     success_absolute_px: float | None = Field(None, gt=0, description="absolute spec, px")
     directional_relative: float | None = Field(
