@@ -288,10 +288,10 @@ class TaskOptions(_Strict):
     )
     quality_reference: Literal["fixed", "first"] | None = Field(
         None,
-        description="quality observations relative to quality_ref_px (fixed) or to the "
-        "episode's first width (first: unit-free)",
+        description="quality relative to quality_ref_px (fixed) or the first width (unit-free)",
     )
     fit_features: bool | None = Field(None, description="3 features of a local focus-curve fit")
+    fit_window: float | None = Field(None, gt=1, description="fit within x narrowest reading")
     success_relative: float | None = Field(None, gt=1, description="threshold x best width")
     success_absolute_px: float | None = Field(None, gt=0, description="absolute spec, px")
     directional_relative: float | None = Field(

@@ -100,7 +100,21 @@ def test_the_features_ride_in_the_newest_row_and_a_fit_step_reaches_focus() -> N
     assert episodes.successes()[0] and episodes.width[0] < before
 
 
+def test_a_wider_window_fits_the_flanks_of_a_steep_curve() -> None:
+    # The narrowest reading 2.3 px; the others 5.2, 7.5 and 16.9 px: one within 3x, two in 6x.
+    settings = [0.30, 0.36, 0.33, 0.315]
+    widths = list(_hyperbola(np.array(settings), optimum=0.318, floor=2.0, gain=400.0))
+    assert max(widths[:2]) / min(widths) > 3.0
+    window = _window(settings, widths, reference=widths[0])
+    assert fit_features(*window, np.array([0.5]))[0, 0] == 0.0  # two readings within 3x
+    wide = fit_features(*window, np.array([0.5]), window=6.0)[0]
+    assert wide[0] == 1.0 and wide[1] == pytest.approx((0.318 - 0.315) / 0.5, abs=1e-4)
+
+
 def test_fit_features_are_a_single_knob_option() -> None:
     assert TaskOptions(fit_features=True).apply(get_task("focus")).fit_features
+    assert TaskOptions(fit_window=6.0).apply(get_task("focus")).fit_window == 6.0
+    with pytest.raises(ValueError, match="greater than 1"):
+        TaskOptions(fit_window=1.0)
     with pytest.raises(ValueError, match="fit_features fits a focus curve along one knob"):
         TaskOptions(fit_features=True).apply(get_task("stigmation"))

@@ -553,6 +553,7 @@ class AlignmentEpisodes:
                 window[:, :, layout["quality"].start],
                 window[:, :, layout["valid"].start] * window[:, :, layout["measured"].start],
                 step,
+                self.task.fit_window,
             )
 
     def _extra_features(self, indices: np.ndarray, measured: np.ndarray) -> np.ndarray:

@@ -3,10 +3,11 @@ single-knob aligner (`Task.fit_features`), computed from its history window alon
 
 The width near focus grows as a hyperbola of the focus error, w^2 = w0^2 + g^2 (x - x0)^2,
 so w^2 is a parabola in the setting x. From the measured rows of the window whose widths
-are within `LOCAL_RATIO` of the narrowest (far readings level off as the features blur into
-each other, docs/physics.md, and would bend the parabola), a least-squares parabola in w^2
-is fitted, each row weighted by 1/w^2 (a relative error per reading: the narrow readings
-near focus count most). Where it opens upwards, it places the optimum x0 and the floor w0.
+are within `window` x the narrowest (Task.fit_window, 3 unless set; far readings level off
+as the features blur into each other, docs/physics.md, and would bend the parabola), a
+least-squares parabola in w^2 is fitted, each row weighted by 1/w^2 (a relative error per
+reading: the narrow readings near focus count most). Where it opens upwards, it places
+the optimum x0 and the floor w0.
 
 Three features, appended to the newest row of the history:
 
@@ -37,7 +38,11 @@ _MIN_SPREAD = 1e-6  # settings (in [-1, 1] units) closer than this are one setti
 
 
 def fit_features(
-    knobs: np.ndarray, quality: np.ndarray, measured: np.ndarray, step_in_knob_units: np.ndarray
+    knobs: np.ndarray,
+    quality: np.ndarray,
+    measured: np.ndarray,
+    step_in_knob_units: np.ndarray,
+    window: float = LOCAL_RATIO,
 ) -> np.ndarray:
     """(N, 3) fit features of N history windows.
 
@@ -48,18 +53,22 @@ def fit_features(
     n = knobs.shape[0]
     out = np.zeros((n, FIT_FEATURES), np.float32)
     for row in range(n):
-        out[row] = _one(knobs[row], quality[row], measured[row] > 0.5, step_in_knob_units[row])
+        out[row] = _one(
+            knobs[row], quality[row], measured[row] > 0.5, step_in_knob_units[row], window
+        )
     return out
 
 
-def _one(x: np.ndarray, q: np.ndarray, measured: np.ndarray, step: float) -> np.ndarray:
+def _one(
+    x: np.ndarray, q: np.ndarray, measured: np.ndarray, step: float, window: float
+) -> np.ndarray:
     features = np.zeros(FIT_FEATURES, np.float32)
     if not measured[-1] or measured.sum() < 3 or not step > 0:
         return features
     setting, newest = float(x[-1]), float(q[-1])
     x = x[measured].astype(np.float64)
     q = q[measured].astype(np.float64)
-    local = q <= q.min() + np.log(LOCAL_RATIO)
+    local = q <= q.min() + np.log(window)
     x, q = x[local], q[local]
     if x.size < 3 or np.unique(np.round(x / _MIN_SPREAD)).size < 3:
         return features

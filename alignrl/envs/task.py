@@ -153,6 +153,7 @@ class Task:
     # readings (alignrl/envs/fit_features.py): where it puts the optimum, in maximum steps,
     # and how much narrower it says the column gets. Single-knob tasks only.
     fit_features: bool = False
+    fit_window: float = 3.0  # the fit takes the readings within this x the narrowest
 
     def __post_init__(self) -> None:
         if not self.knobs:
@@ -193,6 +194,8 @@ class Task:
                 f"task {self.name!r}: fit_features fits a focus curve along one knob; the task "
                 f"moves {len(self.knobs)} ({', '.join(self.knobs)})"
             )
+        if not self.fit_window > 1:
+            raise ValueError(f"task {self.name!r}: fit_window must be above 1 (x narrowest)")
         if not self.directional_relative > 1:
             raise ValueError(f"task {self.name!r}: directional_relative must be above 1")
         for name in ("wobble_amplitude_v", "wobble_spec_px", "wobble_ref_px"):

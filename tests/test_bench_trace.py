@@ -1,0 +1,23 @@
+"""benchmarks/trace.py: alignments step by step on a validation instrument, never on a
+held-out one."""
+
+from __future__ import annotations
+
+import pytest
+
+from benchmarks.trace import main, trace
+
+
+def test_a_trace_walks_each_episode_to_its_end() -> None:
+    lines = trace("champion:focus-v2", "val-mid", episodes=2, seed=7)
+    starts = [line for line in lines if line.startswith("episode ")]
+    ends = [line for line in lines if line.startswith("  left at ")]
+    assert [line.split(":")[0] for line in starts] == ["episode 7", "episode 8"]
+    assert len(ends) == 2 and all(line.endswith(("aligned", "missed")) for line in ends)
+    steps = [line for line in lines if line.startswith("  at ")]
+    assert steps and all("-> move" in line and " fit " not in line for line in steps)
+
+
+def test_a_held_out_instrument_is_refused(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["--policy", "champion:focus-v2", "--instrument", "near-bound"]) == 2
+    assert "held out" in capsys.readouterr().err
