@@ -241,7 +241,7 @@ class Trainer:
                 "a new budget must be above that"
             )
         trainer._cut_back_to_checkpoint()
-        if config.budget.env_steps != read_training_config(run_dir).budget.env_steps:
+        if env_steps is not None:  # the new budget on record, once it is known to be valid
             atomic_write_text(run_dir / CONFIG_FILE, dump_experiment(config))
         return trainer
 
