@@ -292,6 +292,7 @@ class TaskOptions(_Strict):
     )
     fit_features: bool | None = Field(None, description="3 features of a local focus-curve fit")
     fit_window: float | None = Field(None, gt=1, description="fit within x narrowest reading")
+    action_power: float | None = Field(None, ge=1, le=4, description="step: sign(a)|a|^power")
     success_relative: float | None = Field(None, gt=1, description="threshold x best width")
     success_absolute_px: float | None = Field(None, gt=0, description="absolute spec, px")
     directional_relative: float | None = Field(
@@ -299,9 +300,7 @@ class TaskOptions(_Strict):
     )
     wobble_amplitude_v: float | None = Field(None, gt=0, description="wobble swing each way, V")
     wobble_spec_px: float | None = Field(None, gt=0, description="spec of the wobble shift, px")
-    wobble_weight: float | None = Field(
-        None, ge=0, description="cost px per px of wobble shift (rewards)"
-    )
+    wobble_weight: float | None = Field(None, ge=0, description="cost px per px of wobble shift")
 
     def apply(self, task: Any) -> Any:
         """The task with these changes (a new object; the registry's task is untouched)."""

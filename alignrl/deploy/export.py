@@ -192,13 +192,18 @@ def export_policy(
     out = Path(out)
     _refuse_to_overwrite(out, force)
     knobs = knob_limits(source, note)
-    graph = PolicyGraph(source.agent, [knob["max_step"] for knob in knobs])
+    power = source.task.action_power
+    graph = PolicyGraph(source.agent, [knob["max_step"] for knob in knobs], power)
     staging = staging_folder(out)
     try:
         policy_path = staging / EXPORT_FORMATS[export_format]
         write_policy(source.agent, graph, policy_path, export_format)
         interface = PolicyInterface(
-            graph.input_names, graph.output_names, graph.max_step.tolist(), source.agent.spec
+            graph.input_names,
+            graph.output_names,
+            graph.max_step.tolist(),
+            source.agent.spec,
+            power,
         )
         run, runtime = load_runner(policy_path, export_format, interface)
         parity = check_parity(source.agent, graph, run, runtime, histories, seed, tolerance)

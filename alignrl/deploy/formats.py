@@ -30,6 +30,7 @@ from torch import Tensor
 from alignrl.agents.agent import Agent, finite_problem
 from alignrl.checkpoints import current_umask, fsync_file
 from alignrl.deploy.graph import PolicyGraph, PolicyInterface, Runner, random_histories
+from alignrl.envs.task import knob_change
 from alignrl.runs.learner_state import file_sha256
 from alignrl.runs.sources import ExportError
 
@@ -158,7 +159,7 @@ def _weights_runner(path: Path, interface: PolicyInterface) -> tuple[Runner, str
     weights = load_file(str(path), device="cpu")
     _check_tensors(path, weights, blank["policy"])
     agent.load_policy_state({**blank, "policy": weights})
-    graph = PolicyGraph(agent, interface.max_step)
+    graph = PolicyGraph(agent, interface.max_step, interface.action_power)
     max_step = graph.max_step.numpy()
 
     @torch.no_grad()
@@ -168,7 +169,8 @@ def _weights_runner(path: Path, interface: PolicyInterface) -> tuple[Runner, str
             outputs = graph(*(torch.from_numpy(array) for array in arrays))
             return {n: out.numpy() for n, out in zip(graph.output_names, outputs, strict=True)}
         action = agent.act(arrays[0], deterministic=True).astype(np.float32)  #   (batch, k+1)
-        return {"action": action, "knob_step": action[:, : graph.knobs] * max_step}
+        knob_step = knob_change(action[:, : graph.knobs], max_step, graph.action_power)
+        return {"action": action, "knob_step": knob_step.astype(np.float32)}
 
     return run, f"torch {torch.__version__}: Agent.act on the safetensors weights"
 

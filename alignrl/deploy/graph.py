@@ -5,8 +5,9 @@
     history    float32 (batch, H, F)  the env's history (alignrl/envs/core.py), as it is
       -> history encoder -> mean of the policy head -> tanh -> clip to [-1, 1]
     action     float32 (batch, k + 1) k knob actions, then the stop component (stop if > 0)
-    knob_step  float32 (batch, k)     action[:, :k] x max_step: the knob change asked for,
-                                      in the apparatus's units (volts for a lens)
+    knob_step  float32 (batch, k)     sign(a) |a|^action_power x max_step, a = action[:, :k]:
+                                      the knob change asked for, in the apparatus's units
+                                      (volts for a lens); power 1 (the default): a x max_step
 
 The learners apply no normalisation of their own: the env already scales every feature of
 the history (knobs to [-1, 1], quality as log(width / reference)), so there is nothing to fold
@@ -48,8 +49,11 @@ class PolicyGraph(nn.Module):
     [+ memory]. A copy of the policy network alone (no critics, no optimizer); the member
     itself is left untouched."""
 
-    def __init__(self, agent: Agent, max_step: Sequence[float]) -> None:
+    def __init__(
+        self, agent: Agent, max_step: Sequence[float], action_power: float = 1.0
+    ) -> None:
         super().__init__()
+        self.action_power = float(action_power)  # the task's (alignrl.envs.task.knob_change)
         policy = agent.learner.acting_network  # SAC's actor, PPO's policy
         self.encoder = copy.deepcopy(policy.encoder)
         self.head = copy.deepcopy(policy.head)
@@ -112,7 +116,10 @@ class PolicyGraph(nn.Module):
         # Agent.act(deterministic=True) is tanh(mean) for SAC and PPO alike; the clip only
         # pins the contract (float32 tanh can round to exactly 1, never beyond).
         action = torch.tanh(mean).clamp(-1.0, 1.0)  #                                   (B, k+1)
-        knob_step = action[:, : self.knobs] * self.max_step  # as AlignmentEpisodes.step (B, k)
+        knob_action = action[:, : self.knobs]  #                                          (B, k)
+        if self.action_power != 1.0:  # as Task.knob_change, which AlignmentEpisodes.step uses
+            knob_action = torch.sign(knob_action) * knob_action.abs() ** self.action_power
+        knob_step = knob_action * self.max_step  #                                         (B, k)
         if updated is None:
             return action, knob_step
         return (action, knob_step, *updated.layers, updated.valid.to(action.dtype))
@@ -181,3 +188,4 @@ class PolicyInterface:
     output_names: list[str]
     max_step: list[float]
     spec: MemberSpec | None = None
+    action_power: float = 1.0  # the task's: knob_step = sign(a) |a|^power x max_step

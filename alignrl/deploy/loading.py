@@ -22,7 +22,7 @@ from alignrl.deploy.card_schema import check_card
 from alignrl.deploy.formats import load_runner, sha256_of
 from alignrl.deploy.graph import PolicyInterface, Runner, random_histories
 from alignrl.deploy.parity import PARITY_TOLERANCE
-from alignrl.envs.task import Task
+from alignrl.envs.task import Task, knob_change
 from alignrl.runs.sources import ExportError
 
 __all__ = ["ExportedPolicy", "load_exported"]
@@ -91,10 +91,13 @@ def _card_spec(member: dict[str, Any]) -> MemberSpec:
     return MemberSpec.from_dict({f.name: member[f.name] for f in dataclasses.fields(MemberSpec)})
 
 
-def _probe(run: Runner, card: dict[str, Any], policy_path: Path, max_step: np.ndarray) -> None:
+def _probe(
+    run: Runner, card: dict[str, Any], policy_path: Path, max_step: np.ndarray, power: float
+) -> None:
     """Run a freshly loaded policy file on a zero history and a few random ones, as its card
     describes them: it must take the card's inputs, give the card's outputs in their shapes,
-    every value finite, and knob_step = action x the card's max_step. A file of another
+    every value finite, and knob_step = sign(a) |a|^power x the card's max_step (the task's
+    action_power, alignrl.envs.task.knob_change). A file of another
     member, or a card whose steps were edited, is refused here, before any instrument."""
     knobs = len(max_step)
     history, features = int(card["history"]), int(card["features"])
@@ -129,7 +132,7 @@ def _probe(run: Runner, card: dict[str, Any], policy_path: Path, max_step: np.nd
                 "hold NaN or infinity; export it again from a sound member"
             )
     action, knob_step = outputs["action"], outputs["knob_step"]
-    expected = action[:, :knobs].astype(np.float64) * max_step
+    expected = knob_change(action[:, :knobs], max_step, power)
     allowed = PARITY_TOLERANCE * max(1.0, float(np.max(max_step)))
     if not np.allclose(knob_step, expected, rtol=1e-5, atol=allowed):
         scale = float(
@@ -172,9 +175,10 @@ def load_exported(path: str | Path) -> ExportedPolicy:
         max_step=max_step.tolist(),
         # Only weights need the member: a graph carries its own network.
         spec=_card_spec(card["member"]) if export_format == "safetensors" else None,
+        action_power=task.action_power,
     )
     run, runtime = load_runner(policy_path, export_format, interface)
-    _probe(run, card, policy_path, max_step)
+    _probe(run, card, policy_path, max_step, task.action_power)
     recorded = card.get("policy_sha256")
     if recorded is not None and sha256_of(policy_path) != recorded:
         raise ExportError(

@@ -14,6 +14,7 @@ import torch
 
 from alignrl.agents.agent import Agent
 from alignrl.deploy.graph import PolicyGraph, Runner, random_histories
+from alignrl.envs.task import knob_change
 
 __all__ = ["PARITY_HISTORIES", "PARITY_TOLERANCE", "Parity", "check_parity"]
 
@@ -104,7 +105,8 @@ def check_parity(
     outputs = run({"history": inputs, **graph.empty_memory(histories)})
     max_step = graph.max_step.numpy().astype(np.float64)
     action_difference = _max_difference(outputs["action"], expected)
-    knob_difference = _max_difference(outputs["knob_step"], expected[:, : graph.knobs] * max_step)
+    asked = knob_change(expected[:, : graph.knobs], max_step, graph.action_power)
+    knob_difference = _max_difference(outputs["knob_step"], asked)
     memory_difference = None
     if graph.memory_length:
         memory = _random_memory(graph, histories, rng)

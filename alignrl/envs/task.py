@@ -28,12 +28,23 @@ import numpy as np
 
 from alignrl.envs.fit_features import FIT_FEATURES
 
-__all__ = ["MEASURES", "TASKS", "Criterion", "SuccessRule", "Task", "get_task"]
+__all__ = ["MEASURES", "TASKS", "Criterion", "SuccessRule", "Task", "get_task", "knob_change"]
 
 MEASURES = ("width", "directional", "wobble")
 DIRECTIONAL_BINS = 4  # edge-normal orientation bins of quality.directional_widths
 QUALITY_REFERENCES = ("fixed", "first")  # what quality observations are relative to
 REWARD_FORMS = ("difference", "log_ratio")  # how the final reward counts widths (rewards.py)
+MAX_ACTION_POWER = 4.0  # above it the smallest useful changes need actions within a hair of 0
+
+
+def knob_change(actions: np.ndarray, max_step: np.ndarray, power: float = 1.0) -> np.ndarray:
+    """max_step x sign(a) |a|^power: the knob change (its units) an action a in [-1, 1] asks
+    for. Power 1 is linear; above it, the same reach with finer changes near 0. The exported
+    graph computes the same (alignrl/deploy/graph.py: knob_step)."""
+    actions = np.asarray(actions, np.float64)
+    if power != 1.0:
+        actions = np.sign(actions) * np.abs(actions) ** power
+    return actions * max_step
 
 
 @dataclass(frozen=True)
@@ -154,6 +165,10 @@ class Task:
     # and how much narrower it says the column gets. Single-knob tasks only.
     fit_features: bool = False
     fit_window: float = 3.0  # the fit takes the readings within this x the narrowest
+    # A knob change is max_step x sign(a) |a|^action_power for the action's a in [-1, 1]:
+    # 1 is linear (the seed); above 1 the same reach with finer changes near 0, where a
+    # steep column's last moves must land within a fraction of a percent of the interval.
+    action_power: float = 1.0
 
     def __post_init__(self) -> None:
         if not self.knobs:
@@ -196,6 +211,11 @@ class Task:
             )
         if not self.fit_window > 1:
             raise ValueError(f"task {self.name!r}: fit_window must be above 1 (x narrowest)")
+        if not 1.0 <= self.action_power <= MAX_ACTION_POWER:
+            raise ValueError(
+                f"task {self.name!r}: action_power must be in [1, {MAX_ACTION_POWER:g}], "
+                f"got {self.action_power}"
+            )
         if not self.directional_relative > 1:
             raise ValueError(f"task {self.name!r}: directional_relative must be above 1")
         for name in ("wobble_amplitude_v", "wobble_spec_px", "wobble_ref_px"):
@@ -226,6 +246,10 @@ class Task:
                     f"task {self.name!r}: judged must name measures the task takes "
                     f"({', '.join(self.measures)}), each once; got {list(self.judged)}"
                 )
+
+    def knob_change(self, actions: np.ndarray, max_step: np.ndarray) -> np.ndarray:
+        """The knob changes (its units) that actions in [-1, 1] ask for (`knob_change`)."""
+        return knob_change(actions, max_step, self.action_power)
 
     def for_acting(self) -> Task:
         """The task as an evaluation session or `align` runs a policy on it: without the
