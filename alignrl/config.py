@@ -293,6 +293,7 @@ class TaskOptions(_Strict):
     fit_features: bool | None = Field(None, description="3 features of a local focus-curve fit")
     fit_window: float | None = Field(None, gt=1, description="fit within x narrowest reading")
     action_power: float | None = Field(None, ge=1, le=4, description="step: sign(a)|a|^power")
+    stop_at_best: bool | None = Field(None, description="end at the narrowest reading's setting")
     success_relative: float | None = Field(None, gt=1, description="threshold x best width")
     success_absolute_px: float | None = Field(None, gt=0, description="absolute spec, px")
     directional_relative: float | None = Field(

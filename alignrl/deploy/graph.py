@@ -49,9 +49,7 @@ class PolicyGraph(nn.Module):
     [+ memory]. A copy of the policy network alone (no critics, no optimizer); the member
     itself is left untouched."""
 
-    def __init__(
-        self, agent: Agent, max_step: Sequence[float], action_power: float = 1.0
-    ) -> None:
+    def __init__(self, agent: Agent, max_step: Sequence[float], action_power: float = 1.0) -> None:
         super().__init__()
         self.action_power = float(action_power)  # the task's (alignrl.envs.task.knob_change)
         policy = agent.learner.acting_network  # SAC's actor, PPO's policy

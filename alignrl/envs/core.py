@@ -11,7 +11,9 @@ An episode (seed section 4.3):
    The episode ends on stop or after `episode_steps` steps; the final reward
    scale x (edge width before - edge width after) is paid then. With the task's
    `verify_final`, "after" is one more image acquired at the final setting (as an
-   evaluation's verification), not the last reading the aligner stopped at.
+   evaluation's verification), not the last reading the aligner stopped at. With its
+   `stop_at_best`, the final setting is where the episode's narrowest reading was taken
+   (written back without an acquisition), as a classical autofocus ends.
 
 Observations are histories of H steps, oldest first, zero-padded at the front; each row is
 FEATURES: [valid, knob settings (k, in [-1, 1]), log(width / ref), measured, last action
@@ -201,6 +203,9 @@ class AlignmentEpisodes:
         self.directional_threshold = np.full(self.n, np.nan)  # px, every bin
         self.bonus_threshold = np.full(self.n, np.nan)  # px; the success bonus is paid within
         self.best_width = np.full(self.n, np.nan)  # px at the optimum; NaN where unknown
+        # The episode's narrowest reading so far and where it was taken (Task.stop_at_best).
+        self.narrowest = np.full(self.n, np.inf)
+        self.narrowest_setting = np.zeros((self.n, self.k))
         self.steps = np.zeros(self.n, np.int64)
         self.acquisitions = np.zeros(self.n, np.int64)
         self.active = np.zeros(self.n, bool)
@@ -380,6 +385,8 @@ class AlignmentEpisodes:
                 self.info[index].out_of_bounds += int(hit_bound[position])
         done = stop | (self.steps[indices] >= task.episode_steps)
         finished = indices[done]
+        if task.stop_at_best and finished.size:
+            self._return_to_narrowest(finished)
         if task.verify_final and finished.size:
             # One more image where the aligner left the column: the verification an
             # evaluation takes. Rewards and success are judged on it, not on the reading the
@@ -401,6 +408,30 @@ class AlignmentEpisodes:
             info.acquisitions = int(self.acquisitions[index])
             info.width_px = float(self.width[index])
         return reward, done
+
+    def _return_to_narrowest(self, indices: np.ndarray) -> None:
+        """Write the setting of each episode's narrowest reading back (Task.stop_at_best),
+        where the last step left elsewhere; its reading stands as the final one unless the
+        task verifies. No acquisition. A write the apparatus refuses leaves the episode where
+        it was, its last reading standing, and the error in its info."""
+        for index in indices:
+            if not np.isfinite(self.narrowest[index]):
+                continue  # nothing measured: nowhere better to go
+            if np.array_equal(self.narrowest_setting[index], self.setting[index]):
+                continue
+            unit = self.apparatus[index]
+            target = self.narrowest_setting[index]
+            try:
+                unit.write(dict(zip(self.task.knobs, target.tolist(), strict=True)))
+            except ApparatusError as error:
+                self.info[index].last_error = str(error)
+                continue
+            if reports_applied(unit):
+                applied = unit.applied_setting()
+                target = np.array([applied[k] for k in self.task.knobs], float)
+            self.setting[index] = target
+            self.width[index] = self.narrowest[index]
+        self.cost[indices] = self._costs(indices)
 
     def _costs(self, indices: np.ndarray) -> np.ndarray:
         """The task's cost (px) of the latest measurement of `indices`: the width, plus the
@@ -522,6 +553,10 @@ class AlignmentEpisodes:
         normalized = 2.0 * (self.setting[indices] - self.low[indices]) / self.span[indices] - 1.0
         rows[:, layout["knobs"]] = np.clip(normalized, -1.0, 1.0)
         measured = np.isfinite(widths)
+        self.narrowest[indices[self.steps[indices] == 0]] = np.inf  # a new episode's first row
+        narrower = measured & (np.where(measured, widths, np.inf) < self.narrowest[indices])
+        self.narrowest[indices[narrower]] = widths[narrower]
+        self.narrowest_setting[indices[narrower]] = self.setting[indices[narrower]]
         reference = self.quality_ref[indices]
         first = measured & ~np.isfinite(reference)  # the episode's first measured width
         reference[first] = widths[first]

@@ -169,6 +169,10 @@ class Task:
     # 1 is linear (the seed); above 1 the same reach with finer changes near 0, where a
     # steep column's last moves must land within a fraction of a percent of the interval.
     action_power: float = 1.0
+    # An episode that ends (stop or step limit) leaves the knob where its narrowest reading
+    # was taken, as a classical autofocus does, not where the last step took it: a probe
+    # beyond the best costs an acquisition but never the result. Width-only tasks.
+    stop_at_best: bool = False
 
     def __post_init__(self) -> None:
         if not self.knobs:
@@ -211,6 +215,11 @@ class Task:
             )
         if not self.fit_window > 1:
             raise ValueError(f"task {self.name!r}: fit_window must be above 1 (x narrowest)")
+        if self.stop_at_best and self.measures != ("width",):
+            raise ValueError(
+                f"task {self.name!r}: stop_at_best returns to the narrowest reading, a task "
+                f"that measures the width alone; it measures {', '.join(self.measures)}"
+            )
         if not 1.0 <= self.action_power <= MAX_ACTION_POWER:
             raise ValueError(
                 f"task {self.name!r}: action_power must be in [1, {MAX_ACTION_POWER:g}], "
