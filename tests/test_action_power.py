@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
+from conftest import SMALL_SAC, write_experiment
 
 from alignrl.apparatus.quality import TEN_NINETY_PER_SIGMA
 from alignrl.apparatus.registry import make_apparatus
@@ -64,17 +64,18 @@ def test_an_episode_moves_the_knob_by_the_powered_action() -> None:
 def test_an_exported_policy_steps_as_its_task_says(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    settings = {
-        "name": "powered",
-        "envs": 2,
-        "learner": {"algorithm": "sac", "encoder_kwargs": {"hidden": [16]}, "hidden": [16],
-                    "batch_size": 16, "learning_starts": 16, "random_steps": 16},
-        "task_options": {"action_power": 2.0},
-        "budget": {"env_steps": 32, "eval_every": 32, "eval_scenarios": 2, "checkpoint_every": 32},
-    }  # fmt: skip
-    (tmp_path / "powered.yaml").write_text(yaml.safe_dump(settings))
+    experiment = write_experiment(
+        tmp_path,
+        {
+            "name": "powered",
+            "envs": 2,
+            "learner": {"algorithm": "sac", **SMALL_SAC},
+            "task_options": {"action_power": 2.0},
+            "budget": {"env_steps": 48, "eval_every": 48, "eval_scenarios": 2},
+        },
+    )
     runs = tmp_path / "runs"
-    assert main(["train", str(tmp_path / "powered.yaml"), "--runs-dir", str(runs), "--quiet"]) == 0
+    assert main(["train", str(experiment), "--runs-dir", str(runs), "--quiet"]) == 0
     batch = np.random.default_rng(5).normal(size=(64, 8, 7)).astype(np.float32)
     for export_format in ("safetensors", "torchscript"):
         out = tmp_path / export_format

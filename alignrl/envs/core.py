@@ -419,17 +419,11 @@ class AlignmentEpisodes:
                 continue  # nothing measured: nowhere better to go
             if np.array_equal(self.narrowest_setting[index], self.setting[index]):
                 continue
-            unit = self.apparatus[index]
-            target = self.narrowest_setting[index]
             try:
-                unit.write(dict(zip(self.task.knobs, target.tolist(), strict=True)))
+                self.setting[index] = self._write(index, self.narrowest_setting[index])
             except ApparatusError as error:
                 self.info[index].last_error = str(error)
                 continue
-            if reports_applied(unit):
-                applied = unit.applied_setting()
-                target = np.array([applied[k] for k in self.task.knobs], float)
-            self.setting[index] = target
             self.width[index] = self.narrowest[index]
         self.cost[indices] = self._costs(indices)
 
@@ -507,14 +501,8 @@ class AlignmentEpisodes:
         self.wobble[indices] = np.nan
         for position, index in enumerate(indices):
             unit = self.apparatus[index]
-            values = dict(zip(self.task.knobs, self.setting[index].tolist(), strict=True))
             try:
-                unit.write(values)
-                if reports_applied(unit):
-                    # A safety shield may have clamped the write, or (dry run) not sent it:
-                    # the history must show where the column really is.
-                    applied = unit.applied_setting()
-                    self.setting[index] = [applied[k] for k in self.task.knobs]
+                self.setting[index] = self._write(index, self.setting[index])
                 width, directional, shift = self._take_measures(unit)
             except (MeasurementError, ApparatusError) as error:
                 # A defined outcome on real hardware: no edges far from focus, or a driver
@@ -528,6 +516,17 @@ class AlignmentEpisodes:
         self.width[indices] = widths
         self.cost[indices] = self._costs(indices)
         return widths
+
+    def _write(self, index: int, target: np.ndarray) -> np.ndarray:
+        """Write the task's knobs of apparatus `index` to `target` (its units) and return
+        where they really are: a safety shield may have clamped the write, or (dry run) not
+        sent it, and the history must show where the column is."""
+        unit = self.apparatus[index]
+        unit.write(dict(zip(self.task.knobs, np.asarray(target).tolist(), strict=True)))
+        if not reports_applied(unit):
+            return np.array(target, float)
+        applied = unit.applied_setting()
+        return np.array([applied[k] for k in self.task.knobs], float)
 
     def _take_measures(self, unit: Apparatus) -> tuple[float, np.ndarray, np.ndarray]:
         """(width px, directional widths px, wobble shift px) of one apparatus; the arrays
@@ -553,10 +552,8 @@ class AlignmentEpisodes:
         normalized = 2.0 * (self.setting[indices] - self.low[indices]) / self.span[indices] - 1.0
         rows[:, layout["knobs"]] = np.clip(normalized, -1.0, 1.0)
         measured = np.isfinite(widths)
-        self.narrowest[indices[self.steps[indices] == 0]] = np.inf  # a new episode's first row
-        narrower = measured & (np.where(measured, widths, np.inf) < self.narrowest[indices])
-        self.narrowest[indices[narrower]] = widths[narrower]
-        self.narrowest_setting[indices[narrower]] = self.setting[indices[narrower]]
+        if self.task.stop_at_best:
+            self._note_narrowest(indices, widths, measured)
         reference = self.quality_ref[indices]
         first = measured & ~np.isfinite(reference)  # the episode's first measured width
         reference[first] = widths[first]
@@ -590,6 +587,16 @@ class AlignmentEpisodes:
                 step,
                 self.task.fit_window,
             )
+
+    def _note_narrowest(
+        self, indices: np.ndarray, widths: np.ndarray, measured: np.ndarray
+    ) -> None:
+        """Keep each episode's narrowest reading and its setting (Task.stop_at_best); an
+        episode's first row (no step yet) starts afresh."""
+        self.narrowest[indices[self.steps[indices] == 0]] = np.inf
+        narrower = measured & (np.where(measured, widths, np.inf) < self.narrowest[indices])
+        self.narrowest[indices[narrower]] = widths[narrower]
+        self.narrowest_setting[indices[narrower]] = self.setting[indices[narrower]]
 
     def _extra_features(self, indices: np.ndarray, measured: np.ndarray) -> np.ndarray:
         """Directional widths as log(w_bin / w) in [-1, 1], wobble shifts as tanh(shift /
