@@ -283,9 +283,7 @@ class TaskOptions(_Strict):
     bonus_relative: float | None = Field(
         None, gt=1, description="bonus only within this x best width (the spec unchanged)"
     )
-    verify_final: bool | None = Field(
-        None, description="judge final reward and bonus on one more image (as evaluation does)"
-    )
+    verify_final: bool | None = Field(None, description="judge the end on one more image")
     quality_reference: Literal["fixed", "first"] | None = Field(
         None,
         description="quality relative to quality_ref_px (fixed) or the first width (unit-free)",
@@ -294,6 +292,8 @@ class TaskOptions(_Strict):
     fit_window: float | None = Field(None, gt=1, description="fit within x narrowest reading")
     action_power: float | None = Field(None, ge=1, le=4, description="step: sign(a)|a|^power")
     stop_at_best: bool | None = Field(None, description="end at the narrowest reading's setting")
+    backlash_overshoot: float | None = Field(None, ge=0, le=0.5, description="way back: past by")
+    finish_at_fit: bool | None = Field(None, description="way back: to a bracketed fit's optimum")
     success_relative: float | None = Field(None, gt=1, description="threshold x best width")
     success_absolute_px: float | None = Field(None, gt=0, description="absolute spec, px")
     directional_relative: float | None = Field(

@@ -13,7 +13,8 @@ An episode (seed section 4.3):
    `verify_final`, "after" is one more image acquired at the final setting (as an
    evaluation's verification), not the last reading the aligner stopped at. With its
    `stop_at_best`, the final setting is where the episode's narrowest reading was taken
-   (written back without an acquisition), as a classical autofocus ends.
+   (written back without an acquisition, arriving from the side the reading was approached
+   from: `backlash_overshoot`), as a classical autofocus ends.
 
 Observations are histories of H steps, oldest first, zero-padded at the front; each row is
 FEATURES: [valid, knob settings (k, in [-1, 1]), log(width / ref), measured, last action
@@ -58,7 +59,7 @@ from alignrl.apparatus.base import (
 )
 from alignrl.apparatus.measures import measure_directional, measure_wobble
 from alignrl.envs import rewards
-from alignrl.envs.fit_features import FIT_FEATURES, fit_features
+from alignrl.envs.fit_features import FIT_FEATURES, bracketed_optimum, fit_features
 from alignrl.envs.task import Task
 
 __all__ = ["AlignmentEpisodes", "EpisodeInfo", "align_others", "feature_layout", "known_optimum"]
@@ -152,6 +153,7 @@ class EpisodeInfo:
     out_of_bounds: int = 0
     failed_measurements: int = 0
     last_error: str = ""
+    ended_at_fit: bool = False  # Task.finish_at_fit: the way back went to a fitted optimum
 
 
 class AlignmentEpisodes:
@@ -206,6 +208,14 @@ class AlignmentEpisodes:
         # The episode's narrowest reading so far and where it was taken (Task.stop_at_best).
         self.narrowest = np.full(self.n, np.inf)
         self.narrowest_setting = np.zeros((self.n, self.k))
+        # Per knob, the sign of the last change written (0: none seen this episode) and where
+        # the knob was written last (NaN: not yet), so that the way back to the narrowest
+        # reading approaches its setting from the side the reading did (backlash).
+        self.approach = np.zeros((self.n, self.k))
+        self.narrowest_approach = np.zeros((self.n, self.k))
+        self.written = np.full((self.n, self.k), np.nan)
+        # Every measured reading of the episode, (setting, width), for Task.finish_at_fit.
+        self.readings: list[list[tuple[np.ndarray, float]]] = [[] for _ in range(self.n)]
         self.steps = np.zeros(self.n, np.int64)
         self.acquisitions = np.zeros(self.n, np.int64)
         self.active = np.zeros(self.n, bool)
@@ -291,6 +301,8 @@ class AlignmentEpisodes:
         self.history[indices] = 0.0
         self.steps[indices] = 0
         self.acquisitions[indices] = 0
+        self.approach[indices] = 0.0
+        self.written[indices] = np.nan
         for index in indices:
             self.info[index] = EpisodeInfo(threshold_px=float(self.threshold[index]))
         self.active[indices] = False
@@ -317,6 +329,8 @@ class AlignmentEpisodes:
         self.history[indices] = 0.0
         self.steps[indices] = 0
         self.acquisitions[indices] = 0
+        self.approach[indices] = 0.0
+        self.written[indices] = self.setting[indices]  # as found: no change is written
         widths = self._measure(indices)
         self.width_before[indices] = self.width[indices] = widths
         self.cost_before[indices] = self.cost[indices]
@@ -411,21 +425,52 @@ class AlignmentEpisodes:
 
     def _return_to_narrowest(self, indices: np.ndarray) -> None:
         """Write the setting of each episode's narrowest reading back (Task.stop_at_best),
-        where the last step left elsewhere; its reading stands as the final one unless the
-        task verifies. No acquisition. A write the apparatus refuses leaves the episode where
-        it was, its last reading standing, and the error in its info."""
+        or, with Task.finish_at_fit, the optimum a fit of its readings places between them,
+        where the last step left elsewhere; the narrowest reading stands as the final one
+        unless the task verifies. No acquisition. A write the apparatus refuses leaves the
+        episode where it was, its last reading standing, and the error in its info."""
         for index in indices:
             if not np.isfinite(self.narrowest[index]):
                 continue  # nothing measured: nowhere better to go
-            if np.array_equal(self.narrowest_setting[index], self.setting[index]):
+            target, fitted = self._end_setting(index)
+            if np.array_equal(target, self.setting[index]):
                 continue
             try:
-                self.setting[index] = self._write(index, self.narrowest_setting[index])
+                for setting in self._way_back(index, target):
+                    self.setting[index] = self._write(index, setting)
             except ApparatusError as error:
                 self.info[index].last_error = str(error)
                 continue
             self.width[index] = self.narrowest[index]
+            self.info[index].ended_at_fit = fitted
         self.cost[indices] = self._costs(indices)
+
+    def _end_setting(self, index: int) -> tuple[np.ndarray, bool]:
+        """Where episode `index` ends: the fitted optimum (Task.finish_at_fit, where readings
+        bracket it; inside the interval), else its narrowest reading's setting."""
+        if self.task.finish_at_fit and len(self.readings[index]) >= 3:
+            settings = np.array([setting[0] for setting, _ in self.readings[index]])
+            widths = np.array([width for _, width in self.readings[index]])
+            optimum = bracketed_optimum(settings, widths)
+            if optimum is not None:
+                return np.clip([optimum], self.low[index], self.high[index]), True
+        return self.narrowest_setting[index], False
+
+    def _way_back(self, index: int, target: np.ndarray) -> list[np.ndarray]:
+        """The writes that take episode `index` to `target` so that every knob arrives from
+        the side it arrived from when the narrowest reading was taken: a knob that would
+        come from the other side first goes past the target by the task's
+        `backlash_overshoot` (a share of its interval, kept inside it), as a classical
+        autofocus takes up backlash. With no overshoot, or where every knob already comes
+        from its side, one write."""
+        side = self.narrowest_approach[index]
+        reverse = (side != 0) & (np.sign(target - self.setting[index]) == -side)
+        overshoot = self.task.backlash_overshoot * self.span[index]
+        if not np.any(reverse & (overshoot > 0)):
+            return [target]
+        beyond = np.where(reverse, target - side * overshoot, target)
+        beyond = np.clip(beyond, self.low[index], self.high[index])
+        return [beyond, target]
 
     def _costs(self, indices: np.ndarray) -> np.ndarray:
         """The task's cost (px) of the latest measurement of `indices`: the width, plus the
@@ -522,11 +567,17 @@ class AlignmentEpisodes:
         where they really are: a safety shield may have clamped the write, or (dry run) not
         sent it, and the history must show where the column is."""
         unit = self.apparatus[index]
-        unit.write(dict(zip(self.task.knobs, np.asarray(target).tolist(), strict=True)))
-        if not reports_applied(unit):
-            return np.array(target, float)
-        applied = unit.applied_setting()
-        return np.array([applied[k] for k in self.task.knobs], float)
+        target = np.asarray(target, float)
+        unit.write(dict(zip(self.task.knobs, target.tolist(), strict=True)))
+        if reports_applied(unit):
+            applied = unit.applied_setting()
+            target = np.array([applied[k] for k in self.task.knobs], float)
+        with np.errstate(invalid="ignore"):
+            change = np.sign(target - self.written[index])  # NaN before the first write
+        moved = np.isfinite(change) & (change != 0)
+        self.approach[index, moved] = change[moved]
+        self.written[index] = target
+        return target
 
     def _take_measures(self, unit: Apparatus) -> tuple[float, np.ndarray, np.ndarray]:
         """(width px, directional widths px, wobble shift px) of one apparatus; the arrays
@@ -594,9 +645,15 @@ class AlignmentEpisodes:
         """Keep each episode's narrowest reading and its setting (Task.stop_at_best); an
         episode's first row (no step yet) starts afresh."""
         self.narrowest[indices[self.steps[indices] == 0]] = np.inf
+        for position, index in enumerate(indices):
+            if self.steps[index] == 0:
+                self.readings[index] = []
+            if measured[position]:
+                self.readings[index].append((self.setting[index].copy(), float(widths[position])))
         narrower = measured & (np.where(measured, widths, np.inf) < self.narrowest[indices])
         self.narrowest[indices[narrower]] = widths[narrower]
         self.narrowest_setting[indices[narrower]] = self.setting[indices[narrower]]
+        self.narrowest_approach[indices[narrower]] = self.approach[indices[narrower]]
 
     def _extra_features(self, indices: np.ndarray, measured: np.ndarray) -> np.ndarray:
         """Directional widths as log(w_bin / w) in [-1, 1], wobble shifts as tanh(shift /

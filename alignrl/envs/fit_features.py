@@ -18,6 +18,10 @@ Three features, appended to the newest row of the history:
     fit_floor   log(w0 / the newest width), clipped to [FIT_FLOOR_MIN, 0]: how much
                 narrower the fit says the column can get; FIT_FLOOR_MIN where w0^2 <= 0.
 
+The same fit ends an episode where the task says so (`Task.finish_at_fit`,
+`bracketed_optimum`): over all of the episode's readings within FINISH_WINDOW x the narrowest,
+its optimum where readings lie on both sides of it.
+
 Settings come from the history's knob column (a fraction of the interval) and widths from
 its quality column (a log ratio to the episode's reference), so the features carry no unit:
 two columns that differ only in units and pixel scale give the same features. The fit knows
@@ -28,10 +32,14 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["FIT_FEATURES", "fit_features"]
+__all__ = ["FINISH_WINDOW", "FIT_FEATURES", "bracketed_optimum", "fit_features", "fit_focus_curve"]
 
 FIT_FEATURES = 3
 LOCAL_RATIO = 3.0  # rows within this x the narrowest reading take part in the fit
+# The end of an episode (Task.finish_at_fit) fits every reading within this x the narrowest:
+# the widest of 2, 3, 5, 10, 20 and all that was tried, the best on the validation
+# instruments (docs/benchmarks.md, "Ending at a fit of the readings").
+FINISH_WINDOW = 10.0
 FIT_STEP_LIMIT = 2.0
 FIT_FLOOR_MIN = -3.0
 _MIN_SPREAD = 1e-6  # settings (in [-1, 1] units) closer than this are one setting
@@ -66,25 +74,10 @@ def _one(
     if not measured[-1] or measured.sum() < 3 or not step > 0:
         return features
     setting, newest = float(x[-1]), float(q[-1])
-    x = x[measured].astype(np.float64)
-    q = q[measured].astype(np.float64)
-    local = q <= q.min() + np.log(window)
-    x, q = x[local], q[local]
-    if x.size < 3 or np.unique(np.round(x / _MIN_SPREAD)).size < 3:
+    fitted = fit_focus_curve(x[measured], np.exp(q[measured].astype(np.float64)), window)
+    if fitted is None:
         return features
-    w2 = np.exp(2.0 * q)
-    centre, scale = x.mean(), max(float(np.ptp(x)), _MIN_SPREAD)
-    u = (x - centre) / scale  # conditioned: the settings may sit within a hair of each other
-    weights = 1.0 / w2  # a relative error per reading
-    design = np.stack([u * u, u, np.ones_like(u)], axis=1) * weights[:, None]
-    try:
-        (a, b, c), *_ = np.linalg.lstsq(design, w2 * weights, rcond=None)
-    except np.linalg.LinAlgError:
-        return features
-    if not (np.isfinite([a, b, c]).all() and a > 0):
-        return features
-    optimum = centre - scale * b / (2.0 * a)
-    floor_sq = c - b * b / (4.0 * a)
+    optimum, floor_sq, _ = fitted  # floor_sq in (width / the reference)^2
     features[0] = 1.0
     features[1] = np.clip((optimum - setting) / step, -FIT_STEP_LIMIT, FIT_STEP_LIMIT)
     if floor_sq > 0:
@@ -92,3 +85,50 @@ def _one(
     else:
         features[2] = FIT_FLOOR_MIN
     return features
+
+
+def fit_focus_curve(
+    settings: np.ndarray, widths: np.ndarray, window: float = LOCAL_RATIO
+) -> tuple[float, float, np.ndarray] | None:
+    """The parabola in w^2 through the readings within `window` x the narrowest (weighted by
+    1 / w^2): (the optimum x0 it places, the floor w0^2 there, the settings it used), or None
+    where fewer than three distinct settings take part or the parabola does not open
+    upwards. Settings and widths in any units (the optimum in the settings', the floor in
+    the widths' squared)."""
+    x = np.asarray(settings, np.float64)
+    width = np.asarray(widths, np.float64)
+    keep = np.isfinite(x) & np.isfinite(width) & (width > 0)
+    x, width = x[keep], width[keep]
+    if x.size < 3:
+        return None
+    local = width <= width.min() * window
+    x, width = x[local], width[local]
+    centre, scale = x.mean(), float(np.ptp(x))
+    if x.size < 3 or not scale > 0:
+        return None
+    u = (x - centre) / scale  # conditioned: the settings may sit within a hair of each other
+    if np.unique(np.round(u / _MIN_SPREAD)).size < 3:
+        return None
+    w2 = width * width
+    weights = 1.0 / w2  # a relative error per reading
+    design = np.stack([u * u, u, np.ones_like(u)], axis=1) * weights[:, None]
+    try:
+        (a, b, c), *_ = np.linalg.lstsq(design, w2 * weights, rcond=None)
+    except np.linalg.LinAlgError:
+        return None
+    if not (np.isfinite([a, b, c]).all() and a > 0):
+        return None
+    return float(centre - scale * b / (2.0 * a)), float(c - b * b / (4.0 * a)), x
+
+
+def bracketed_optimum(
+    settings: np.ndarray, widths: np.ndarray, window: float = FINISH_WINDOW
+) -> float | None:
+    """Where the focus-curve fit of an episode's readings puts the optimum, if readings on
+    both sides of it took part (an interpolation, never an extrapolation beyond them); else
+    None. What `Task.finish_at_fit` ends at (alignrl/envs/core.py)."""
+    fitted = fit_focus_curve(settings, widths, window)
+    if fitted is None:
+        return None
+    optimum, _, used = fitted
+    return optimum if used.min() < optimum < used.max() else None

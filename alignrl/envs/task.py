@@ -173,6 +173,16 @@ class Task:
     # was taken, as a classical autofocus does, not where the last step took it: a probe
     # beyond the best costs an acquisition but never the result. Width-only tasks.
     stop_at_best: bool = False
+    # The way back to the narrowest reading arrives at each knob's setting from the side that
+    # reading was approached from, going past it first by this share of the interval where
+    # it would come back from the other side (backlash and lens hysteresis put the focus
+    # elsewhere otherwise); 0 returns in one write.
+    backlash_overshoot: float = 0.02
+    # With stop_at_best: where a focus-curve fit of the episode's readings places the optimum
+    # between readings (alignrl/envs/fit_features.py, bracketed_optimum), the way back goes
+    # there instead of to the narrowest reading. No reading is taken there: the final one is
+    # the verification's (verify_final), or the narrowest stands. One-knob width tasks.
+    finish_at_fit: bool = False
 
     def __post_init__(self) -> None:
         if not self.knobs:
@@ -219,6 +229,17 @@ class Task:
             raise ValueError(
                 f"task {self.name!r}: stop_at_best returns to the narrowest reading, a task "
                 f"that measures the width alone; it measures {', '.join(self.measures)}"
+            )
+        if self.finish_at_fit and not (self.stop_at_best and len(self.knobs) == 1):
+            raise ValueError(
+                f"task {self.name!r}: finish_at_fit ends the way back to the narrowest reading "
+                f"(stop_at_best) at a focus-curve fit along one knob; the task has "
+                f"stop_at_best={self.stop_at_best} and {len(self.knobs)} knobs"
+            )
+        if not 0.0 <= self.backlash_overshoot <= 0.5:
+            raise ValueError(
+                f"task {self.name!r}: backlash_overshoot must be in [0, 0.5] (a share of the "
+                f"interval), got {self.backlash_overshoot}"
             )
         if not 1.0 <= self.action_power <= MAX_ACTION_POWER:
             raise ValueError(
