@@ -285,8 +285,7 @@ class TaskOptions(_Strict):
     )
     verify_final: bool | None = Field(None, description="judge the end on one more image")
     quality_reference: Literal["fixed", "first"] | None = Field(
-        None,
-        description="quality relative to quality_ref_px (fixed) or the first width (unit-free)",
+        None, description="quality relative to quality_ref_px (fixed) or the first width"
     )
     fit_features: bool | None = Field(None, description="3 features of a local focus-curve fit")
     fit_window: float | None = Field(None, gt=1, description="fit within x narrowest reading")
@@ -294,6 +293,7 @@ class TaskOptions(_Strict):
     stop_at_best: bool | None = Field(None, description="end at the narrowest reading's setting")
     backlash_overshoot: float | None = Field(None, ge=0, le=0.5, description="way back: past by")
     finish_at_fit: bool | None = Field(None, description="way back: to a bracketed fit's optimum")
+    finish_window: float | None = Field(None, gt=1, description="finish fit: within x narrowest")
     success_relative: float | None = Field(None, gt=1, description="threshold x best width")
     success_absolute_px: float | None = Field(None, gt=0, description="absolute spec, px")
     directional_relative: float | None = Field(

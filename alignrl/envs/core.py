@@ -451,7 +451,7 @@ class AlignmentEpisodes:
         if self.task.finish_at_fit and len(self.readings[index]) >= 3:
             settings = np.array([setting[0] for setting, _ in self.readings[index]])
             widths = np.array([width for _, width in self.readings[index]])
-            optimum = bracketed_optimum(settings, widths)
+            optimum = bracketed_optimum(settings, widths, self.task.finish_window)
             if optimum is not None:
                 return np.clip([optimum], self.low[index], self.high[index]), True
         return self.narrowest_setting[index], False

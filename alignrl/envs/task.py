@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from alignrl.envs.fit_features import FIT_FEATURES
+from alignrl.envs.fit_features import FINISH_WINDOW, FIT_FEATURES
 
 __all__ = ["MEASURES", "TASKS", "Criterion", "SuccessRule", "Task", "get_task", "knob_change"]
 
@@ -183,6 +183,7 @@ class Task:
     # there instead of to the narrowest reading. No reading is taken there: the final one is
     # the verification's (verify_final), or the narrowest stands. One-knob width tasks.
     finish_at_fit: bool = False
+    finish_window: float = FINISH_WINDOW  # that fit takes the readings within this x the narrowest
 
     def __post_init__(self) -> None:
         if not self.knobs:
@@ -236,6 +237,8 @@ class Task:
                 f"(stop_at_best) at a focus-curve fit along one knob; the task has "
                 f"stop_at_best={self.stop_at_best} and {len(self.knobs)} knobs"
             )
+        if not self.finish_window > 1:
+            raise ValueError(f"task {self.name!r}: finish_window must be above 1 (x narrowest)")
         if not 0.0 <= self.backlash_overshoot <= 0.5:
             raise ValueError(
                 f"task {self.name!r}: backlash_overshoot must be in [0, 0.5] (a share of the "

@@ -1,0 +1,76 @@
+"""How a trained focus aligner's alignments end, compared on one instrument set: as it was
+trained, at its narrowest reading (straight back, or taking up backlash), and at a fit of its
+readings (`finish_at_fit`) for several fit windows. docs/benchmarks.md, "Ending at a fit of
+the readings" (issue 21).
+
+    python -m benchmarks.endings --policy champion:focus-v2 --set validation --analytic \
+        --scenarios 200 --seed 3000000 --windows 2 3 5 10 20 1000
+
+The policy acts exactly as trained (the same observations and actions); only what happens
+once it stops changes: the task options stop_at_best, backlash_overshoot, finish_at_fit and
+finish_window of alignrl/envs/task.py. Every ending runs one session per instrument of the
+set on the same seeded columns and starts (alignrl.evaluation.instrument_sets). The held-out
+set is refused: this chooses a setting, and choices are made on validation only.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+
+from alignrl.apparatus.instruments import HELD_OUT_SET
+from alignrl.deploy.policy import load_deployable
+from alignrl.envs.task import Task, get_task
+from alignrl.evaluation.controllers import PolicyController
+from alignrl.evaluation.instrument_sets import run_set, set_summary, set_table
+
+
+def endings(task: Task, windows: list[float]) -> list[tuple[str, Task]]:
+    """(label, the policy's task with that ending) for every ending compared."""
+    plain = dataclasses.replace(task, finish_at_fit=False, stop_at_best=True)
+    out = [
+        ("as trained", task),
+        ("narrowest, straight back", dataclasses.replace(plain, backlash_overshoot=0.0)),
+        ("narrowest", plain),
+    ]
+    for window in windows:
+        fitted = dataclasses.replace(plain, finish_at_fit=True)
+        out.append((f"fit within {window:g}x", dataclasses.replace(fitted, finish_window=window)))
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--policy", required=True, help="a run, an export or champion:NAME")
+    parser.add_argument("--set", default="validation", help="an instrument set (not heldout)")
+    parser.add_argument("--analytic", action="store_true", help="analytic readings, no images")
+    parser.add_argument("--scenarios", type=int, default=200)
+    parser.add_argument("--seed", type=int, default=3_000_000)
+    parser.add_argument("--windows", type=float, nargs="+", default=[3.0, 10.0])
+    args = parser.parse_args(argv)
+    if args.set == HELD_OUT_SET:
+        print(f"{HELD_OUT_SET} is held out: settings are chosen on validation", file=sys.stderr)
+        return 2
+    if any(not window > 1 for window in args.windows):
+        print("--windows: every window must be above 1 (x the narrowest reading)", file=sys.stderr)
+        return 2
+    policy = load_deployable(args.policy)
+    if policy.task.measures != ("width",) or len(policy.task.knobs) != 1:
+        print(f"{args.policy}: endings are compared for one-knob focus aligners", file=sys.stderr)
+        return 2
+    judged = get_task(policy.task.name)
+    results = []
+    for label, task in endings(policy.task, args.windows):
+        controller = PolicyController(label, policy.act, task, policy.history)
+        result = run_set(controller, args.set, judged, args.scenarios, args.seed, args.analytic)
+        print(set_summary(result), file=sys.stderr, flush=True)
+        results.append(result)
+    print(f"{policy.name} on set:{args.set} ({'analytic' if args.analytic else 'images'}), "
+          f"{args.scenarios} scenarios each, seed {args.seed}")  # fmt: skip
+    print("\n".join(set_table(results)))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
