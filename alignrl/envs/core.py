@@ -59,7 +59,8 @@ from alignrl.apparatus.base import (
 )
 from alignrl.apparatus.measures import measure_directional, measure_wobble
 from alignrl.envs import rewards
-from alignrl.envs.fit_features import FIT_FEATURES, bracketed_optimum, fit_features
+from alignrl.envs.ending import EpisodeEnds
+from alignrl.envs.fit_features import FIT_FEATURES, fit_features
 from alignrl.envs.task import Task
 
 __all__ = ["AlignmentEpisodes", "EpisodeInfo", "align_others", "feature_layout", "known_optimum"]
@@ -205,17 +206,9 @@ class AlignmentEpisodes:
         self.directional_threshold = np.full(self.n, np.nan)  # px, every bin
         self.bonus_threshold = np.full(self.n, np.nan)  # px; the success bonus is paid within
         self.best_width = np.full(self.n, np.nan)  # px at the optimum; NaN where unknown
-        # The episode's narrowest reading so far and where it was taken (Task.stop_at_best).
-        self.narrowest = np.full(self.n, np.inf)
-        self.narrowest_setting = np.zeros((self.n, self.k))
-        # Per knob, the sign of the last change written (0: none seen this episode) and where
-        # the knob was written last (NaN: not yet), so that the way back to the narrowest
-        # reading approaches its setting from the side the reading did (backlash).
-        self.approach = np.zeros((self.n, self.k))
-        self.narrowest_approach = np.zeros((self.n, self.k))
-        self.written = np.full((self.n, self.k), np.nan)
-        # Every measured reading of the episode, (setting, width), for Task.finish_at_fit.
-        self.readings: list[list[tuple[np.ndarray, float]]] = [[] for _ in range(self.n)]
+        # Where the episodes end: the narrowest reading, the sides knobs were written from
+        # (Task.stop_at_best, backlash_overshoot, finish_at_fit: alignrl/envs/ending.py).
+        self.ends = EpisodeEnds(self.n, self.k, task)
         self.steps = np.zeros(self.n, np.int64)
         self.acquisitions = np.zeros(self.n, np.int64)
         self.active = np.zeros(self.n, bool)
@@ -301,8 +294,7 @@ class AlignmentEpisodes:
         self.history[indices] = 0.0
         self.steps[indices] = 0
         self.acquisitions[indices] = 0
-        self.approach[indices] = 0.0
-        self.written[indices] = np.nan
+        self.ends.restart(indices)
         for index in indices:
             self.info[index] = EpisodeInfo(threshold_px=float(self.threshold[index]))
         self.active[indices] = False
@@ -329,8 +321,7 @@ class AlignmentEpisodes:
         self.history[indices] = 0.0
         self.steps[indices] = 0
         self.acquisitions[indices] = 0
-        self.approach[indices] = 0.0
-        self.written[indices] = self.setting[indices]  # as found: no change is written
+        self.ends.restart(indices, found=self.setting[indices])
         widths = self._measure(indices)
         self.width_before[indices] = self.width[indices] = widths
         self.cost_before[indices] = self.cost[indices]
@@ -424,53 +415,28 @@ class AlignmentEpisodes:
         return reward, done
 
     def _return_to_narrowest(self, indices: np.ndarray) -> None:
-        """Write the setting of each episode's narrowest reading back (Task.stop_at_best),
-        or, with Task.finish_at_fit, the optimum a fit of its readings places between them,
-        where the last step left elsewhere; the narrowest reading stands as the final one
-        unless the task verifies. No acquisition. A write the apparatus refuses leaves the
-        episode where it was, its last reading standing, and the error in its info."""
+        """Write the setting each episode ends at back (Task.stop_at_best: its narrowest
+        reading's, or a fit's: alignrl/envs/ending.py) where the last step left elsewhere; the
+        narrowest reading stands as the final one unless the task verifies. No acquisition.
+        A write the apparatus refuses leaves the episode where it was, its last reading
+        standing, and the error in its info."""
+        ends = self.ends
         for index in indices:
-            if not np.isfinite(self.narrowest[index]):
+            if not np.isfinite(ends.narrowest[index]):
                 continue  # nothing measured: nowhere better to go
-            target, fitted = self._end_setting(index)
+            low, high = self.low[index], self.high[index]
+            target, fitted = ends.target(index, low, high)
             if np.array_equal(target, self.setting[index]):
                 continue
             try:
-                for setting in self._way_back(index, target):
+                for setting in ends.way_back(index, self.setting[index], target, low, high):
                     self.setting[index] = self._write(index, setting)
             except ApparatusError as error:
                 self.info[index].last_error = str(error)
                 continue
-            self.width[index] = self.narrowest[index]
+            self.width[index] = ends.narrowest[index]
             self.info[index].ended_at_fit = fitted
         self.cost[indices] = self._costs(indices)
-
-    def _end_setting(self, index: int) -> tuple[np.ndarray, bool]:
-        """Where episode `index` ends: the fitted optimum (Task.finish_at_fit, where readings
-        bracket it; inside the interval), else its narrowest reading's setting."""
-        if self.task.finish_at_fit and len(self.readings[index]) >= 3:
-            settings = np.array([setting[0] for setting, _ in self.readings[index]])
-            widths = np.array([width for _, width in self.readings[index]])
-            optimum = bracketed_optimum(settings, widths, self.task.finish_window)
-            if optimum is not None:
-                return np.clip([optimum], self.low[index], self.high[index]), True
-        return self.narrowest_setting[index], False
-
-    def _way_back(self, index: int, target: np.ndarray) -> list[np.ndarray]:
-        """The writes that take episode `index` to `target` so that every knob arrives from
-        the side it arrived from when the narrowest reading was taken: a knob that would
-        come from the other side first goes past the target by the task's
-        `backlash_overshoot` (a share of its interval, kept inside it), as a classical
-        autofocus takes up backlash. With no overshoot, or where every knob already comes
-        from its side, one write."""
-        side = self.narrowest_approach[index]
-        reverse = (side != 0) & (np.sign(target - self.setting[index]) == -side)
-        overshoot = self.task.backlash_overshoot * self.span[index]
-        if not np.any(reverse & (overshoot > 0)):
-            return [target]
-        beyond = np.where(reverse, target - side * overshoot, target)
-        beyond = np.clip(beyond, self.low[index], self.high[index])
-        return [beyond, target]
 
     def _costs(self, indices: np.ndarray) -> np.ndarray:
         """The task's cost (px) of the latest measurement of `indices`: the width, plus the
@@ -572,11 +538,7 @@ class AlignmentEpisodes:
         if reports_applied(unit):
             applied = unit.applied_setting()
             target = np.array([applied[k] for k in self.task.knobs], float)
-        with np.errstate(invalid="ignore"):
-            change = np.sign(target - self.written[index])  # NaN before the first write
-        moved = np.isfinite(change) & (change != 0)
-        self.approach[index, moved] = change[moved]
-        self.written[index] = target
+        self.ends.wrote(index, target)
         return target
 
     def _take_measures(self, unit: Apparatus) -> tuple[float, np.ndarray, np.ndarray]:
@@ -604,7 +566,8 @@ class AlignmentEpisodes:
         rows[:, layout["knobs"]] = np.clip(normalized, -1.0, 1.0)
         measured = np.isfinite(widths)
         if self.task.stop_at_best:
-            self._note_narrowest(indices, widths, measured)
+            first = self.steps[indices] == 0
+            self.ends.note(indices, self.setting[indices], widths, measured, first)
         reference = self.quality_ref[indices]
         first = measured & ~np.isfinite(reference)  # the episode's first measured width
         reference[first] = widths[first]
@@ -638,22 +601,6 @@ class AlignmentEpisodes:
                 step,
                 self.task.fit_window,
             )
-
-    def _note_narrowest(
-        self, indices: np.ndarray, widths: np.ndarray, measured: np.ndarray
-    ) -> None:
-        """Keep each episode's narrowest reading and its setting (Task.stop_at_best); an
-        episode's first row (no step yet) starts afresh."""
-        self.narrowest[indices[self.steps[indices] == 0]] = np.inf
-        for position, index in enumerate(indices):
-            if self.steps[index] == 0:
-                self.readings[index] = []
-            if measured[position]:
-                self.readings[index].append((self.setting[index].copy(), float(widths[position])))
-        narrower = measured & (np.where(measured, widths, np.inf) < self.narrowest[indices])
-        self.narrowest[indices[narrower]] = widths[narrower]
-        self.narrowest_setting[indices[narrower]] = self.setting[indices[narrower]]
-        self.narrowest_approach[indices[narrower]] = self.approach[indices[narrower]]
 
     def _extra_features(self, indices: np.ndarray, measured: np.ndarray) -> np.ndarray:
         """Directional widths as log(w_bin / w) in [-1, 1], wobble shifts as tanh(shift /
