@@ -8,7 +8,9 @@ One block per episode (seeds SEED, SEED + 1, ...: the column's draw and the star
 over the interval): the best width and the spec, where the optimum lies in the interval, then
 a line per step with the setting and its error (fractions of the interval), the reading, the
 fit features where the policy has them (valid, step to the fit's optimum, log floor ratio)
-and the action (move in maximum steps, stop > 0). Analytic readings (no images): the same
+and the action (move in maximum steps, stop > 0); then where the episode left the column
+(its narrowest reading, or the fit's optimum: `finish_at_fit`) and the verification image
+taken there, which judges it as a session's does. Analytic readings (no images): the same
 column physics, seconds per instrument. The held-out set is refused: a diagnosis is a look
 at what went wrong, and the held-out set is only for reporting.
 """
@@ -20,6 +22,7 @@ import sys
 
 import numpy as np
 
+from alignrl.apparatus.base import NoEdgesError
 from alignrl.apparatus.instruments import HELD_OUT_SET, instrument_names
 from alignrl.apparatus.registry import make_apparatus
 from alignrl.deploy.policy import load_deployable
@@ -60,10 +63,17 @@ def trace(policy_spec: str, instrument: str, episodes: int, seed: int) -> list[s
                 f"{shown} -> move {action[0]:+.3f} stop {action[1]:+.2f}"
             )
             engine.step(slot, action[None])
-        outcome = "aligned" if engine.successes()[0] else "missed"
+        # Judged as a session judges: on one more image where the aligner left the column
+        # (its narrowest reading, or a fit's optimum where no reading was taken).
+        try:
+            verified = float(column.measure())
+        except NoEdgesError:
+            verified = float("nan")
+        outcome = "aligned" if verified <= engine.threshold[0] else "missed"
+        ended = ", at the fit" if engine.info[0].ended_at_fit else ""
         lines.append(
-            f"  left at error {(engine.setting[0, 0] - optimum) / span:+.4f}, "
-            f"{engine.width[0]:.2f} px: {outcome}"
+            f"  left at error {(engine.setting[0, 0] - optimum) / span:+.4f}{ended}, "
+            f"verified {verified:.2f} px: {outcome}"
         )
     return lines
 
