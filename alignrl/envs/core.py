@@ -418,8 +418,8 @@ class AlignmentEpisodes:
         """Write the setting each episode ends at back (Task.stop_at_best: its narrowest
         reading's, or a fit's: alignrl/envs/ending.py) where the last step left elsewhere; the
         narrowest reading stands as the final one unless the task verifies. No acquisition.
-        A write the apparatus refuses leaves the episode where it was, its last reading
-        standing, and the error in its info."""
+        A write the apparatus refuses stops the way back where it got to (the setting shows
+        where), its last reading standing, and the error in its info."""
         ends = self.ends
         for index in indices:
             if not np.isfinite(ends.narrowest[index]):
