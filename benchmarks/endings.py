@@ -29,15 +29,13 @@ from alignrl.evaluation.instrument_sets import run_set, set_summary, set_table
 def endings(task: Task, windows: list[float]) -> list[tuple[str, Task]]:
     """(label, the policy's task with that ending) for every ending compared."""
     plain = dataclasses.replace(task, finish_at_fit=False, stop_at_best=True)
-    out = [
+    fitted = dataclasses.replace(plain, finish_at_fit=True)
+    return [
         ("as trained", task),
         ("narrowest, straight back", dataclasses.replace(plain, backlash_overshoot=0.0)),
         ("narrowest", plain),
+        *((f"fit within {w:g}x", dataclasses.replace(fitted, finish_window=w)) for w in windows),
     ]
-    for window in windows:
-        fitted = dataclasses.replace(plain, finish_at_fit=True)
-        out.append((f"fit within {window:g}x", dataclasses.replace(fitted, finish_window=window)))
-    return out
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -22,12 +22,12 @@ import sys
 
 import numpy as np
 
-from alignrl.apparatus.base import NoEdgesError
 from alignrl.apparatus.instruments import HELD_OUT_SET, instrument_names
 from alignrl.apparatus.registry import make_apparatus
 from alignrl.deploy.policy import load_deployable
 from alignrl.envs.core import AlignmentEpisodes, feature_layout
 from alignrl.envs.fit_features import FIT_FEATURES
+from alignrl.evaluation.session import verify_task
 
 
 def trace(policy_spec: str, instrument: str, episodes: int, seed: int) -> list[str]:
@@ -65,10 +65,8 @@ def trace(policy_spec: str, instrument: str, episodes: int, seed: int) -> list[s
             engine.step(slot, action[None])
         # Judged as a session judges: on one more image where the aligner left the column
         # (its narrowest reading, or a fit's optimum where no reading was taken).
-        try:
-            verified = float(column.measure())
-        except NoEdgesError:
-            verified = float("nan")
+        width, _, _ = verify_task(column, task)
+        verified = float("nan") if width is None else width
         outcome = "aligned" if verified <= engine.threshold[0] else "missed"
         ended = ", at the fit" if engine.info[0].ended_at_fit else ""
         lines.append(

@@ -155,7 +155,7 @@ def test_the_way_back_takes_up_backlash_as_the_narrowest_reading_was_approached(
     task = TaskOptions(stop_at_best=True).apply(get_task("focus"))
     episodes, unit, narrowest_error = _walk_with_errors(task)
     assert unit.focus_error() == pytest.approx(narrowest_error, abs=1e-9)
-    assert episodes.setting[0, 0] == pytest.approx(episodes.ends.narrowest_setting[0, 0])
+    assert episodes.setting[0, 0] == pytest.approx(episodes.ends.narrowest(0).setting[0])
     # Without the overshoot the same setting is reached from above: off by the backlash.
     direct = dataclasses.replace(task, backlash_overshoot=0.0)
     _, plain, plain_error = _walk_with_errors(direct)
@@ -183,7 +183,7 @@ def test_the_overshoot_stays_inside_the_interval_and_costs_no_acquisition() -> N
     episodes, slot, _ = _episode(task, unit)
     _walk(episodes, slot)
     low, high = episodes.low[0, 0], episodes.high[0, 0]
-    best = episodes.ends.narrowest_setting[0, 0]
+    best = episodes.ends.narrowest(0).setting[0]
     past, back = unit.writes[-2:]
     assert past == pytest.approx(max(low, best - 0.5 * (high - low)))  # clipped at the bound
     assert back == pytest.approx(best)

@@ -391,7 +391,7 @@ class AlignmentEpisodes:
         done = stop | (self.steps[indices] >= task.episode_steps)
         finished = indices[done]
         if task.stop_at_best and finished.size:
-            self._return_to_narrowest(finished)
+            self._go_to_end(finished)
         if task.verify_final and finished.size:
             # One more image where the aligner left the column: the verification an
             # evaluation takes. Rewards and success are judged on it, not on the reading the
@@ -414,28 +414,24 @@ class AlignmentEpisodes:
             info.width_px = float(self.width[index])
         return reward, done
 
-    def _return_to_narrowest(self, indices: np.ndarray) -> None:
-        """Write the setting each episode ends at back (Task.stop_at_best: its narrowest
-        reading's, or a fit's: alignrl/envs/ending.py) where the last step left elsewhere; the
-        narrowest reading stands as the final one unless the task verifies. No acquisition.
-        A write the apparatus refuses stops the way back where it got to (the setting shows
-        where), its last reading standing, and the error in its info."""
-        ends = self.ends
+    def _go_to_end(self, indices: np.ndarray) -> None:
+        """Write the setting each episode ends at (Task.stop_at_best: its narrowest reading's,
+        or a fit's: alignrl/envs/ending.py) where the last step left elsewhere; the narrowest
+        reading stands as the final one unless the task verifies. No acquisition. A write the
+        apparatus refuses stops the way back where it got to (the setting shows where), its
+        last reading standing, and the error in its info."""
         for index in indices:
-            if not np.isfinite(ends.narrowest[index]):
-                continue  # nothing measured: nowhere better to go
-            low, high = self.low[index], self.high[index]
-            target, fitted = ends.target(index, low, high)
-            if np.array_equal(target, self.setting[index]):
-                continue
+            plan = self.ends.plan(index, self.setting[index], self.low[index], self.high[index])
+            if plan is None:
+                continue  # nothing measured, or already there
             try:
-                for setting in ends.way_back(index, self.setting[index], target, low, high):
+                for setting in plan.writes:
                     self.setting[index] = self._write(index, setting)
             except ApparatusError as error:
                 self.info[index].last_error = str(error)
                 continue
-            self.width[index] = ends.narrowest[index]
-            self.info[index].ended_at_fit = fitted
+            self.width[index] = plan.width
+            self.info[index].ended_at_fit = plan.fitted
         self.cost[indices] = self._costs(indices)
 
     def _costs(self, indices: np.ndarray) -> np.ndarray:
@@ -566,8 +562,8 @@ class AlignmentEpisodes:
         rows[:, layout["knobs"]] = np.clip(normalized, -1.0, 1.0)
         measured = np.isfinite(widths)
         if self.task.stop_at_best:
-            first = self.steps[indices] == 0
-            self.ends.note(indices, self.setting[indices], widths, measured, first)
+            opening = self.steps[indices] == 0
+            self.ends.note(indices, self.setting[indices], widths, measured, opening)
         reference = self.quality_ref[indices]
         first = measured & ~np.isfinite(reference)  # the episode's first measured width
         reference[first] = widths[first]

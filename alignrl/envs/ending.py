@@ -12,22 +12,44 @@ them (the seed), or go back:
 The way back arrives at every knob from the side the narrowest reading was approached from:
 where it would come from the other side it first goes past the target by
 `backlash_overshoot` x the interval (kept inside it), so that backlash and lens hysteresis,
-which put the focus elsewhere for the other side, leave it as that reading had it. No
-acquisition is taken on the way back.
+which put the focus elsewhere for the other side, leave it as that reading had it (the
+classical controllers take up backlash alike, always from below:
+alignrl/evaluation/controllers.py, `approach_from_below`; the engine's writes go through
+its own `_write`, which records where the shield left each knob). No acquisition is taken
+on the way back.
 
-`EpisodeEnds` keeps, per episode, what that needs: every measured reading and its setting,
-the narrowest one with the side it was approached from, and the side of the last change
-written to each knob (from the writes themselves: `wrote`).
+`EpisodeEnds` keeps, per episode, what that needs: every measured reading with its setting
+and the side each knob came from (the narrowest reading is the least of them), and the side
+of the last change written to each knob (from the writes themselves: `wrote`).
 """
 
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import numpy as np
 
 from alignrl.envs.fit_features import bracketed_optimum
 from alignrl.envs.task import Task
 
-__all__ = ["EpisodeEnds"]
+__all__ = ["EndPlan", "EpisodeEnds", "Noted"]
+
+
+class Noted(NamedTuple):
+    """One measured reading of an episode, as its end needs it."""
+
+    setting: np.ndarray  # (k,) the knobs' settings, their units
+    width: float  # px
+    side: np.ndarray  # (k,) the sign of the last change written to each knob (0: unknown)
+
+
+class EndPlan(NamedTuple):
+    """How an episode goes back: the writes in order, whether to a fit, and the narrowest
+    reading, which stands as the final one unless the task verifies."""
+
+    writes: list[np.ndarray]
+    fitted: bool
+    width: float
 
 
 class EpisodeEnds:
@@ -35,14 +57,11 @@ class EpisodeEnds:
 
     def __init__(self, n: int, k: int, task: Task) -> None:
         self.task = task
-        self.narrowest = np.full(n, np.inf)  # the episode's narrowest reading so far, px
-        self.narrowest_setting = np.zeros((n, k))  # where it was taken
-        self.narrowest_approach = np.zeros((n, k))  # the side it was approached from
         # Per knob, the sign of the last change written (0: none seen this episode) and where
         # the knob was written last (NaN: not yet).
         self.approach = np.zeros((n, k))
         self.written = np.full((n, k), np.nan)
-        self.readings: list[list[tuple[np.ndarray, float]]] = [[] for _ in range(n)]
+        self.readings: list[list[Noted]] = [[] for _ in range(n)]
 
     def restart(self, indices: np.ndarray, found: np.ndarray | None = None) -> None:
         """New episodes on `indices`: no side known; the knobs as `found` where the episode
@@ -51,7 +70,10 @@ class EpisodeEnds:
         self.written[indices] = np.nan if found is None else found
 
     def wrote(self, index: int, applied: np.ndarray) -> None:
-        """Apparatus `index` now holds `applied` (its units): the side of each knob's change."""
+        """Apparatus `index` now holds `applied` (its units): the side of each knob's change.
+        Kept only where the task goes back (Task.stop_at_best)."""
+        if not self.task.stop_at_best:
+            return
         with np.errstate(invalid="ignore"):
             change = np.sign(applied - self.written[index])  # NaN before the first write
         moved = np.isfinite(change) & (change != 0)
@@ -64,45 +86,52 @@ class EpisodeEnds:
         settings: np.ndarray,
         widths: np.ndarray,
         measured: np.ndarray,
-        first: np.ndarray,
+        opening: np.ndarray,
     ) -> None:
-        """Readings of `indices` taken at `settings`; `first`: the episode's first row (its
+        """Readings of `indices` taken at `settings`; `opening`: the episode's first row (its
         record starts afresh)."""
-        self.narrowest[indices[first]] = np.inf
         for position, index in enumerate(indices):
-            if first[position]:
+            if opening[position]:
                 self.readings[index] = []
             if measured[position]:
-                self.readings[index].append((settings[position].copy(), float(widths[position])))
-        narrower = measured & (np.where(measured, widths, np.inf) < self.narrowest[indices])
-        self.narrowest[indices[narrower]] = widths[narrower]
-        self.narrowest_setting[indices[narrower]] = settings[narrower]
-        self.narrowest_approach[indices[narrower]] = self.approach[indices[narrower]]
+                self.readings[index].append(
+                    Noted(settings[position].copy(), float(widths[position]),
+                          self.approach[index].copy())
+                )  # fmt: skip
 
-    def target(self, index: int, low: np.ndarray, high: np.ndarray) -> tuple[np.ndarray, bool]:
-        """Where episode `index` ends, and whether at a fit: the fitted optimum
-        (Task.finish_at_fit, where readings bracket it; inside [low, high]), else its
-        narrowest reading's setting."""
+    def narrowest(self, index: int) -> Noted | None:
+        """Episode `index`'s narrowest reading (the first of equals); None where none was
+        measured."""
         readings = self.readings[index]
-        if self.task.finish_at_fit and len(readings) >= 3:
-            settings = np.array([setting[0] for setting, _ in readings])
-            widths = np.array([width for _, width in readings])
-            optimum = bracketed_optimum(settings, widths, self.task.finish_window)
-            if optimum is not None:
-                return np.clip([optimum], low, high), True
-        return self.narrowest_setting[index], False
+        return min(readings, key=lambda reading: reading.width) if readings else None
 
-    def way_back(
-        self, index: int, setting: np.ndarray, target: np.ndarray, low: np.ndarray,
-        high: np.ndarray,
-    ) -> list[np.ndarray]:  # fmt: skip
-        """The writes that take episode `index` from `setting` to `target`, every knob
-        arriving from the side the narrowest reading was approached from (module docstring):
-        one write where each already does (or without an overshoot), else two."""
-        side = self.narrowest_approach[index]
+    def plan(
+        self, index: int, setting: np.ndarray, low: np.ndarray, high: np.ndarray
+    ) -> EndPlan | None:
+        """How episode `index`, its knobs at `setting` inside [low, high], goes back; None
+        where nothing was measured or it is already there (module docstring)."""
+        narrowest = self.narrowest(index)
+        if narrowest is None:
+            return None
+        target, fitted = narrowest.setting, False
+        if self.task.finish_at_fit:
+            readings = self.readings[index]
+            optimum = bracketed_optimum(
+                np.array([reading.setting[0] for reading in readings]),
+                np.array([reading.width for reading in readings]),
+                self.task.finish_window,
+            )
+            if optimum is not None:
+                target, fitted = np.clip([optimum], low, high), True
+        if np.array_equal(target, setting):
+            return None
+        # Every knob arrives from the side the narrowest reading came from: one that would
+        # come from the other side first goes past the target by the overshoot.
+        side = narrowest.side
         reverse = (side != 0) & (np.sign(target - setting) == -side)
         overshoot = self.task.backlash_overshoot * (high - low)
-        if not np.any(reverse & (overshoot > 0)):
-            return [target]
-        beyond = np.clip(np.where(reverse, target - side * overshoot, target), low, high)
-        return [beyond, target]
+        writes = [target]
+        if np.any(reverse & (overshoot > 0)):
+            beyond = np.where(reverse, target - side * overshoot, target)
+            writes.insert(0, np.clip(beyond, low, high))
+        return EndPlan(writes, fitted, narrowest.width)

@@ -37,12 +37,12 @@ __all__ = ["FINISH_WINDOW", "FIT_FEATURES", "bracketed_optimum", "fit_features",
 FIT_FEATURES = 3
 LOCAL_RATIO = 3.0  # rows within this x the narrowest reading take part in the fit
 # The end of an episode (Task.finish_at_fit) fits every reading within this x the narrowest:
-# the widest of 2, 3, 5, 10, 20 and all that was tried, the best on the validation
-# instruments (docs/benchmarks.md, "Ending at a fit of the readings").
+# of 2, 3, 5, 10, 20 and every reading, the best on the validation instruments
+# (docs/benchmarks.md, "Ending at a fit of the readings").
 FINISH_WINDOW = 10.0
 FIT_STEP_LIMIT = 2.0
 FIT_FLOOR_MIN = -3.0
-_MIN_SPREAD = 1e-6  # settings (in [-1, 1] units) closer than this are one setting
+_MIN_SPREAD = 1e-6  # settings closer than this share of the fitted ones' spread are one
 
 
 def fit_features(
