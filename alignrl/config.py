@@ -280,9 +280,7 @@ class TaskOptions(_Strict):
         None, description="final reward on widths in px (difference) or on their logs"
     )
     success_bonus: float | None = Field(None, ge=0, description="optional shaping at success")
-    bonus_relative: float | None = Field(
-        None, gt=1, description="bonus only within this x best width (the spec unchanged)"
-    )
+    bonus_relative: float | None = Field(None, gt=1, description="bonus within x best width")
     verify_final: bool | None = Field(None, description="judge the end on one more image")
     quality_reference: Literal["fixed", "first"] | None = Field(
         None, description="quality relative to quality_ref_px (fixed) or the first width"
@@ -294,6 +292,7 @@ class TaskOptions(_Strict):
     backlash_overshoot: float | None = Field(None, ge=0, le=0.5, description="way back: past by")
     finish_at_fit: bool | None = Field(None, description="way back: to a bracketed fit's optimum")
     finish_window: float | None = Field(None, gt=1, description="finish fit: within x narrowest")
+    approach_from_below: bool | None = Field(None, description="every reading reached from below")
     success_relative: float | None = Field(None, gt=1, description="threshold x best width")
     success_absolute_px: float | None = Field(None, gt=0, description="absolute spec, px")
     directional_relative: float | None = Field(

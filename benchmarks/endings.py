@@ -7,10 +7,12 @@ the readings" (issue 21).
         --scenarios 200 --seed 3000000 --windows 2 3 5 10 20 1000
 
 The policy acts exactly as trained (the same observations and actions); only what happens
-once it stops changes: the task options stop_at_best, backlash_overshoot, finish_at_fit and
-finish_window of alignrl/envs/task.py. Every ending runs one session per instrument of the
-set on the same seeded columns and starts (alignrl.evaluation.instrument_sets). The held-out
-set is refused: this chooses a setting, and choices are made on validation only.
+once it stops changes (the task options stop_at_best, backlash_overshoot, finish_at_fit and
+finish_window of alignrl/envs/task.py), and in the last row how it reaches each setting
+(approach_from_below: every reading from below, the backlash taken up before it). Every
+ending runs one session per instrument of the set on the same seeded columns and starts
+(alignrl.evaluation.instrument_sets). The held-out set is refused: this chooses a setting,
+and choices are made on validation only.
 """
 
 from __future__ import annotations
@@ -35,6 +37,10 @@ def endings(task: Task, windows: list[float]) -> list[tuple[str, Task]]:
         ("narrowest, straight back", dataclasses.replace(plain, backlash_overshoot=0.0)),
         ("narrowest", plain),
         *((f"fit within {w:g}x", dataclasses.replace(fitted, finish_window=w)) for w in windows),
+        (
+            "as trained, every reading from below",
+            dataclasses.replace(task, approach_from_below=True),
+        ),
     ]
 
 

@@ -185,10 +185,10 @@ class AlignmentEpisodes:
         self.start_reach = np.array([task.start_reach.get(k, np.inf) for k in task.knobs])
         # Scenario simulators sharing one recording answer a whole batch in one numpy query
         # (BatchedQueries); its settings columns are the task's knobs, so they must be the
-        # apparatus's, in order.
-        self._batched = answers_batched(self.apparatus) and all(
-            tuple(unit.knobs) == tuple(task.knobs) for unit in self.apparatus
-        )
+        # apparatus's, in order (and one write per reading: not approach_from_below).
+        same_knobs = all(tuple(u.knobs) == tuple(task.knobs) for u in self.apparatus)
+        self._batched = answers_batched(self.apparatus) and same_knobs
+        self._batched &= not task.approach_from_below
         self.history = np.zeros((self.n, history, self.n_features), np.float32)
         # The reading quality observations are relative to (Task.quality_reference): the
         # fixed quality_ref_px, or each episode's first measured width (unit-free).
@@ -509,7 +509,9 @@ class AlignmentEpisodes:
         for position, index in enumerate(indices):
             unit = self.apparatus[index]
             try:
-                self.setting[index] = self._write(index, self.setting[index])
+                limits = self.low[index], self.high[index]
+                for setting in self.ends.writes_to(index, self.setting[index], *limits):
+                    self.setting[index] = self._write(index, setting)
                 width, directional, shift = self._take_measures(unit)
             except (MeasurementError, ApparatusError) as error:
                 # A defined outcome on real hardware: no edges far from focus, or a driver

@@ -71,14 +71,29 @@ class EpisodeEnds:
 
     def wrote(self, index: int, applied: np.ndarray) -> None:
         """Apparatus `index` now holds `applied` (its units): the side of each knob's change.
-        Kept only where the task goes back (Task.stop_at_best)."""
-        if not self.task.stop_at_best:
+        Kept only where the task goes back or approaches from below (Task.stop_at_best,
+        approach_from_below)."""
+        if not (self.task.stop_at_best or self.task.approach_from_below):
             return
         with np.errstate(invalid="ignore"):
             change = np.sign(applied - self.written[index])  # NaN before the first write
         moved = np.isfinite(change) & (change != 0)
         self.approach[index, moved] = change[moved]
         self.written[index] = applied
+
+    def writes_to(
+        self, index: int, target: np.ndarray, low: np.ndarray, high: np.ndarray
+    ) -> list[np.ndarray]:
+        """The writes that take episode `index`'s knobs to `target` inside [low, high]: with
+        Task.approach_from_below, a knob that would come down first goes past the target by
+        the overshoot (kept inside the interval), then up to it; else one write."""
+        target = np.array(target, float)  # a copy: the caller's row changes as they land
+        overshoot = self.task.backlash_overshoot * (high - low)
+        with np.errstate(invalid="ignore"):
+            down = (target < self.written[index]) & (overshoot > 0)  # NaN: not yet written
+        if not (self.task.approach_from_below and np.any(down)):
+            return [target]
+        return [np.clip(np.where(down, target - overshoot, target), low, high), target]
 
     def note(
         self,

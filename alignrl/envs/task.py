@@ -184,6 +184,12 @@ class Task:
     # the verification's (verify_final), or the narrowest stands. One-knob width tasks.
     finish_at_fit: bool = False
     finish_window: float = FINISH_WINDOW  # that fit takes the readings within this x the narrowest
+    # Every setting a reading is taken at is reached from below, as a microscopist approaches
+    # focus from one side: a step down first goes past its target by backlash_overshoot x the
+    # interval (kept inside it) and comes back up, so that backlash and lens hysteresis put
+    # every reading, and the way back, on one branch of the focus curve. No acquisition on
+    # the way (alignrl/envs/ending.py, EpisodeEnds.writes_to).
+    approach_from_below: bool = False
 
     def __post_init__(self) -> None:
         if not self.knobs:
