@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from test_stop_at_best import _hysteretic, _Recorder  # a column with 2 % backlash, no drift
 
-from alignrl.apparatus.registry import make_apparatus
 from alignrl.config import TaskOptions
 from alignrl.envs.core import AlignmentEpisodes
 from alignrl.envs.task import get_task
@@ -14,27 +14,11 @@ from alignrl.envs.task import get_task
 MOVES = [0.5, 0.5, -0.5, -0.5, 0.3]  # up past focus, back down, up again (maximum steps)
 
 
-class _Recorder:
-    """A backlashed column (2 % of the interval, no drift) that keeps every value written."""
-
-    def __init__(self) -> None:
-        args = {"analytic": True, "hysteresis_fraction": 0.02, "drift_fraction": 0.0}
-        self._unit = make_apparatus("family:focus", args, seed=3)
-        self.writes: list[float] = []
-
-    def write(self, values):
-        self.writes.append(float(values["defocus"]))
-        return self._unit.write(values)
-
-    def __getattr__(self, name):
-        return getattr(self._unit, name)
-
-
 def _walk(**options):
     """Each reading's setting, the column's backlash offset there (effective setting minus
     setting), the writes it took to get there; the episode."""
     task = TaskOptions(**options).apply(get_task("focus"))
-    unit = _Recorder()
+    unit = _Recorder(_hysteretic())
     episodes = AlignmentEpisodes([unit], task, history=8)
     slot = np.array([0])
     episodes.begin(slot, [21])

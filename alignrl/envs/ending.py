@@ -18,6 +18,9 @@ alignrl/evaluation/controllers.py, `approach_from_below`; the engine's writes go
 its own `_write`, which records where the shield left each knob). No acquisition is taken
 on the way back.
 
+With `approach_from_below` every reading's setting is reached the same way, from below
+(`writes_to`), so that every reading, and the way back, lie on one branch of the backlash.
+
 `EpisodeEnds` keeps, per episode, what that needs: every measured reading with its setting
 and the side each knob came from (the narrowest reading is the least of them), and the side
 of the last change written to each knob (from the writes themselves: `wrote`).
@@ -87,13 +90,11 @@ class EpisodeEnds:
         """The writes that take episode `index`'s knobs to `target` inside [low, high]: with
         Task.approach_from_below, a knob that would come down first goes past the target by
         the overshoot (kept inside the interval), then up to it; else one write."""
-        target = np.array(target, float)  # a copy: the caller's row changes as they land
-        overshoot = self.task.backlash_overshoot * (high - low)
-        with np.errstate(invalid="ignore"):
-            down = (target < self.written[index]) & (overshoot > 0)  # NaN: not yet written
-        if not (self.task.approach_from_below and np.any(down)):
+        if not self.task.approach_from_below:
             return [target]
-        return [np.clip(np.where(down, target - overshoot, target), low, high), target]
+        target = np.array(target, float)  # a copy: the caller's row changes as they land
+        below = np.ones_like(target)
+        return self._arrive(target, self.written[index], below, low, high)
 
     def note(
         self,
@@ -140,13 +141,21 @@ class EpisodeEnds:
                 target, fitted = np.clip([optimum], low, high), True
         if np.array_equal(target, setting):
             return None
-        # Every knob arrives from the side the narrowest reading came from: one that would
-        # come from the other side first goes past the target by the overshoot.
-        side = narrowest.side
-        reverse = (side != 0) & (np.sign(target - setting) == -side)
-        overshoot = self.task.backlash_overshoot * (high - low)
-        writes = [target]
-        if np.any(reverse & (overshoot > 0)):
-            beyond = np.where(reverse, target - side * overshoot, target)
-            writes.insert(0, np.clip(beyond, low, high))
+        # Every knob arrives from the side the narrowest reading came from.
+        writes = self._arrive(target, setting, narrowest.side, low, high)
         return EndPlan(writes, fitted, narrowest.width)
+
+    def _arrive(
+        self, target: np.ndarray, start: np.ndarray, side: np.ndarray, low: np.ndarray,
+        high: np.ndarray,
+    ) -> list[np.ndarray]:  # fmt: skip
+        """The writes that take the knobs from `start` (NaN: unknown) to `target`, each
+        arriving from its `side` (+1 from below, -1 from above, 0 either): a knob that would
+        come from the other side first goes past the target by backlash_overshoot x the
+        interval, kept inside [low, high]."""
+        overshoot = self.task.backlash_overshoot * (high - low)
+        with np.errstate(invalid="ignore"):
+            reverse = (side != 0) & (np.sign(target - start) == -side) & (overshoot > 0)
+        if not np.any(reverse):
+            return [target]
+        return [np.clip(np.where(reverse, target - side * overshoot, target), low, high), target]
