@@ -293,6 +293,7 @@ class TaskOptions(_Strict):
     finish_at_fit: bool | None = Field(None, description="way back: to a bracketed fit's optimum")
     finish_window: float | None = Field(None, gt=1, description="finish fit: within x narrowest")
     approach_from_below: bool | None = Field(None, description="every reading reached from below")
+    move_floor: float | None = Field(None, ge=0, le=0.2, description="least move, of the interval")
     success_relative: float | None = Field(None, gt=1, description="threshold x best width")
     success_absolute_px: float | None = Field(None, gt=0, description="absolute spec, px")
     directional_relative: float | None = Field(

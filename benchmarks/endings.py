@@ -6,6 +6,13 @@ the readings" (issue 21).
     python -m benchmarks.endings --policy champion:focus-v2 --set validation --analytic \
         --scenarios 200 --seed 3000000 --windows 2 3 5 10 20 1000
 
+With --floors, rows where every move goes at least that share of the interval further (the
+task option move_floor); --floors-only compares those with the policy as shipped alone
+(docs/benchmarks.md, "A floor under every move"):
+
+    python -m benchmarks.endings --policy champion:focus-v2 --set validation \
+        --scenarios 200 --seed 3000000 --floors 0.01 0.02 0.035 --floors-only
+
 The policy acts exactly as trained (the same observations and actions); only what happens
 once it stops changes (the task options stop_at_best, backlash_overshoot, finish_at_fit and
 finish_window of alignrl/envs/task.py), and in the last row how it reaches each setting
@@ -23,9 +30,14 @@ import sys
 
 from alignrl.apparatus.instruments import HELD_OUT_SET
 from alignrl.deploy.policy import load_deployable
-from alignrl.envs.task import Task, get_task
+from alignrl.envs.task import MAX_MOVE_FLOOR, Task, get_task
 from alignrl.evaluation.controllers import PolicyController
 from alignrl.evaluation.instrument_sets import run_set, set_summary, set_table
+
+
+def floors(task: Task, values: list[float]) -> list[tuple[str, Task]]:
+    """(label, the policy's task with every move at least that share of the interval)."""
+    return [(f"moves at least {v:g}", dataclasses.replace(task, move_floor=v)) for v in values]
 
 
 def endings(task: Task, windows: list[float]) -> list[tuple[str, Task]]:
@@ -52,6 +64,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scenarios", type=int, default=200)
     parser.add_argument("--seed", type=int, default=3_000_000)
     parser.add_argument("--windows", type=float, nargs="+", default=[3.0, 10.0])
+    parser.add_argument("--floors", type=float, nargs="+", default=[], help="move_floor values")
+    parser.add_argument("--floors-only", action="store_true", help="as trained and the floors")
     args = parser.parse_args(argv)
     if args.set == HELD_OUT_SET:
         print(f"{HELD_OUT_SET} is held out: settings are chosen on validation", file=sys.stderr)
@@ -59,13 +73,19 @@ def main(argv: list[str] | None = None) -> int:
     if any(not window > 1 for window in args.windows):
         print("--windows: every window must be above 1 (x the narrowest reading)", file=sys.stderr)
         return 2
+    if any(not 0 <= value <= MAX_MOVE_FLOOR for value in args.floors):
+        print(f"--floors: every floor must be in [0, {MAX_MOVE_FLOOR:g}]", file=sys.stderr)
+        return 2
     policy = load_deployable(args.policy)
     if policy.task.measures != ("width",) or len(policy.task.knobs) != 1:
         print(f"{args.policy}: endings are compared for one-knob focus aligners", file=sys.stderr)
         return 2
     judged = get_task(policy.task.name)
     results = []
-    for label, task in endings(policy.task, args.windows):
+    compared = [("as trained", policy.task)]
+    if not args.floors_only:
+        compared = endings(policy.task, args.windows)
+    for label, task in [*compared, *floors(policy.task, args.floors)]:
         controller = PolicyController(label, policy.act, task, policy.history)
         result = run_set(controller, args.set, judged, args.scenarios, args.seed, args.analytic)
         print(set_summary(result), file=sys.stderr, flush=True)

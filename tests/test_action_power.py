@@ -1,6 +1,7 @@
-"""The task option `action_power`: a knob change of max_step x sign(a) |a|^power, the same in
-the episodes (alignrl/envs/core.py), in the exported graph's knob_step and in the loaded
-policy's probe (alignrl/deploy), and refused outside [1, 4]."""
+"""The task options that shape a move: `action_power`, a knob change of max_step x sign(a)
+|a|^power, and `move_floor`, every move at least that share of the interval further. The same
+in the episodes (alignrl/envs/core.py), in the exported graph's knob_step and in the loaded
+policy's probe (alignrl/deploy); refused outside [1, 4] and [0, 0.2]."""
 
 from __future__ import annotations
 
@@ -35,6 +36,29 @@ def test_knob_changes_keep_their_sign_and_reach_and_are_finer_near_zero() -> Non
     assert fine_error < 0.25 * linear_error
 
 
+def test_a_floor_moves_every_nonzero_action_at_least_that_far() -> None:
+    actions = np.array([[-1.0, 0.5], [-1e-6, 0.0], [0.0, -0.25], [0.3, 1.0]])
+    floor = np.array([0.5, 2.0])  # per knob, its units
+    changes = knob_change(actions, np.array([10.0, 4.0]), 1.0, floor)
+    expected = [[-10.5, 4.0], [-0.5 - 1e-5, 0.0], [0.0, -3.0], [3.5, 6.0]]
+    np.testing.assert_allclose(changes, expected)
+    assert np.all(
+        np.abs(changes[actions != 0]) >= np.broadcast_to(floor, actions.shape)[actions != 0]
+    )
+    assert np.all(np.sign(changes) == np.sign(actions))  # no action turns a move around
+    powered = knob_change(np.array([0.5]), 10.0, 2.0, 1.0)
+    np.testing.assert_allclose(powered, [3.5])  # the floor adds to the powered change
+
+
+@pytest.mark.parametrize("floor", [-0.01, 0.25, float("nan")])
+def test_a_floor_outside_zero_to_a_fifth_is_refused(floor: float) -> None:
+    with pytest.raises(ValueError, match="move_floor must be in"):
+        dataclasses.replace(get_task("focus"), move_floor=floor)
+    if np.isfinite(floor):
+        with pytest.raises(ValueError, match="move_floor"):
+            TaskOptions(move_floor=floor)
+
+
 @pytest.mark.parametrize("power", [0.5, 4.5, float("nan")])
 def test_a_power_outside_one_to_four_is_refused(power: float) -> None:
     with pytest.raises(ValueError, match="action_power must be in"):
@@ -44,8 +68,16 @@ def test_a_power_outside_one_to_four_is_refused(power: float) -> None:
             TaskOptions(action_power=power)
 
 
-def test_an_episode_moves_the_knob_by_the_powered_action() -> None:
-    task = TaskOptions(action_power=2.0, max_step_fraction=0.25).apply(get_task("focus"))
+@pytest.mark.parametrize(
+    ("options", "share"),
+    [  # the move as a share of the interval, for the action -0.4 at a quarter per action
+        ({"action_power": 2.0}, -0.16 * 0.25),
+        ({"move_floor": 0.02}, -0.4 * 0.25 - 0.02),
+        ({"action_power": 2.0, "move_floor": 0.02}, -0.16 * 0.25 - 0.02),
+    ],
+)
+def test_an_episode_moves_the_knob_as_its_task_shapes_the_action(options, share) -> None:
+    task = TaskOptions(max_step_fraction=0.25, **options).apply(get_task("focus"))
     unit = make_apparatus("family:focus", {"analytic": True}, seed=3)
     episodes = AlignmentEpisodes([unit], task, history=4)
     slot = np.array([0])
@@ -55,14 +87,17 @@ def test_an_episode_moves_the_knob_by_the_powered_action() -> None:
     before = float(episodes.setting[0, 0])
     episodes.step(slot, np.array([[-0.4, -1.0]]))
     moved = float(episodes.setting[0, 0]) - before
-    assert moved == pytest.approx(-0.16 * 0.25 * (high - low), rel=1e-9)
+    assert moved == pytest.approx(share * (high - low), rel=1e-9)
     # The observation's last action is the action itself, not the change.
     action = feature_layout(1)["action"]
     np.testing.assert_allclose(episodes.history[0, -1, action], [-0.4, -1.0])
 
 
+@pytest.mark.parametrize(
+    ("option", "value"), [("action_power", 2.0), ("move_floor", 0.02)], ids=["power", "floor"]
+)
 def test_an_exported_policy_steps_as_its_task_says(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], option: str, value: float
 ) -> None:
     experiment = write_experiment(
         tmp_path,
@@ -70,7 +105,7 @@ def test_an_exported_policy_steps_as_its_task_says(
             "name": "powered",
             "envs": 2,
             "learner": {"algorithm": "sac", **SMALL_SAC},
-            "task_options": {"action_power": 2.0},
+            "task_options": {option: value},
             "budget": {"env_steps": 48, "eval_every": 48, "eval_scenarios": 2},
         },
     )
@@ -83,17 +118,20 @@ def test_an_exported_policy_steps_as_its_task_says(
         assert main(args) == 0
         capsys.readouterr()
         policy = load_exported(out)
-        assert policy.task.action_power == 2.0
+        assert getattr(policy.task, option) == value
         outputs = policy.run(batch)
         action = outputs["action"][:, :1].astype(np.float64)
-        steps = np.sign(action) * action**2 * policy.max_step
+        if option == "action_power":
+            steps = np.sign(action) * action**2 * policy.max_step
+        else:  # the interval is four max steps (a quarter of it per action)
+            steps = action * policy.max_step + np.sign(action) * value * 4 * policy.max_step
         np.testing.assert_allclose(outputs["knob_step"], steps, rtol=1e-5, atol=1e-5)
         assert not np.allclose(outputs["knob_step"], action * policy.max_step, atol=1e-3)
-    # A graph carries its power: a card whose power was edited away no longer matches the
+    # A graph carries its shaping: a card whose option was edited away no longer matches the
     # steps the file asks for, and is refused before any instrument.
     card_path = tmp_path / "torchscript" / "card.json"
     card = json.loads(card_path.read_text())
-    del card["task"]["options"]["action_power"]
+    del card["task"]["options"][option]
     card_path.write_text(json.dumps(card))
     with pytest.raises(ExportError, match="scales its actions"):
         load_exported(card_path.parent)

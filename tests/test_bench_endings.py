@@ -8,7 +8,7 @@ import dataclasses
 import pytest
 
 from alignrl.envs.task import get_task
-from benchmarks.endings import endings, main
+from benchmarks.endings import endings, floors, main
 
 
 def test_each_ending_changes_only_what_happens_once_the_policy_stops() -> None:
@@ -38,6 +38,25 @@ def test_the_endings_table_has_a_column_per_ending(capsys: pytest.CaptureFixture
     assert cells == ["instrument", "as trained", "narrowest, straight back", "narrowest",
                      "fit within 10x", "as trained, every reading from below"]  # fmt: skip
     assert "val-steep" in out and "**total**" in out
+
+
+def test_floor_rows_change_only_how_far_each_move_goes(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    trained = get_task("focus")
+    compared = floors(trained, [0.01, 0.02])
+    assert [label for label, _ in compared] == ["moves at least 0.01", "moves at least 0.02"]
+    assert [task for _, task in compared] == [
+        dataclasses.replace(trained, move_floor=value) for value in (0.01, 0.02)
+    ]
+    argv = ["--policy", "champion:focus-v2", "--analytic", "--scenarios", "3", "--floors", "0.02"]
+    assert main([*argv, "--floors-only"]) == 0
+    header = next(line for line in capsys.readouterr().out.splitlines() if "| instrument" in line)
+    assert [cell.strip() for cell in header.strip("|").split("|")] == [
+        "instrument", "as trained", "moves at least 0.02",
+    ]  # fmt: skip
+    assert main([*argv[:-1], "0.5"]) == 2
+    assert "every floor must be in [0, 0.2]" in capsys.readouterr().err
 
 
 def test_the_held_out_set_is_refused(capsys: pytest.CaptureFixture[str]) -> None:

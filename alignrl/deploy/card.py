@@ -65,8 +65,9 @@ SESSION_TASK_OPTIONS = (
 NORMALISATION = (
     "none inside the policy: the history is fed exactly as the env produces it "
     "(alignrl/envs/core.py scales every feature), as Agent.act does; the action is "
-    "tanh(mean), clipped to [-1, 1], and knob_step = sign(a) |a|^p x max_step for a = "
-    "action[:k], p the task's action_power (1 unless task.options set it: a x max_step)"
+    "tanh(mean), clipped to [-1, 1], and knob_step = sign(a) (|a|^p x max_step + f) for a = "
+    "action[:k], p the task's action_power and f its move_floor x the knob's interval (1 and "
+    "0 unless task.options set them: a x max_step)"
 )
 
 

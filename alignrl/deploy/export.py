@@ -48,7 +48,7 @@ from alignrl.deploy.formats import (
     sha256_of,
     write_policy,
 )
-from alignrl.deploy.graph import PolicyGraph, PolicyInterface
+from alignrl.deploy.graph import PolicyGraph, PolicyInterface, move_floors
 from alignrl.deploy.learner_state import write_checked
 from alignrl.deploy.parity import PARITY_HISTORIES, PARITY_TOLERANCE, Parity, check_parity
 from alignrl.runs.sources import CHAMPION_PREFIX, ExportError, PolicySource
@@ -192,8 +192,8 @@ def export_policy(
     out = Path(out)
     _refuse_to_overwrite(out, force)
     knobs = knob_limits(source, note)
-    power = source.task.action_power
-    graph = PolicyGraph(source.agent, [knob["max_step"] for knob in knobs], power)
+    power, floor = source.task.action_power, move_floors(source.task.move_floor, knobs)
+    graph = PolicyGraph(source.agent, [knob["max_step"] for knob in knobs], power, floor)
     staging = staging_folder(out)
     try:
         policy_path = staging / EXPORT_FORMATS[export_format]
@@ -204,6 +204,7 @@ def export_policy(
             graph.max_step.tolist(),
             source.agent.spec,
             power,
+            floor,
         )
         run, runtime = load_runner(policy_path, export_format, interface)
         parity = check_parity(source.agent, graph, run, runtime, histories, seed, tolerance)

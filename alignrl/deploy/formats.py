@@ -159,8 +159,8 @@ def _weights_runner(path: Path, interface: PolicyInterface) -> tuple[Runner, str
     weights = load_file(str(path), device="cpu")
     _check_tensors(path, weights, blank["policy"])
     agent.load_policy_state({**blank, "policy": weights})
-    graph = PolicyGraph(agent, interface.max_step, interface.action_power)
-    max_step = graph.max_step.numpy()
+    graph = PolicyGraph(agent, interface.max_step, interface.action_power, interface.move_floor)
+    max_step, floor = graph.max_step.numpy(), graph.move_floor.numpy()
 
     @torch.no_grad()
     def run(inputs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -169,7 +169,7 @@ def _weights_runner(path: Path, interface: PolicyInterface) -> tuple[Runner, str
             outputs = graph(*(torch.from_numpy(array) for array in arrays))
             return {n: out.numpy() for n, out in zip(graph.output_names, outputs, strict=True)}
         action = agent.act(arrays[0], deterministic=True).astype(np.float32)  #   (batch, k+1)
-        knob_step = knob_change(action[:, : graph.knobs], max_step, graph.action_power)
+        knob_step = knob_change(action[:, : graph.knobs], max_step, graph.action_power, floor)
         return {"action": action, "knob_step": knob_step.astype(np.float32)}
 
     return run, f"torch {torch.__version__}: Agent.act on the safetensors weights"

@@ -5,9 +5,10 @@
     history    float32 (batch, H, F)  the env's history (alignrl/envs/core.py), as it is
       -> history encoder -> mean of the policy head -> tanh -> clip to [-1, 1]
     action     float32 (batch, k + 1) k knob actions, then the stop component (stop if > 0)
-    knob_step  float32 (batch, k)     sign(a) |a|^action_power x max_step, a = action[:, :k]:
-                                      the knob change asked for, in the apparatus's units
-                                      (volts for a lens); power 1 (the default): a x max_step
+    knob_step  float32 (batch, k)     sign(a) (|a|^action_power x max_step + move_floor),
+                                      a = action[:, :k]: the knob change asked for, in the
+                                      apparatus's units (volts for a lens); power 1 and no
+                                      floor (the defaults): a x max_step
 
 The learners apply no normalisation of their own: the env already scales every feature of
 the history (knobs to [-1, 1], quality as log(width / reference)), so there is nothing to fold
@@ -20,7 +21,7 @@ memory (memory_length > 0) gets it as explicit tensors: inputs `memory_in_<i>` (
 from __future__ import annotations
 
 import copy
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -38,6 +39,7 @@ __all__ = [
     "PolicyInterface",
     "Runner",
     "graph_signature",
+    "move_floors",
     "random_histories",
 ]
 
@@ -49,7 +51,13 @@ class PolicyGraph(nn.Module):
     [+ memory]. A copy of the policy network alone (no critics, no optimizer); the member
     itself is left untouched."""
 
-    def __init__(self, agent: Agent, max_step: Sequence[float], action_power: float = 1.0) -> None:
+    def __init__(
+        self,
+        agent: Agent,
+        max_step: Sequence[float],
+        action_power: float = 1.0,
+        move_floor: Sequence[float] | None = None,
+    ) -> None:
         super().__init__()
         self.action_power = float(action_power)  # the task's (alignrl.envs.task.knob_change)
         policy = agent.learner.acting_network  # SAC's actor, PPO's policy
@@ -65,6 +73,9 @@ class PolicyGraph(nn.Module):
                 f"{self.knobs} max step(s) given"
             )
         self.register_buffer("max_step", torch.tensor(list(max_step), dtype=torch.float32))
+        floor = [0.0] * self.knobs if move_floor is None else list(move_floor)
+        self.register_buffer("move_floor", torch.tensor(floor, dtype=torch.float32))
+        self.floored = any(value != 0 for value in floor)  # the task's move_floor x interval
         self.memory_length = getattr(self.encoder, "memory_length", 0)
         self.memory_layers = self.encoder.layers if isinstance(self.encoder, GTrXLEncoder) else 0
         # Parameters keep requires_grad, as the member's own: with it off, PyTorch's CPU
@@ -118,6 +129,8 @@ class PolicyGraph(nn.Module):
         if self.action_power != 1.0:  # as Task.knob_change, which AlignmentEpisodes.step uses
             knob_action = torch.sign(knob_action) * knob_action.abs() ** self.action_power
         knob_step = knob_action * self.max_step  #                                         (B, k)
+        if self.floored:
+            knob_step = knob_step + torch.sign(knob_action) * self.move_floor
         if updated is None:
             return action, knob_step
         return (action, knob_step, *updated.layers, updated.valid.to(action.dtype))
@@ -172,6 +185,12 @@ def random_histories(
 
 
 # A policy file, opened: named float32 inputs, batch first -> every named output.
+def move_floors(move_floor: float, knobs: Sequence[Mapping[str, Any]]) -> list[float]:
+    """Each knob's least move (its units) on the intervals of a card's or run's `knobs`
+    (low, high): the task's move_floor x the interval's width, as the env takes it."""
+    return [move_floor * (float(knob["high"]) - float(knob["low"])) for knob in knobs]
+
+
 Runner = Callable[[dict[str, np.ndarray]], dict[str, np.ndarray]]
 
 
@@ -186,4 +205,5 @@ class PolicyInterface:
     output_names: list[str]
     max_step: list[float]
     spec: MemberSpec | None = None
-    action_power: float = 1.0  # the task's: knob_step = sign(a) |a|^power x max_step
+    action_power: float = 1.0  # the task's: knob_step = sign(a) (|a|^power x max_step + floor)
+    move_floor: list[float] | None = None  # per knob, its units: the task's floor x interval

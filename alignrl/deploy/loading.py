@@ -20,7 +20,7 @@ import numpy as np
 from alignrl.agents.agent import MemberSpec
 from alignrl.deploy.card_schema import check_card
 from alignrl.deploy.formats import load_runner, sha256_of
-from alignrl.deploy.graph import PolicyInterface, Runner, random_histories
+from alignrl.deploy.graph import PolicyInterface, Runner, move_floors, random_histories
 from alignrl.deploy.parity import PARITY_TOLERANCE
 from alignrl.envs.task import Task, knob_change
 from alignrl.runs.sources import ExportError
@@ -92,12 +92,17 @@ def _card_spec(member: dict[str, Any]) -> MemberSpec:
 
 
 def _probe(
-    run: Runner, card: dict[str, Any], policy_path: Path, max_step: np.ndarray, power: float
+    run: Runner,
+    card: dict[str, Any],
+    policy_path: Path,
+    max_step: np.ndarray,
+    power: float,
+    floor: list[float],
 ) -> None:
     """Run a freshly loaded policy file on a zero history and a few random ones, as its card
     describes them: it must take the card's inputs, give the card's outputs in their shapes,
-    every value finite, and knob_step = sign(a) |a|^power x the card's max_step (the task's
-    action_power, alignrl.envs.task.knob_change). A file of another
+    every value finite, and knob_step = sign(a) (|a|^power x the card's max_step + floor)
+    (the task's action_power and move_floor, alignrl.envs.task.knob_change). A file of another
     member, or a card whose steps were edited, is refused here, before any instrument."""
     knobs = len(max_step)
     history, features = int(card["history"]), int(card["features"])
@@ -132,7 +137,7 @@ def _probe(
                 "hold NaN or infinity; export it again from a sound member"
             )
     action, knob_step = outputs["action"], outputs["knob_step"]
-    expected = knob_change(action[:, :knobs], max_step, power)
+    expected = knob_change(action[:, :knobs], max_step, power, np.asarray(floor))
     allowed = PARITY_TOLERANCE * max(1.0, float(np.max(max_step)))
     if not np.allclose(knob_step, expected, rtol=1e-5, atol=allowed):
         scale = float(
@@ -176,9 +181,10 @@ def load_exported(path: str | Path) -> ExportedPolicy:
         # Only weights need the member: a graph carries its own network.
         spec=_card_spec(card["member"]) if export_format == "safetensors" else None,
         action_power=task.action_power,
+        move_floor=move_floors(task.move_floor, card["knobs"]),
     )
     run, runtime = load_runner(policy_path, export_format, interface)
-    _probe(run, card, policy_path, max_step, task.action_power)
+    _probe(run, card, policy_path, max_step, task.action_power, interface.move_floor)
     recorded = card.get("policy_sha256")
     if recorded is not None and sha256_of(policy_path) != recorded:
         raise ExportError(

@@ -105,7 +105,8 @@ def check_parity(
     outputs = run({"history": inputs, **graph.empty_memory(histories)})
     max_step = graph.max_step.numpy().astype(np.float64)
     action_difference = _max_difference(outputs["action"], expected)
-    asked = knob_change(expected[:, : graph.knobs], max_step, graph.action_power)
+    floor = graph.move_floor.numpy().astype(np.float64)
+    asked = knob_change(expected[:, : graph.knobs], max_step, graph.action_power, floor)
     knob_difference = _max_difference(outputs["knob_step"], asked)
     memory_difference = None
     if graph.memory_length:

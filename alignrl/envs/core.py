@@ -375,7 +375,9 @@ class AlignmentEpisodes:
         reward = np.zeros(len(indices))
         moving = indices[~stop]
         if moving.size:
-            change = task.knob_change(actions[~stop, : self.k], self.max_step[moving])
+            change = task.knob_change(
+                actions[~stop, : self.k], self.max_step[moving], self.span[moving]
+            )
             target = self.setting[moving] + change
             clipped = np.clip(target, self.low[moving], self.high[moving])
             hit_bound = np.any(clipped != target, axis=1)

@@ -35,16 +35,24 @@ DIRECTIONAL_BINS = 4  # edge-normal orientation bins of quality.directional_widt
 QUALITY_REFERENCES = ("fixed", "first")  # what quality observations are relative to
 REWARD_FORMS = ("difference", "log_ratio")  # how the final reward counts widths (rewards.py)
 MAX_ACTION_POWER = 4.0  # above it the smallest useful changes need actions within a hair of 0
+MAX_MOVE_FLOOR = 0.2  # a share of the interval: beyond it no column could be brought to focus
 
 
-def knob_change(actions: np.ndarray, max_step: np.ndarray, power: float = 1.0) -> np.ndarray:
-    """max_step x sign(a) |a|^power: the knob change (its units) an action a in [-1, 1] asks
-    for. Power 1 is linear; above it, the same reach with finer changes near 0. The exported
-    graph computes the same (alignrl/deploy/graph.py: knob_step)."""
+def knob_change(
+    actions: np.ndarray, max_step: np.ndarray, power: float = 1.0, floor: np.ndarray | float = 0.0
+) -> np.ndarray:
+    """sign(a) (|a|^power x max_step + floor): the knob change (its units) an action a in
+    [-1, 1] asks for. Power 1 is linear; above it, the same reach with finer changes near 0.
+    `floor` (its units, per knob; 0: none) is the least a move goes: a = 0 stays put, any other
+    action goes at least that far. The exported graph computes the same
+    (alignrl/deploy/graph.py: knob_step)."""
     actions = np.asarray(actions, np.float64)
     if power != 1.0:
         actions = np.sign(actions) * np.abs(actions) ** power
-    return actions * max_step
+    change = actions * max_step
+    if np.any(np.asarray(floor) != 0):
+        change = change + np.sign(actions) * floor
+    return change
 
 
 @dataclass(frozen=True)
@@ -190,6 +198,10 @@ class Task:
     # every reading, and the way back, on one branch of the focus curve. No acquisition on
     # the way (alignrl/envs/ending.py, EpisodeEnds.writes_to).
     approach_from_below: bool = False
+    # Every move goes at least this share of the interval further in its own direction
+    # (Task.knob_change): a policy trained on the box's columns stops short near a bound and
+    # under-brackets steep ones with its last, shortest moves. 0: the seed's moves.
+    move_floor: float = 0.0
 
     def __post_init__(self) -> None:
         if not self.knobs:
@@ -198,6 +210,8 @@ class Task:
             raise ValueError(f"task {self.name!r}: episode_steps must be at least 1")
         if not 0 < self.max_step_fraction <= 2:
             raise ValueError(f"task {self.name!r}: max_step_fraction must be in (0, 2]")
+        if not 0 <= self.move_floor <= MAX_MOVE_FLOOR:
+            raise ValueError(f"task {self.name!r}: move_floor must be in [0, {MAX_MOVE_FLOOR}]")
         for knob, step in self.max_step.items():
             if knob not in self.knobs:
                 raise ValueError(f"task {self.name!r}: max_step names {knob!r}, not a task knob")
@@ -286,9 +300,12 @@ class Task:
                     f"({', '.join(self.measures)}), each once; got {list(self.judged)}"
                 )
 
-    def knob_change(self, actions: np.ndarray, max_step: np.ndarray) -> np.ndarray:
-        """The knob changes (its units) that actions in [-1, 1] ask for (`knob_change`)."""
-        return knob_change(actions, max_step, self.action_power)
+    def knob_change(
+        self, actions: np.ndarray, max_step: np.ndarray, span: np.ndarray
+    ) -> np.ndarray:
+        """The knob changes (its units) that actions in [-1, 1] ask for on knobs whose
+        intervals are `span` wide (`knob_change`, the floor move_floor x span)."""
+        return knob_change(actions, max_step, self.action_power, self.move_floor * span)
 
     def for_acting(self) -> Task:
         """The task as an evaluation session or `align` runs a policy on it: without the
