@@ -152,3 +152,36 @@ def test_a_steep_validation_column_needs_the_focus_within_a_third_of_a_percent()
     half_span = (within.max() - within.min()) / 2 / width
     assert half_span == pytest.approx(0.0034, abs=0.0002)
     assert half_span / 0.25 == pytest.approx(0.014, abs=0.001)
+
+
+def test_an_export_may_set_how_a_trained_policy_acts(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`alignrl export --set task_options.move_floor=...`: the card records the option and
+    the command, the loaded policy acts with it; an option that changes what the policy
+    observes, any other key, and a floor out of range are refused and nothing is written."""
+    out = tmp_path / "floored"
+    argv = ["export", "champion:focus-v2", "--format", "safetensors", "--out", str(out)]
+    assert main([*argv, "--set", "task_options.move_floor=0.02"]) == 0
+    assert "every move at least" in capsys.readouterr().out
+    card = json.loads((out / "card.json").read_text())
+    assert card["task"]["options"]["move_floor"] == 0.02
+    assert "--set task_options.move_floor=0.02" in card["command"]
+    policy = load_exported(out)
+    assert policy.task.move_floor == 0.02 and policy.task.action_power == 2.0
+    knobs = card["knobs"][0]
+    outputs = policy.run(np.random.default_rng(1).normal(size=(32, 10, 7)).astype(np.float32))
+    action = outputs["action"][:, :1].astype(np.float64)
+    floor = 0.02 * (knobs["high"] - knobs["low"])
+    steps = np.sign(action) * (action**2 * policy.max_step + floor)
+    np.testing.assert_allclose(outputs["knob_step"], steps, rtol=1e-5, atol=1e-3)
+    for assignment, named in [
+        ("task_options.action_power=1", "changes only how the trained policy acts"),
+        ("budget.env_steps=10", "changes only how the trained policy acts"),
+        ("task_options.move_floor", "changes only how the trained policy acts"),
+        ("task_options.move_floor=0.9", "task_options.move_floor"),
+    ]:
+        refused = tmp_path / "refused"
+        assert main([*argv[:-1], str(refused), "--set", assignment]) == 2
+        assert named in capsys.readouterr().err
+        assert not refused.exists()

@@ -7,6 +7,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from typing import Any
 
 from alignrl.apparatus.base import ApparatusError
 from alignrl.cli.common import (
@@ -19,6 +20,7 @@ from alignrl.cli.common import (
     _seed,
 )
 from alignrl.cli.gifs import add_gif_options, check_gif, write_gif
+from alignrl.envs.task import ACTING_OPTIONS
 
 
 def _count(number: int, noun: str) -> str:
@@ -128,18 +130,23 @@ def cmd_align(args: argparse.Namespace) -> int:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    from alignrl.deploy.export import default_out, export_command, export_policy
+    from alignrl.deploy.export import (
+        default_out,
+        export_command,
+        export_policy,
+        with_acting_options,
+    )
     from alignrl.runs.sources import resolve_source
 
     started = time.perf_counter()
     learner = args.with_learner_state
-    source = resolve_source(args.run, args.member)
+    source = with_acting_options(resolve_source(args.run, args.member), args.overrides)
     out = (
         args.out
         if args.out is not None
         else default_out(source, args.run, args.format, args.runs_dir)
     )
-    command = export_command(args.run, args.member, args.format, out, learner)
+    command = export_command(args.run, args.member, args.format, out, learner, args.overrides)
     try:
         result = export_policy(
             source,
@@ -179,6 +186,11 @@ def cmd_export(args: argparse.Namespace) -> int:
             for entry in card[side]
         )
 
+    floor = float(card["task"]["options"].get("move_floor") or 0.0)
+
+    def least(knob: dict[str, Any]) -> str:  # the task's move_floor x the interval
+        return f", every move at least {floor * (knob['high'] - knob['low']):g}" if floor else ""
+
     lines = [
         f"exported {payload['member']} ({payload['chosen_as']} of {args.run}) as "
         f"{args.format}: {result.policy_file}",
@@ -186,7 +198,7 @@ def cmd_export(args: argparse.Namespace) -> int:
         f"  outputs: {shapes('outputs')}",
         *(
             f"  knob:    {knob['name']} in [{knob['low']:g}, {knob['high']:g}], at most "
-            f"{knob['max_step']:g} per action"
+            f"{knob['max_step']:g} per action{least(knob)}"
             for knob in card["knobs"]
         ),
         f"  memory:  {card['memory']['note']}",
@@ -288,6 +300,16 @@ def add_deploy_parsers(verbs: argparse._SubParsersAction[argparse.ArgumentParser
         help="with --format safetensors: also the critics, optimizers and entropy coefficient "
         "(learner.safetensors, learner.json), so that adapt and init_from can train on from "
         "the export",
+    )
+    export.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="task_options.NAME=VALUE",
+        help="how the exported policy acts, one of the task options that never change what it "
+        f"observes ({', '.join(ACTING_OPTIONS)}), e.g. task_options.move_floor=0.02; "
+        "recorded in its card (repeatable)",
     )
     export.add_argument("--force", action="store_true", help="replace a non-empty --out")
     export.add_argument("--json", action="store_true", help="machine-readable summary")

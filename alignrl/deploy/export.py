@@ -31,11 +31,12 @@ has its training apparatus opened to read them, and the export says so in one li
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shlex
 import shutil
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -241,12 +242,41 @@ def export_policy(
     )
 
 
+def with_acting_options(source: PolicySource, overrides: Sequence[str]) -> PolicySource:
+    """`source` acting with the `--set task_options.NAME=VALUE` assignments, each NAME one of
+    ACTING_OPTIONS (how its moves reach the column and how an alignment ends, never what it
+    observes), checked by the same strict model as a run's config; anything else is an
+    ExportError naming it."""
+    from alignrl.config import ConfigError, overridden, parse_config
+    from alignrl.envs.task import ACTING_OPTIONS
+
+    if not overrides:
+        return source
+    allowed = ", ".join(f"task_options.{name}" for name in ACTING_OPTIONS)
+    for assignment in overrides:
+        key = assignment.partition("=")[0].strip()
+        if key.removeprefix("task_options.") not in ACTING_OPTIONS or "=" not in assignment:
+            raise ExportError(
+                f"export --set {assignment!r}: an export changes only how the trained policy "
+                f"acts, KEY=VALUE with KEY one of {allowed}; the rest of its config is its "
+                "training's"
+            )
+    data = source.config.model_dump(mode="json")
+    try:
+        data, where = overridden(data, f"the config of {source.member_file}", overrides)
+        config = parse_config(type(source.config), data, where)
+    except ConfigError as error:
+        raise ExportError(str(error)) from None
+    return dataclasses.replace(source, config=config)
+
+
 def export_command(
     run: str | Path,
     member: str | None,
     export_format: str,
     out: str | Path,
     learner_state: bool = False,
+    overrides: Sequence[str] = (),
 ) -> str:
     """The `alignrl export` command line that writes this export (for the model card)."""
     words = ["alignrl", "export", str(run)]
@@ -255,5 +285,7 @@ def export_command(
     words += ["--format", export_format]
     if learner_state:
         words.append("--with-learner-state")
+    for assignment in overrides:
+        words += ["--set", assignment]
     words += ["--out", str(out)]
     return shlex.join(words)

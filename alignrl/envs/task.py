@@ -28,13 +28,32 @@ import numpy as np
 
 from alignrl.envs.fit_features import FINISH_WINDOW, FIT_FEATURES
 
-__all__ = ["MEASURES", "TASKS", "Criterion", "SuccessRule", "Task", "get_task", "knob_change"]
+__all__ = [
+    "ACTING_OPTIONS",
+    "MEASURES",
+    "TASKS",
+    "Criterion",
+    "SuccessRule",
+    "Task",
+    "get_task",
+    "knob_change",
+]
 
 MEASURES = ("width", "directional", "wobble")
 DIRECTIONAL_BINS = 4  # edge-normal orientation bins of quality.directional_widths
 QUALITY_REFERENCES = ("fixed", "first")  # what quality observations are relative to
 REWARD_FORMS = ("difference", "log_ratio")  # how the final reward counts widths (rewards.py)
 MAX_ACTION_POWER = 4.0  # above it the smallest useful changes need actions within a hair of 0
+# The task options that change how a trained policy's moves reach the column and how its
+# episode ends, never what it observes: an export may set them (alignrl export --set).
+ACTING_OPTIONS = (
+    "move_floor",
+    "stop_at_best",
+    "backlash_overshoot",
+    "finish_at_fit",
+    "finish_window",
+    "approach_from_below",
+)
 MAX_MOVE_FLOOR = 0.2  # a share of the interval: beyond it no column could be brought to focus
 
 
