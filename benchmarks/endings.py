@@ -7,11 +7,11 @@ the readings" (issue 21).
         --scenarios 200 --seed 3000000 --windows 2 3 5 10 20 1000
 
 With --floors, rows where every move goes at least that share of the interval further (the
-task option move_floor); --floors-only compares those with the policy as shipped alone
-(docs/benchmarks.md, "A floor under every move"):
+task option move_floor), with --below also every reading from below (approach_from_below);
+--floors-only runs those rows alone (docs/benchmarks.md, "A floor under every move"):
 
-    python -m benchmarks.endings --policy champion:focus-v2 --set validation \
-        --scenarios 200 --seed 3000000 --floors 0.01 0.02 0.035 --floors-only
+    python -m benchmarks.endings --policy champion:focus-v2 --set validation --analytic \
+        --scenarios 200 --seed 3000000 --floors 0 0.01 0.02 0.035 --floors-only [--below]
 
 The policy acts exactly as trained (the same observations and actions); only what happens
 once it stops changes (the task options stop_at_best, backlash_overshoot, finish_at_fit and
@@ -35,9 +35,17 @@ from alignrl.evaluation.controllers import PolicyController
 from alignrl.evaluation.instrument_sets import run_set, set_summary, set_table
 
 
-def floors(task: Task, values: list[float]) -> list[tuple[str, Task]]:
-    """(label, the policy's task with every move at least that share of the interval)."""
-    return [(f"moves at least {v:g}", dataclasses.replace(task, move_floor=v)) for v in values]
+def floors(task: Task, values: list[float], below: bool = False) -> list[tuple[str, Task]]:
+    """(label, the policy's task with every move at least that share of the interval, and
+    with `below` every reading approached from below)."""
+    label = ", every reading from below" if below else ""
+    return [
+        (
+            f"moves at least {v:g}{label}",
+            dataclasses.replace(task, move_floor=v, approach_from_below=below),
+        )
+        for v in values
+    ]
 
 
 def endings(task: Task, windows: list[float]) -> list[tuple[str, Task]]:
@@ -65,7 +73,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=3_000_000)
     parser.add_argument("--windows", type=float, nargs="+", default=[3.0, 10.0])
     parser.add_argument("--floors", type=float, nargs="+", default=[], help="move_floor values")
-    parser.add_argument("--floors-only", action="store_true", help="as trained and the floors")
+    parser.add_argument("--below", action="store_true", help="floor rows: readings from below")
+    parser.add_argument("--floors-only", action="store_true", help="the floor rows alone")
     args = parser.parse_args(argv)
     if args.set == HELD_OUT_SET:
         print(f"{HELD_OUT_SET} is held out: settings are chosen on validation", file=sys.stderr)
@@ -82,10 +91,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     judged = get_task(policy.task.name)
     results = []
-    compared = [("as trained", policy.task)]
-    if not args.floors_only:
-        compared = endings(policy.task, args.windows)
-    for label, task in [*compared, *floors(policy.task, args.floors)]:
+    compared = [] if args.floors_only else endings(policy.task, args.windows)
+    for label, task in [*compared, *floors(policy.task, args.floors, args.below)]:
         controller = PolicyController(label, policy.act, task, policy.history)
         result = run_set(controller, args.set, judged, args.scenarios, args.seed, args.analytic)
         print(set_summary(result), file=sys.stderr, flush=True)

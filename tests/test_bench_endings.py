@@ -49,11 +49,14 @@ def test_floor_rows_change_only_how_far_each_move_goes(
     assert [task for _, task in compared] == [
         dataclasses.replace(trained, move_floor=value) for value in (0.01, 0.02)
     ]
+    ((label, below),) = floors(trained, [0.0], below=True)
+    assert label == "moves at least 0, every reading from below"
+    assert below == dataclasses.replace(trained, approach_from_below=True)
     argv = ["--policy", "champion:focus-v2", "--analytic", "--scenarios", "3", "--floors", "0.02"]
-    assert main([*argv, "--floors-only"]) == 0
+    assert main([*argv, "--floors-only", "--below"]) == 0
     header = next(line for line in capsys.readouterr().out.splitlines() if "| instrument" in line)
     assert [cell.strip() for cell in header.strip("|").split("|")] == [
-        "instrument", "as trained", "moves at least 0.02",
+        "instrument", "moves at least 0.02, every reading from below",
     ]  # fmt: skip
     assert main([*argv[:-1], "0.5"]) == 2
     assert "every floor must be in [0, 0.2]" in capsys.readouterr().err
