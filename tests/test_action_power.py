@@ -50,22 +50,20 @@ def test_a_floor_moves_every_nonzero_action_at_least_that_far() -> None:
     np.testing.assert_allclose(powered, [3.5])  # the floor adds to the powered change
 
 
-@pytest.mark.parametrize("floor", [-0.01, 0.25, float("nan")])
-def test_a_floor_outside_zero_to_a_fifth_is_refused(floor: float) -> None:
-    with pytest.raises(ValueError, match="move_floor must be in"):
-        dataclasses.replace(get_task("focus"), move_floor=floor)
-    if np.isfinite(floor):
-        with pytest.raises(ValueError, match="move_floor"):
-            TaskOptions(move_floor=floor)
-
-
-@pytest.mark.parametrize("power", [0.5, 4.5, float("nan")])
-def test_a_power_outside_one_to_four_is_refused(power: float) -> None:
-    with pytest.raises(ValueError, match="action_power must be in"):
-        dataclasses.replace(get_task("focus"), action_power=power)
-    if np.isfinite(power):
-        with pytest.raises(ValueError, match="action_power"):
-            TaskOptions(action_power=power)
+@pytest.mark.parametrize(
+    ("option", "value"),
+    [
+        *(("move_floor", floor) for floor in (-0.01, 0.25, float("nan"))),
+        *(("action_power", power) for power in (0.5, 4.5, float("nan"))),
+    ],
+)
+def test_a_shaping_option_out_of_its_range_is_refused(option: str, value: float) -> None:
+    """move_floor in [0, 0.2], action_power in [1, 4]: by the task and by the config."""
+    with pytest.raises(ValueError, match=f"{option} must be in"):
+        dataclasses.replace(get_task("focus"), **{option: value})
+    if np.isfinite(value):
+        with pytest.raises(ValueError, match=option):
+            TaskOptions(**{option: value})
 
 
 @pytest.mark.parametrize(

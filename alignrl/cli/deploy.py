@@ -7,7 +7,6 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from typing import Any
 
 from alignrl.apparatus.base import ApparatusError
 from alignrl.cli.common import (
@@ -136,6 +135,7 @@ def cmd_export(args: argparse.Namespace) -> int:
         export_policy,
         with_acting_options,
     )
+    from alignrl.deploy.graph import move_floors
     from alignrl.runs.sources import resolve_source
 
     started = time.perf_counter()
@@ -186,11 +186,8 @@ def cmd_export(args: argparse.Namespace) -> int:
             for entry in card[side]
         )
 
-    floor = float(card["task"]["options"].get("move_floor") or 0.0)
-
-    def least(knob: dict[str, Any]) -> str:  # the task's move_floor x the interval
-        return f", every move at least {floor * (knob['high'] - knob['low']):g}" if floor else ""
-
+    floors = move_floors(source.task.move_floor, card["knobs"])
+    least = [f", every move at least {floor:g}" if floor else "" for floor in floors]
     lines = [
         f"exported {payload['member']} ({payload['chosen_as']} of {args.run}) as "
         f"{args.format}: {result.policy_file}",
@@ -198,8 +195,8 @@ def cmd_export(args: argparse.Namespace) -> int:
         f"  outputs: {shapes('outputs')}",
         *(
             f"  knob:    {knob['name']} in [{knob['low']:g}, {knob['high']:g}], at most "
-            f"{knob['max_step']:g} per action{least(knob)}"
-            for knob in card["knobs"]
+            f"{knob['max_step']:g} per action{at_least}"
+            for knob, at_least in zip(card["knobs"], least, strict=True)
         ),
         f"  memory:  {card['memory']['note']}",
         f"  parity:  max |{args.format} - PyTorch| = {parity.max_abs_difference:.2g} on "

@@ -324,7 +324,8 @@ class Task:
     ) -> np.ndarray:
         """The knob changes (its units) that actions in [-1, 1] ask for on knobs whose
         intervals are `span` wide (`knob_change`, the floor move_floor x span)."""
-        return knob_change(actions, max_step, self.action_power, self.move_floor * span)
+        floor = self.move_floor * span if self.move_floor else 0.0  # the env step's hot path
+        return knob_change(actions, max_step, self.action_power, floor)
 
     def for_acting(self) -> Task:
         """The task as an evaluation session or `align` runs a policy on it: without the
