@@ -4,7 +4,8 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: install run test test-fast docs-check report-check lint format bench scenarios clean
+.PHONY: install run test test-all test-fast docs-check crash-check report-check lint format bench \
+	scenarios clean
 
 $(STAMP): pyproject.toml
 	test -d $(VENV) || $(PYTHON) -m venv $(VENV)
@@ -34,23 +35,36 @@ run: $(STAMP)
 		--apparatus-args '{"noise": 0.02, "split": "test"}' --scenarios 50
 	$(BIN)/alignrl league run experiments/league-make-run.yaml --runs-dir $(RUN_DIR)
 
-# The whole suite, slow tests included, on two workers; a test file stays on one worker
-# (--dist loadfile), so a file's module fixtures are built once.
+# The suite, slow tests included, on two workers; a test file stays on one worker
+# (--dist loadfile), so a file's module fixtures are built once. The tests marked long
+# (minutes of one worker each: `make run` with the commands that read its league, the crash
+# windows' kills at every other write) run in `make docs-check`, `make crash-check` and
+# `make test-all` instead.
 PYTEST := $(BIN)/pytest -n 2 --dist loadfile
 test: $(STAMP)
 	$(BIN)/ruff check alignrl tests benchmarks docs/examples docs/gen_configs.py
 	$(BIN)/ruff format --check alignrl tests benchmarks docs/examples docs/gen_configs.py
+	$(PYTEST) -m "not long"
+
+# Every test, the long ones included.
+test-all: $(STAMP)
 	$(PYTEST)
 
 # Everything but the tests marked slow (over about 15 s each: the exhaustive crash windows, the
 # docs commands that train a league), for the edit-test loop.
 test-fast: $(STAMP)
-	$(PYTEST) -m "not slow"
+	$(PYTEST) -m "not slow and not long"
 
 # Every command and example the README and docs/ show, run and compared with what they show.
 docs-check: $(STAMP)
 	$(PYTEST) tests/test_docs_readme.py tests/test_docs_manual.py tests/test_docs_shown.py \
 		tests/test_configs_doc.py
+
+# A league and a trainer killed at every write boundary of a tiny run, resumed, and compared
+# with an uninterrupted run (`make test` kills at the writes of the snapshot window and every
+# tenth before it; this adds the writes it leaves out).
+crash-check: $(STAMP)
+	$(PYTEST) tests/test_crash_windows.py
 
 # The HTML reports in a real browser: headless Chromium renders a small league's report.html
 # and a training run's; every figure must load and show. Needs Chromium (Debian: `apt-get

@@ -275,11 +275,13 @@ def test_a_league_killed_at_any_write_of_the_snapshot_window_resumes_to_the_same
 
 
 @pytest.mark.slow
+@pytest.mark.long
 def test_a_league_killed_at_every_other_write_resumes_to_the_same_end(
     tmp_path: Path, writes: Writes
 ) -> None:
     """The writes the snapshot window leaves out: with it, every write of the league is a
-    kill once (`make test` runs both; `make test-fast` the window alone)."""
+    kill once (`make crash-check` and `make test-all` run both; `make test` the window
+    alone)."""
     assert league_kills(tmp_path, writes, lambda k, log: not _snapshot_window(k, log)) > 0
 
 
@@ -346,6 +348,7 @@ def test_a_trainer_killed_at_a_write_resumes_as_from_its_last_checkpoint(
 
 
 @pytest.mark.slow
+@pytest.mark.long
 def test_a_trainer_killed_at_every_other_write_resumes_as_from_its_last_checkpoint(
     tmp_path: Path, writes: Writes
 ) -> None:

@@ -29,7 +29,9 @@ What does not run is listed in NOT_RUN with the reason (a run that takes hours, 
 moment the page names, a file the page does not make); a stale entry fails
 `test_every_exclusion_names_a_shown_command`. A page's prerequisites from another page are in
 SETUP. Commands that take more than about 15 s (or follow one in their session) are marked
-`slow`; `make test` and `make docs-check` run them, `make test-fast` does not. The README's
+`slow`; `make test` and `make docs-check` run them, `make test-fast` does not. Those of minutes
+(`make run` and the commands that read its league) are marked `long` as well: `make
+docs-check` runs them, `make test` does not. The README's
 sessions (its tour, and `make run` with the commands that read its league) run from
 tests/test_docs_readme.py, with the machinery of this file.
 """
@@ -105,6 +107,9 @@ STDOUT_ONLY: set[tuple[str, str]] = {("README.md", "make run")}
 
 # Measured over ~15 s (on 2 busy cores); the commands after one in its session are slow too.
 SLOW: set[tuple[str, str]] = {("README.md", "make run")}
+# Minutes of one worker (`make run`: over 5 min on 2 busy cores), and so the commands after
+# one in its session: `make docs-check` runs them, `make test` does not.
+LONG: set[tuple[str, str]] = {("README.md", "make run")}
 
 
 # --- reading the pages ----------------------------------------------------------------------
@@ -342,10 +347,16 @@ def _session_name(shown: Shown) -> str:
     return SESSION_OF[key] if key else shown.page
 
 
-def _is_slow(shown: Shown) -> bool:
+def _follows(shown: Shown, table: set[tuple[str, str]]) -> bool:
+    """Whether `shown`, or a command before it in its session, is named in `table`."""
     name = _session_name(shown)
     before = RUN[: RUN.index(shown) + 1]
-    return any(_session_name(s) == name and s.key(SLOW) for s in before)
+    return any(_session_name(s) == name and s.key(table) for s in before)
+
+
+def _marks(shown: Shown) -> list[Any]:
+    return [mark for mark, table in ((pytest.mark.slow, SLOW), (pytest.mark.long, LONG))
+            if _follows(shown, table)]  # fmt: skip
 
 
 # The README's sessions run from tests/test_docs_readme.py, the pages' from here: two files,
@@ -369,7 +380,7 @@ def make_sessions(root: Path, names: tuple[str, ...] | None = None) -> dict[str,
 def output_params(readme: bool) -> list[Any]:
     """One test parameter per command of the README's sessions, or of the others."""
     return [
-        pytest.param(shown, marks=[pytest.mark.slow] if _is_slow(shown) else [], id=shown.id)
+        pytest.param(shown, marks=_marks(shown), id=shown.id)
         for shown in RUN
         if (_session_name(shown) in README_SESSIONS) == readme
     ]

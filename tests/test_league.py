@@ -127,11 +127,11 @@ def test_kill_minus_nine_then_resume_loses_no_completed_iteration(tmp_path: Path
     config = write_league(
         tmp_path,
         schedule={
-            "iterations": 14,
-            "matches": 8,
-            "snapshot_every": 5,
-            "pbt_every": 7,
-            "evaluate_every": 7,
+            "iterations": 9,
+            "matches": 4,
+            "snapshot_every": 3,
+            "pbt_every": 4,
+            "evaluate_every": 4,
             "eval_scenarios": 2,
             "checkpoint_every": 1,
         },
@@ -141,7 +141,7 @@ def test_kill_minus_nine_then_resume_loses_no_completed_iteration(tmp_path: Path
     killed_at = kill_league_after(
         _league_command("run", str(config), "--runs-dir", str(runs), "--quiet"), run, 4
     )
-    assert 4 <= killed_at < 14
+    assert 4 <= killed_at < 9
     resumed = subprocess.run(
         [*_league_command("resume", str(run), "--quiet", "--json")],
         capture_output=True,
@@ -150,13 +150,13 @@ def test_kill_minus_nine_then_resume_loses_no_completed_iteration(tmp_path: Path
     )
     assert resumed.returncode == 0, resumed.stderr.decode()
     report = json.loads(resumed.stdout)
-    assert report["iterations"] == 14
+    assert report["iterations"] == 9
     iterations = [int(row["iteration"]) for row in read_csv(run / "metrics" / "iterations.csv")]
-    assert iterations == list(range(1, 15))  # none lost, none doubled
+    assert iterations == list(range(1, 10))  # none lost, none doubled
     status = subprocess.run(
         [*_league_command("status", str(run), "--json")], capture_output=True, check=False
     )
-    assert json.loads(status.stdout)["iteration"] == 14
+    assert json.loads(status.stdout)["iteration"] == 9
     board = subprocess.run(
         [sys.executable, "-m", "alignrl.cli", "leaderboard", str(run), "--json"],
         capture_output=True,
