@@ -50,7 +50,7 @@ test: $(STAMP)
 test-all: $(STAMP)
 	$(PYTEST)
 
-# Everything but the tests marked slow (over about 15 s each: the exhaustive crash windows, the
+# Everything but the tests marked slow or long (over about 15 s each: the crash windows, the
 # docs commands that train a league), for the edit-test loop.
 test-fast: $(STAMP)
 	$(PYTEST) -m "not slow and not long"
