@@ -25,7 +25,7 @@ from pydantic import (
     model_validator,
 )
 
-from alignrl.agents.learners import LEARNERS, learner_defaults
+from alignrl.agents.learners import LEARNERS, learner_defaults, learner_title
 from alignrl.apparatus.shield import DEFAULT_CALL_TIMEOUT_S
 from alignrl.envs.hindsight import HINDSIGHT_OPTIMA, HindsightOptimum  # noqa: F401 (re-exported)
 from alignrl.overlays import Layers, OverlayError, apply_overrides
@@ -141,9 +141,9 @@ def _plain(value: Any) -> str:
 def _own_setting(name: str, meaning: str, **bounds: Any) -> Any:
     """A key of some learners alone: null (the default) takes the learner's own default,
     which the description quotes ("(SAC) target follow rate, 0.005")."""
-    owners = [LEARNERS[learner] for learner in LEARNERS if name in learner_defaults(learner)]
+    owners = [learner for learner in LEARNERS if name in learner_defaults(learner)]
     default = _shared_default(name)
-    tags = "/".join(owner.title for owner in owners)
+    tags = "/".join(learner_title(owner) for owner in owners)
     return Field(None, description=f"({tags}) {meaning}, {_plain(default)}", **bounds)
 
 

@@ -9,6 +9,8 @@ default.
 from __future__ import annotations
 
 import dataclasses
+import subprocess
+import sys
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,7 +22,8 @@ import torch
 from torch import nn
 
 from alignrl.agents.agent import Agent, MemberSpec
-from alignrl.agents.learners import LEARNERS, learner_class, learner_defaults
+from alignrl.agents.learners import LEARNERS, learner_class, learner_defaults, learner_title
+from alignrl.agents.settings import SHIPPED, LearnerSettings
 from alignrl.config import ConfigError, LearnerConfig, parse_experiment
 
 SHAPE = (4, 3)  # history rows, features
@@ -346,3 +349,37 @@ def test_a_shipped_learner_provides_all_the_agent_asks(name: str) -> None:
     parameters = {id(p) for optimizer in agent.learner.optimizers for group in
                   optimizer.param_groups for p in group["params"]}  # fmt: skip
     assert {id(p) for p in network.parameters()} <= parameters
+
+
+@pytest.mark.parametrize("name", ["sac", "ppo"])
+def test_a_shipped_learners_settings_are_its_class_attributes(name: str) -> None:
+    """What the registry tells before the class is imported is what the class says."""
+    where, settings = SHIPPED[name]
+    learner = learner_class(name)
+    assert f"{learner.__module__}:{learner.__qualname__}" == where
+    assert settings == LearnerSettings(
+        learner.title, learner.config_type, learner.schedule_defaults
+    )
+    assert LEARNERS.settings(name) == settings and learner_title(name) == learner.title
+
+
+def test_reading_a_config_and_building_the_cli_import_no_torch() -> None:
+    """`alignrl baselines`, `record`, `scenarios` and `--help` start without torch (seconds
+    a call): the config checks a learner's settings from alignrl/agents/settings.py. A
+    learner's class is imported where one is built, and torch with it."""
+    script = (
+        "import sys\n"
+        "from alignrl.cli.main import build_parser\n"
+        "from alignrl.config import load_experiment\n"
+        "build_parser()\n"
+        "config = load_experiment('experiments/focus-v2.yaml')\n"
+        "assert 'torch' not in sys.modules, 'torch was imported'\n"
+        "from alignrl.agents.learners import learner_class\n"
+        "assert learner_class(config.learner.algorithm).title == 'SAC'\n"
+        "assert 'torch' in sys.modules\n"
+    )
+    root = Path(__file__).resolve().parents[1]
+    result = subprocess.run(
+        [sys.executable, "-c", script], cwd=root, capture_output=True, text=True, timeout=120
+    )
+    assert result.returncode == 0, result.stderr[-2000:]

@@ -9,24 +9,37 @@ settings it has and their defaults, so neither keeps its own list:
     LEARNERS["sac"].schedule_defaults  how a member gathers experience (replay size, warm-up)
     learner_defaults("sac")            both, as one mapping of hyperparameter -> default
 
-A new learner: a class that satisfies `Learner` in a module of its own, and one line below
-(or `LEARNERS[name] = cls` at run time, as tests/test_learners.py does with a toy learner).
+The shipped learners' modules import torch, so `LEARNERS` imports each on first use; until
+then what a config checks (`learner_defaults`, `learner_title`) comes from their settings in
+alignrl/agents/settings.py, and this module needs no torch.
+
+A new learner: a class that satisfies `Learner` in a module of its own, and one entry in
+`SHIPPED` (alignrl/agents/settings.py), or `LEARNERS[name] = cls` at run time, as
+tests/test_learners.py does with a toy learner.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping, Sequence
-from typing import Any, ClassVar, Protocol
+import importlib
+from collections.abc import Iterator, Mapping, MutableMapping, Sequence
+from typing import TYPE_CHECKING, Any, ClassVar, Protocol
 
-import numpy as np
-import torch
-from torch import nn
+from alignrl.agents.settings import SHIPPED, LearnerSettings
 
-from alignrl.agents.ppo import PPOLearner
-from alignrl.agents.sac import SACLearner
+if TYPE_CHECKING:
+    import numpy as np
+    import torch
+    from torch import nn
 
-__all__ = ["LEARNERS", "Experience", "Learner", "learner_class", "learner_defaults"]
+__all__ = [
+    "LEARNERS",
+    "Experience",
+    "Learner",
+    "learner_class",
+    "learner_defaults",
+    "learner_title",
+]
 
 
 class Experience(Protocol):
@@ -144,26 +157,74 @@ class Learner(Protocol):
     def load_state_dict(self, state: dict[str, Any]) -> None: ...
 
 
-LEARNERS: dict[str, type[Learner]] = {
-    "sac": SACLearner,
-    "ppo": PPOLearner,
-}
+class _Registry(MutableMapping[str, "type[Learner]"]):
+    """Learner classes by name, in the order registered. A shipped learner is an import path
+    until its class is first asked for; `settings` answers for it without importing it."""
+
+    def __init__(self, shipped: Mapping[str, tuple[str, LearnerSettings]]) -> None:
+        self._entries: dict[str, type[Learner] | str] = {
+            name: where for name, (where, _) in shipped.items()
+        }
+        self._settings = {name: settings for name, (_, settings) in shipped.items()}
+
+    def __getitem__(self, name: str) -> type[Learner]:
+        entry = self._entries[name]
+        if isinstance(entry, str):
+            module, _, attribute = entry.partition(":")
+            entry = self._entries[name] = getattr(importlib.import_module(module), attribute)
+        return entry
+
+    def __setitem__(self, name: str, learner: type[Learner]) -> None:
+        self._entries[name] = learner
+
+    def __delitem__(self, name: str) -> None:
+        del self._entries[name]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._entries)
+
+    def __contains__(self, name: object) -> bool:
+        return name in self._entries  # without importing it
+
+    def __len__(self) -> int:
+        return len(self._entries)
+
+    def settings(self, name: str) -> LearnerSettings:
+        """The title, settings type and schedule of the learner `name`, imported or not."""
+        entry = self._entries[name]
+        if isinstance(entry, str):
+            return self._settings[name]
+        return LearnerSettings(entry.title, entry.config_type, entry.schedule_defaults)
+
+
+LEARNERS = _Registry(SHIPPED)
+
+
+def _known(name: str) -> None:
+    if name not in LEARNERS:
+        raise ValueError(f"unknown learner {name!r}; known learners: {', '.join(LEARNERS)}")
 
 
 def learner_class(name: str) -> type[Learner]:
-    """The learner registered as `name`."""
-    if name not in LEARNERS:
-        raise ValueError(f"unknown learner {name!r}; known learners: {', '.join(LEARNERS)}")
+    """The learner registered as `name` (a shipped one's module is imported here)."""
+    _known(name)
     return LEARNERS[name]
+
+
+def learner_title(name: str) -> str:
+    """The learner's name in messages: "SAC"."""
+    _known(name)
+    return LEARNERS.settings(name).title
 
 
 def learner_defaults(name: str) -> dict[str, Any]:
     """Every hyperparameter the learner `name` takes, with its default: the fields of its
-    config dataclass, then its schedule."""
-    learner = learner_class(name)
+    config dataclass, then its schedule. Imports no learner module."""
+    _known(name)
+    settings = LEARNERS.settings(name)
     defaults = {
         field.name: field.default if field.default_factory is dataclasses.MISSING
         else field.default_factory()
-        for field in dataclasses.fields(learner.config_type)
+        for field in dataclasses.fields(settings.config_type)
     }  # fmt: skip
-    return {**defaults, **learner.schedule_defaults}
+    return {**defaults, **settings.schedule_defaults}

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import copy
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
@@ -29,29 +29,9 @@ from torch import Tensor, nn
 from alignrl.agents.exploration import gaussian_rows
 from alignrl.agents.networks import make_encoder, mlp
 from alignrl.agents.sac import NonFiniteError
+from alignrl.agents.settings import PPOConfig
 
 __all__ = ["PPO", "PPOConfig", "PPOLearner", "Rollout", "RolloutBuffer"]
-
-
-@dataclass(frozen=True)
-class PPOConfig:
-    # The network settings every learner shares default alike (alignrl/config.py reads them
-    # from here and from SACConfig, and refuses a disagreement).
-    encoder: str = "mlp"  # history encoder of the policy and the value network
-    encoder_kwargs: dict[str, Any] = field(default_factory=dict)
-    hidden: tuple[int, ...] = (256, 256)  # hidden widths of the heads
-    learning_rate: float = 3e-4
-    gamma: float = 0.99
-    gae_lambda: float = 0.95
-    clip_range: float = 0.2  # the surrogate's ratio is clipped to 1 +- clip_range
-    entropy_coef: float = 0.0
-    value_coef: float = 0.5
-    epochs: int = 10  # passes over each rollout
-    batch_size: int = 256  # transitions per minibatch
-    rollout_steps: int = 64  # env steps per env slot between updates
-    initial_log_std: float = -0.5
-    secret_critics: bool = True  # the value network sees optimum - setting (training only)
-    max_grad_norm: float = 0.5
 
 
 @dataclass(frozen=True)

@@ -18,7 +18,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict
 from typing import Any
 
 import numpy as np
@@ -29,6 +29,7 @@ from torch import Tensor, nn
 from alignrl.agents.exploration import gaussian_rows, uniform_rows
 from alignrl.agents.networks import make_encoder, mlp
 from alignrl.agents.replay import Batch, ReplayBuffer
+from alignrl.agents.settings import SAC_SCHEDULE, SACConfig
 
 __all__ = ["SAC", "SAC_SCHEDULE", "NonFiniteError", "SACConfig", "SACLearner"]
 
@@ -36,40 +37,9 @@ LOG_STD_MIN, LOG_STD_MAX = -5.0, 2.0  # keeps exp(log_std) in a range float32 ha
 HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)  # normalising constant of log N(x; mean, std)
 LOSS_NAMES = ("policy", "q1", "q2", "v", "alpha")  # checked in this order: the first is named
 
-# How a SAC member gathers experience and how often it learns (not part of SACConfig, which
-# is one gradient step): uniform random actions first, then updates per env step.
-SAC_SCHEDULE = {
-    "updates_per_step": 1.0,
-    "buffer_size": 200_000,
-    "learning_starts": 1000,
-    "random_steps": 2000,
-}
-
 
 class NonFiniteError(FloatingPointError):
     """A loss or parameter became NaN/inf: the update is refused, nothing is changed."""
-
-
-@dataclass(frozen=True)
-class SACConfig:
-    encoder: str = "mlp"  # history encoder of every network: mlp, gru or gtrxl
-    encoder_kwargs: dict[str, Any] = field(default_factory=dict)
-    # Hidden layers of the heads. The critics' action and secret join the encoding here, so
-    # they need hidden layers: a linear head makes Q linear in the action, and the policy
-    # is then pushed to the bounds of the action box.
-    hidden: tuple[int, ...] = (256, 256)
-    learning_rate: float = 3e-4
-    gamma: float = 0.99
-    tau: float = 0.005  # target V follows at this rate per update
-    batch_size: int = 256
-    initial_alpha: float = 0.2
-    target_entropy: float | None = None  # default: -(action dimensions)
-    secret_critics: bool = True  # critics see optimum - setting (training only)
-    # Q1, Q2 and V read one history encoder (trained by all three losses) instead of one
-    # each: 3 encoder passes per update instead of 5, what makes GTrXL affordable on a CPU.
-    # The twin Qs keep separate heads; the policy always has its own encoder.
-    shared_critic_encoder: bool = False
-    max_grad_norm: float = 10.0
 
 
 class Actor(nn.Module):
