@@ -51,6 +51,7 @@ names are importable from here as well.
 
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Mapping
 
@@ -137,7 +138,15 @@ class SyntheticSEM:
         astigmatism_v = self._rng.uniform(0, cfg.astigmatism_max_v)
         self._astigmatism_axis = self._rng.uniform(0, np.pi)
         aperture_angle = self._rng.uniform(0, 2 * np.pi)
-        self._specimen_fft = np.fft.rfft2(self._draw_specimen())
+        # The specimen comes from the scenario's generator, before the readings' draws. Its
+        # frame is computed where one is first rendered (analytic mode renders none: a
+        # tenth of the cost of its reset); the generator moves past its draws either way.
+        self._specimen_fft: np.ndarray | None = None
+        if self.analytic:
+            self._specimen_rng = copy.deepcopy(self._rng)
+            self._specimen_draws(self._rng)
+        else:
+            self._specimen_fft = np.fft.rfft2(self._draw_specimen(self._rng))
         column_rng = np.random.default_rng([seed, 2])  # draws new with the five-knob column
         offset_um = column_rng.uniform(0, cfg.aperture_offset_max_um)
         # How this scenario's specimen reads in analytic mode: wide or narrow, all along.
@@ -349,6 +358,8 @@ class SyntheticSEM:
         # A factor exp(-2 pi i f . s) moves the content by +s.
         phase = -2.0 * np.pi * (self._freq_x * shift_x + self._freq_y * shift_y)
         transfer = np.exp(exponent + 1j * phase) if (shift_x or shift_y) else np.exp(exponent)
+        if self._specimen_fft is None:  # analytic mode, asked for a frame
+            self._specimen_fft = np.fft.rfft2(self._draw_specimen(self._specimen_rng))
         signal = np.fft.irfft2(self._specimen_fft * transfer, s=self._specimen_shape)
         np.clip(signal, 0.0, None, out=signal)
         expected = signal * cfg.dose_electrons_per_px  # electrons per pixel
@@ -480,24 +491,36 @@ class SyntheticSEM:
         ) * self._rng.standard_normal(width_px.shape)
         return width_px * np.interp(width_px, knots, ratio) * np.exp(log_scatter)
 
-    def _draw_specimen(self) -> np.ndarray:
+    def _specimen_draws(
+        self, rng: np.random.Generator
+    ) -> tuple[np.ndarray, list[tuple[float, float, float, float]]]:
+        """What a specimen is drawn from, in the order drawn: the substrate's white noise,
+        then each particle's centre (x, y), radius and brightness spread."""
+        cfg = self.config
+        noise = rng.standard_normal((cfg.image_size_px, cfg.image_size_px))
+        count = int(rng.integers(cfg.particles[0], cfg.particles[1] + 1))
+        particles = [
+            (*rng.uniform(0, cfg.image_size_px, 2), rng.uniform(*cfg.particle_radius_px),
+             rng.uniform(0.9, 1.1))
+            for _ in range(count)
+        ]  # fmt: skip
+        return noise, particles
+
+    def _draw_specimen(self, rng: np.random.Generator) -> np.ndarray:
         """Gold particles on a textured substrate, periodic across the frame edges."""
-        cfg, rng = self.config, self._rng
+        cfg = self.config
         size = cfg.image_size_px
+        noise, particles = self._specimen_draws(rng)
         # Substrate grain: white noise low-passed in Fourier space (periodic by construction).
         grain = np.fft.irfft2(
-            np.fft.rfft2(rng.standard_normal((size, size)))
-            * np.exp(-2.0 * np.pi**2 * 4.0 * (self._fxx + self._fyy)),
+            np.fft.rfft2(noise) * np.exp(-2.0 * np.pi**2 * 4.0 * (self._fxx + self._fyy)),
             s=(size, size),
         )
         grain *= cfg.substrate_texture / max(float(grain.std()), 1e-12)
         specimen = cfg.substrate_yield + grain
         coordinates = np.arange(size, dtype=np.float64)
-        count = int(rng.integers(cfg.particles[0], cfg.particles[1] + 1))
-        for _ in range(count):
-            centre_x, centre_y = rng.uniform(0, size, 2)
-            radius = rng.uniform(*cfg.particle_radius_px)
-            brightness = cfg.particle_yield * rng.uniform(0.9, 1.1)
+        for centre_x, centre_y, radius, spread in particles:
+            brightness = cfg.particle_yield * spread
             # Distances on a torus, so that a particle leaving one side enters the other.
             dx = (coordinates - centre_x + size / 2) % size - size / 2
             dy = (coordinates - centre_y + size / 2) % size - size / 2
