@@ -29,7 +29,7 @@ from torch import Tensor, nn
 from alignrl.agents.exploration import gaussian_rows
 from alignrl.agents.networks import make_encoder, mlp
 from alignrl.agents.sac import NonFiniteError
-from alignrl.agents.settings import PPOConfig
+from alignrl.agents.settings import SHIPPED, PPOConfig
 
 __all__ = ["PPO", "PPOConfig", "PPOLearner", "Rollout", "RolloutBuffer"]
 
@@ -390,9 +390,7 @@ class PPOLearner(PPO):
     fresh rollout) whenever the rollout is full."""
 
     name = "ppo"
-    title = "PPO"
-    config_type = PPOConfig
-    schedule_defaults: Mapping[str, float] = {}
+    title, config_type, schedule_defaults = SHIPPED["ppo"][1]  # "PPO", PPOConfig, no schedule
     metric_names = ("policy_loss", "value_loss", "entropy", "approx_kl", "clip_fraction")
     experience_name = "rollout"
     keeps_replay = False  # on-policy: a rollout holds this policy's steps, in order

@@ -29,7 +29,7 @@ from torch import Tensor, nn
 from alignrl.agents.exploration import gaussian_rows, uniform_rows
 from alignrl.agents.networks import make_encoder, mlp
 from alignrl.agents.replay import Batch, ReplayBuffer
-from alignrl.agents.settings import SAC_SCHEDULE, SACConfig
+from alignrl.agents.settings import SAC_SCHEDULE, SHIPPED, SACConfig
 
 __all__ = ["SAC", "SAC_SCHEDULE", "NonFiniteError", "SACConfig", "SACLearner"]
 
@@ -330,9 +330,7 @@ class SACLearner(SAC):
     gradient steps per new transition once `learning_starts` have been seen."""
 
     name = "sac"
-    title = "SAC"
-    config_type = SACConfig
-    schedule_defaults = SAC_SCHEDULE
+    title, config_type, schedule_defaults = SHIPPED["sac"][1]  # "SAC", SACConfig, SAC_SCHEDULE
     metric_names = ("policy_loss", "q1_loss", "q2_loss", "v_loss", "entropy", "alpha")
     experience_name = "replay"
     keeps_replay = True

@@ -70,8 +70,8 @@ class PPOConfig:
 
 
 class LearnerSettings(NamedTuple):
-    """What the registry tells of a learner before its class is imported: the class's own
-    `title`, `config_type` and `schedule_defaults` (tests/test_learners.py holds them equal)."""
+    """What the registry tells of a learner before its class is imported. A shipped
+    learner's class takes its `title`, `config_type` and `schedule_defaults` from here."""
 
     title: str
     config_type: type

@@ -138,9 +138,9 @@ class SyntheticSEM:
         astigmatism_v = self._rng.uniform(0, cfg.astigmatism_max_v)
         self._astigmatism_axis = self._rng.uniform(0, np.pi)
         aperture_angle = self._rng.uniform(0, 2 * np.pi)
-        # The specimen comes from the scenario's generator, before the readings' draws. Its
-        # frame is computed where one is first rendered (analytic mode renders none: a
-        # tenth of the cost of its reset); the generator moves past its draws either way.
+        # The specimen comes from the scenario's generator, before the readings' draws. In
+        # analytic mode it is rendered only if a frame is asked for (rendering was nine
+        # tenths of an analytic reset); the generator moves past its draws either way.
         self._specimen_fft: np.ndarray | None = None
         if self.analytic:
             self._specimen_rng = copy.deepcopy(self._rng)
