@@ -50,7 +50,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from alignrl.apparatus.base import NoEdgesError, check_write
-from alignrl.apparatus.probe import logistic
+from alignrl.apparatus.probe import focus_sigma_px, logistic
 from alignrl.apparatus.quality import TEN_NINETY_PER_SIGMA, edge_width
 from alignrl.yaml_io import read_yaml_file
 
@@ -501,13 +501,20 @@ class FamilyColumn:
         """sigma(e) of the module docstring, px, at the present focus error or `error`."""
         draw = self.draw
         error = self.focus_error() if error is None else float(error)
-        gain = draw.blur_px_per_interval / draw.width
-        side = math.sqrt(draw.asymmetry) if error > 0 else 1.0 / math.sqrt(draw.asymmetry)
-        blur = gain * side * max(0.0, abs(error) - draw.flat_fraction * draw.width)
-        q = draw.curve_power
-        return float((draw.floor_sigma_px**q + blur**q) ** (1.0 / q))
+        return float(
+            focus_sigma_px(
+                error,
+                draw.blur_px_per_interval / draw.width,
+                draw.floor_sigma_px,
+                draw.curve_power,
+                draw.flat_fraction * draw.width,
+                draw.asymmetry,
+            )
+        )
 
     def _levelled(self, width_px: float) -> float:
+        # math.tanh, not levelled_px's np.tanh: the two differ in the last bit, and readings
+        # stay as they were
         saturation = self.draw.saturation_px
         return float(saturation * math.tanh(width_px / saturation))
 

@@ -4,12 +4,15 @@ A straight edge of unit normal n blurred by the probe has the 10-90 % width
 TEN_NINETY_PER_SIGMA * sqrt(n^T C n) pixels; round particles show every orientation, so their
 mean width is a mean over orientations, and an orientation bin's is the mean over its
 +/- 22.5 degrees. Pure numpy functions, shared by the SEM's analytic mode
-(alignrl/apparatus/synthetic.py) and the calibration benchmarks.
+(alignrl/apparatus/synthetic.py) and the calibration benchmarks; and the instrument family's
+focus curve and levelled reading (alignrl/apparatus/family.py), shared with the Bayesian
+autofocus that models it (alignrl/evaluation/posterior.py).
 """
 
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 
@@ -19,6 +22,8 @@ from alignrl.apparatus.edge_profiles import TEN_NINETY_PER_SIGMA
 __all__ = [
     "directional_edge_widths_px",
     "edge_widths_px",
+    "focus_sigma_px",
+    "levelled_px",
     "logistic",
     "mean_edge_width_px",
     "probe_covariance",
@@ -73,3 +78,23 @@ def directional_edge_widths_px(covariance: np.ndarray) -> np.ndarray:
     as the rims of round particles fill a bin."""
     centres = np.deg2rad(np.asarray(ORIENTATION_BINS_DEG, dtype=np.float64))
     return edge_widths_px(covariance, centres[:, None] + _BIN_OFFSETS[None, :]).mean(axis=1)
+
+
+def focus_sigma_px(
+    error: Any, gain: Any, floor_sigma_px: Any, curve_power: Any, flat: Any, asymmetry: Any
+) -> np.ndarray:
+    """A family column's probe sigma(e) (px; alignrl/apparatus/family.py, its module
+    docstring), elementwise over arguments that broadcast: the focus error `error` and the
+    flat bottom's half-width `flat` in one unit (the knob's, or fractions of the interval),
+    `gain` px per that unit."""
+    error = np.asarray(error, dtype=np.float64)
+    asymmetry = np.asarray(asymmetry, dtype=np.float64)
+    side = np.where(error > 0, np.sqrt(asymmetry), 1.0 / np.sqrt(asymmetry))
+    blur = gain * side * np.maximum(0.0, np.abs(error) - flat)
+    return (floor_sigma_px**curve_power + blur**curve_power) ** (1.0 / curve_power)
+
+
+def levelled_px(width_px: Any, saturation_px: Any) -> np.ndarray:
+    """An analytic reading's noise-free width: the true width levelled off at the
+    specimen's feature size, w_sat tanh(w / w_sat) (alignrl/apparatus/family.py)."""
+    return saturation_px * np.tanh(np.asarray(width_px, dtype=np.float64) / saturation_px)
