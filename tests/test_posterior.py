@@ -1,0 +1,151 @@
+"""The Bayesian autofocus that knows its column's model (alignrl/evaluation/posterior.py):
+its reading model is the family's, it aligns a column whose model it knows, and it stays
+inside the interval and its budget whatever the column does."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from alignrl.apparatus.base import NoEdgesError
+from alignrl.apparatus.family import FamilyColumn, load_family
+from alignrl.apparatus.instruments import instrument_names
+from alignrl.envs.task import get_task
+from alignrl.evaluation.controllers import CountingApparatus
+from alignrl.evaluation.posterior import ColumnModels, PosteriorFocus
+from alignrl.evaluation.session import run_session
+
+
+def _instrument(name: str):
+    return load_family(instrument_names("validation")[name])
+
+
+def test_reading_model_matches_the_column():
+    """The model's mean and spread at a focus error are those of the column's readings."""
+    family = _instrument("val-mid")
+    models = ColumnModels.of(family, draws=1, seed=0, model_noise=0.0)
+    column = FamilyColumn(family, seed=3, analytic=True)
+    width, lag = column.draw.width, column.draw.hysteresis_fraction
+    for fraction in (0.0, 0.02, -0.05, 0.1):
+        readings = []
+        for seed in range(400):
+            column.reset(seed)
+            target = column._optimum + (fraction + lag) * width  # approached from below
+            column.write({"defocus": target - 0.01 * width})
+            column.write({"defocus": target})
+            readings.append(column.measure())
+        # the specimen's per-episode scale varies with the seed: marginalise it on a fine grid
+        scales = np.linspace(-4, 4, 401)
+        weights = np.exp(-0.5 * scales**2)
+        weights /= weights.sum()
+        _, mean, spread = models.reading(
+            np.array([[[fraction]]]), models.specimen_rel * scales[None, :, None]
+        )
+        mean, spread = mean.ravel(), spread.ravel()
+        expected = float(weights @ mean)
+        variance = float(weights @ (spread**2 + mean**2)) - expected**2
+        assert np.mean(readings) == pytest.approx(expected, rel=0.01)
+        assert np.std(readings) == pytest.approx(math.sqrt(variance), rel=0.15)
+
+
+def test_no_edges_chance_matches_the_column():
+    family = load_family(instrument_names("validation")["val-mid"], no_edges_px=30.0)
+    models = ColumnModels.of(family, draws=1, seed=0, model_noise=0.0)
+    column = FamilyColumn(family, seed=0, analytic=True)
+    failures, expected = 0, 0.0
+    for seed in range(600):
+        column.reset(seed)
+        low = column.draw.low
+        # 0.36 of the interval away from focus, towards the farther bound: near the
+        # no-edges limit (30 px)
+        fraction = 0.36 if column._optimum - low < 0.5 * column.draw.width else -0.36
+        column.write({"defocus": column._optimum + fraction * column.draw.width})
+        error = column.focus_error() / column.draw.width
+        none, _, _ = models.reading(np.array([[[error]]]), np.zeros((1, 1, 1)))
+        expected += float(none.ravel()[0]) / 600
+        try:
+            column.measure()
+        except NoEdgesError:
+            failures += 1
+    assert 0.1 < expected < 0.9
+    assert failures / 600 == pytest.approx(expected, abs=0.06)
+
+
+def test_knowing_the_instrument_it_aligns_in_few_acquisitions():
+    """On its own instrument's file (every parameter known, the optimum anywhere), it
+    aligns every column of a session, where a controller that probes at random would not."""
+    family = _instrument("val-mid")
+    apparatus = FamilyColumn(family, analytic=True)
+    session = run_session(
+        PosteriorFocus(family, name="oracle"), apparatus, get_task("focus"), scenarios=12, seed=5
+    )
+    assert session.successes == 12
+    assert session.median_acquisitions <= 4
+
+
+def test_knowing_only_a_box_it_still_aligns():
+    """Over a box around the column (its gain, floor, curve power and backlash unknown
+    within ranges; 32 columns drawn from the box, drawn again as readings come), on a column
+    inside the box: most of eight (a setting written at random passes in about one in
+    twenty)."""
+    path = instrument_names("validation")["val-mid"]
+    box = load_family(
+        path,
+        blur_px_per_interval=[15.0, 60.0],
+        floor_sigma_px=[0.8, 1.6],
+        curve_power=[1.6, 2.6],
+        hysteresis_fraction=[0.0, 0.006],
+    )
+    controller = PosteriorFocus(box, draws=32)
+    assert controller.models.count == 32
+    apparatus = FamilyColumn(load_family(path), analytic=True)
+    session = run_session(controller, apparatus, get_task("focus"), scenarios=8, seed=1)
+    assert session.successes >= 6
+
+
+class _Blind:
+    """A column whose every frame has no edges."""
+
+    def __init__(self) -> None:
+        self.knobs = {"defocus": (-10.0, 30.0)}
+        self.setting = 0.0
+        self.written: list[float] = []
+
+    def read(self):
+        return {"defocus": self.setting}
+
+    def write(self, values):
+        value = float(values["defocus"])
+        low, high = self.knobs["defocus"]
+        assert low <= value <= high
+        self.setting = value
+        self.written.append(value)
+
+    def measure(self):
+        raise NoEdgesError("no edges anywhere")
+
+
+def test_a_column_without_edges_ends_inside_the_interval_and_budget():
+    family = _instrument("val-mid")
+    blind = _Blind()
+    counting = CountingApparatus(blind, budget=5)
+    PosteriorFocus(family, name="oracle").align(counting, "defocus", budget=5)
+    assert counting.acquisitions <= 5
+    assert blind.written and all(-10.0 <= value <= 30.0 for value in blind.written)
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [
+        ("confidence", 1.0),
+        ("confidence", 0.0),
+        ("spec_relative", 1.0),
+        ("draws", 0),
+        ("optimum_prior", "anywhere"),
+    ],
+)
+def test_bad_settings_are_refused(field, value):
+    with pytest.raises(ValueError, match=field):
+        PosteriorFocus(_instrument("val-mid"), **{field: value})
