@@ -5,7 +5,8 @@ Bayesian autofocus of alignrl/evaluation/posterior.py, in two kinds (issue 21):
   parameter known, the optimum anywhere in the interval). What it cannot do in a number of
   acquisitions, no controller does reliably there on analytic readings;
 * `posterior`: the posterior over the training box (alignrl/apparatus/families/focus.yaml),
-  the same for every instrument: it knows what training knows, no more.
+  the same for every instrument: it knows what training knows, no more (`alignrl evaluate
+  --policy posterior`); `--reach R` widens the box by R of each range at both ends.
 
     python -m benchmarks.bound --set heldout --analytic --out runs/bound
 
@@ -30,7 +31,7 @@ from alignrl.apparatus.instruments import load_set
 from alignrl.apparatus.registry import make_apparatus
 from alignrl.envs.task import get_task
 from alignrl.evaluation.instrument_sets import SetResult, instrument_spec, set_summary, set_table
-from alignrl.evaluation.posterior import PosteriorFocus
+from alignrl.evaluation.posterior import FAMILY_REACH, PosteriorFocus, widened
 from alignrl.evaluation.session import run_session
 
 KINDS = ("oracle", "posterior")
@@ -39,7 +40,7 @@ KINDS = ("oracle", "posterior")
 def run_kind(kind: str, args: argparse.Namespace) -> SetResult:
     """One session per instrument of the set for controller `kind` (module docstring)."""
     task = get_task("focus")
-    box = load_family(family_path(args.family))
+    box = widened(load_family(family_path(args.family)), args.reach)
     shared = PosteriorFocus(box, name="posterior", draws=args.draws)
     names, sessions = [], []
     started = time.perf_counter()
@@ -94,6 +95,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--analytic", action="store_true", help="analytic readings, no images")
     parser.add_argument("--family", default="focus", help="the box `posterior` knows")
     parser.add_argument("--draws", type=int, default=PosteriorFocus.draws)
+    parser.add_argument(
+        "--reach",
+        type=float,
+        default=FAMILY_REACH,
+        help="`posterior` looks this share of each range beyond the box (posterior.widened)",
+    )
     parser.add_argument("--out", type=Path, help="write each kind's result here")
     parser.add_argument("--reuse", action="store_true", help="read results OUT already holds")
     parser.add_argument(

@@ -4,17 +4,19 @@ inside the interval and its budget whatever the column does."""
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
 import pytest
 
 from alignrl.apparatus.base import NoEdgesError
-from alignrl.apparatus.family import FamilyColumn, load_family
+from alignrl.apparatus.family import BOUNDED, FamilyColumn, family_path, load_family
 from alignrl.apparatus.instruments import instrument_names
+from alignrl.cli import main
 from alignrl.envs.task import get_task
 from alignrl.evaluation.controllers import CountingApparatus
-from alignrl.evaluation.posterior import ColumnModels, PosteriorFocus
+from alignrl.evaluation.posterior import _FAMILY_NAMES, ColumnModels, PosteriorFocus, widened
 from alignrl.evaluation.session import run_session
 
 
@@ -149,3 +151,36 @@ def test_a_column_without_edges_ends_inside_the_interval_and_budget():
 def test_bad_settings_are_refused(field, value):
     with pytest.raises(ValueError, match=field):
         PosteriorFocus(_instrument("val-mid"), **{field: value})
+
+
+def test_a_widened_box_holds_the_box_within_what_the_family_allows():
+    box = load_family(family_path("focus"))
+    wide = widened(box, 0.5)
+    assert widened(box, 0.0) == box
+    assert wide.optimum_fraction == box.optimum_fraction  # the prior's own business
+    grew = 0
+    for name in _FAMILY_NAMES.values():
+        (low, high), (wide_low, wide_high) = getattr(box, name), getattr(wide, name)
+        lowest, highest = BOUNDED.get(name, (0.0, math.inf))
+        assert lowest <= wide_low <= low <= high <= wide_high <= highest, name
+        grew += (wide_low, wide_high) != (low, high)
+        if low == high:
+            assert (wide_low, wide_high) == (low, high), name  # a point stays a point
+    assert grew >= 10
+    gain_low, gain_high = wide.blur_px_per_interval  # log scale: 10-120 px by 12**0.5 each way
+    assert gain_low == pytest.approx(10.0 / 12.0**0.5) and gain_high == pytest.approx(
+        120.0 * 12.0**0.5
+    )
+    with pytest.raises(ValueError, match="reach"):
+        widened(box, -0.1)
+
+
+def test_evaluate_runs_the_family_posterior_by_name(capsys: pytest.CaptureFixture[str]) -> None:
+    """`alignrl evaluate --policy posterior`: the posterior over the training box, on
+    a validation instrument it was never given the file of."""
+    argv = ["evaluate", "--policy", "posterior", "--apparatus", "instrument:val-mid"]
+    args = ["--apparatus-args", '{"analytic": true}', "--scenarios", "4", "--json", "--quiet"]
+    assert main([*argv, *args]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["controller"] == "posterior" and report["task"] == "focus"
+    assert report["successes"] >= 3 and report["median_acquisitions"] <= 5

@@ -105,6 +105,7 @@ def _command(verb: str, root: Path, member: Path, driver: dict[str, Any]) -> lis
     return {
         "evaluate-classical": ["evaluate", "--policy", "hyperbola", *_args(**driver), *session],
         "evaluate-policy": ["evaluate", "--policy", str(member), *_args(**driver), *session],
+        "evaluate-posterior": ["evaluate", "--policy", "posterior", *_args(**driver), *session],
         "baselines": ["baselines", *_args(**driver), *session],
         "record": [
             "record",
@@ -139,8 +140,10 @@ def _command(verb: str, root: Path, member: Path, driver: dict[str, Any]) -> lis
     }[verb]
 
 
-SITE_LIMITED = {"evaluate-classical", "evaluate-policy", "baselines", "align", "adapt"}
-VERBS = ["evaluate-classical", "evaluate-policy", "baselines", "record", "align", "adapt"]
+SITE_LIMITED = {"evaluate-classical", "evaluate-policy", "evaluate-posterior", "baselines"}
+SITE_LIMITED |= {"align", "adapt"}
+VERBS = ["evaluate-classical", "evaluate-policy", "evaluate-posterior", "baselines", "record"]
+VERBS += ["align", "adapt"]
 VERBS += ["train", "league"]
 
 

@@ -55,6 +55,7 @@ from alignrl.evaluation.controllers import (
 __all__ = [
     "BASELINES",
     "CLASSICAL",
+    "MODEL_BASED",
     "TASK_BASELINES",
     "BracketSearch",
     "ColumnSequence",
@@ -559,9 +560,22 @@ TASK_BASELINES: dict[str, dict[str, Callable[[], Controller | TaskController]]] 
     "column": {"column-sequence": ColumnSequence},
 }
 
+
+def _posterior() -> Controller:
+    from alignrl.evaluation.posterior import family_posterior  # scipy's Sobol', on demand
+
+    return family_posterior()
+
+
+# Controllers that know the focus family's model (alignrl/evaluation/posterior.py): run by
+# name like the classical ones (`alignrl evaluate --policy posterior`), but not among a
+# task's baselines, at a third of a second of computing per acquisition.
+MODEL_BASED: dict[str, Callable[[], Controller]] = {"posterior": _posterior}
+
 CLASSICAL: dict[str, Callable[[], Controller | TaskController]] = {
-    name: make for baselines in TASK_BASELINES.values() for name, make in baselines.items()
-}  # every classical controller, by name
+    **{name: make for baselines in TASK_BASELINES.values() for name, make in baselines.items()},
+    **MODEL_BASED,
+}  # every controller that is not trained, by name
 
 
 def get_baseline(name: str) -> Controller | TaskController:
