@@ -12,7 +12,7 @@ Bayesian autofocus of alignrl/evaluation/posterior.py, in two kinds (issue 21):
 
 Each is a session per instrument on the same seeded columns and starts as
 benchmarks/heldout.py's (same set, seed and scenarios: the tables line up); each result is
-written to OUT/KIND.json in that script's format (read back instead of run with --reuse),
+written to OUT/KIND.json by that script's own stored_or_run (read back with --reuse),
 and `--beside DIR` shows the results a `python -m benchmarks.heldout --out DIR` wrote (of the
 same sessions) in the same table. Not a test: seconds (oracle) to minutes (posterior) per
 instrument.
@@ -22,68 +22,57 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
-import time
 from pathlib import Path
 
+from alignrl.apparatus.base import Apparatus
 from alignrl.apparatus.family import family_path, load_family
 from alignrl.apparatus.instruments import load_set
-from alignrl.apparatus.registry import make_apparatus
-from alignrl.envs.task import get_task
-from alignrl.evaluation.instrument_sets import SetResult, instrument_spec, set_summary, set_table
+from alignrl.evaluation.instrument_sets import set_table
 from alignrl.evaluation.posterior import FAMILY_REACH, PosteriorFocus, widened
-from alignrl.evaluation.session import run_session
+from benchmarks.heldout import same_sessions, stored_or_run
 
 KINDS = ("oracle", "posterior")
 
 
-def run_kind(kind: str, args: argparse.Namespace) -> SetResult:
-    """One session per instrument of the set for controller `kind` (module docstring)."""
-    task = get_task("focus")
+class _Oracle:
+    """The posterior over each instrument's own file, switched to as its session starts
+    (run_set's on_instrument)."""
+
+    name = "oracle"
+
+    def __init__(self, set_name: str) -> None:
+        self.by_instrument = {
+            name: PosteriorFocus(instrument, name="oracle")
+            for name, instrument in load_set(set_name)
+        }
+        self.present: PosteriorFocus | None = None
+
+    def switch(self, instrument: str) -> None:
+        self.present = self.by_instrument[instrument]
+
+    def align(self, apparatus: Apparatus, knob: str, budget: int) -> None:
+        assert self.present is not None, "run_set names the instrument before its session"
+        self.present.align(apparatus, knob, budget)
+
+
+def _result(kind: str, args: argparse.Namespace) -> dict:
+    """Controller `kind`'s set result (module docstring), read back or run."""
+    path = args.out / f"{kind}.json" if args.out is not None else None
+    if kind == "oracle":
+        oracle = _Oracle(args.set_name)
+        return stored_or_run(kind, lambda: oracle, args, path, on_instrument=oracle.switch)
     box = widened(load_family(family_path(args.family)), args.reach)
-    shared = PosteriorFocus(box, name="posterior", draws=args.draws)
-    names, sessions = [], []
-    started = time.perf_counter()
-    for name, instrument in load_set(args.set_name):
-        controller = shared if kind == "posterior" else PosteriorFocus(instrument, name="oracle")
-        apparatus = make_apparatus(instrument_spec(name), {"analytic": args.analytic})
-        began = time.perf_counter()
-        session = run_session(controller, apparatus, task, scenarios=args.scenarios, seed=args.seed)
-        print(
-            f"{kind} {name}: {session.successes}/{session.scenarios} at a median of "
-            f"{session.median_acquisitions:g} ({time.perf_counter() - began:.0f} s)",
-            file=sys.stderr,
-            flush=True,
-        )
-        names.append(name)
-        sessions.append(session)
-    return SetResult(
-        set_name=args.set_name,
-        controller=kind,
-        task=task,
-        seed=args.seed,
-        analytic=args.analytic,
-        instruments=tuple(names),
-        sessions=tuple(sessions),
-        seconds=time.perf_counter() - started,
-    )
-
-
-def _same(saved: dict, args: argparse.Namespace) -> bool:
-    """Whether a saved result was measured on the sessions `args` asks for."""
-    measured = (saved.get("set"), saved.get("seed"), saved.get("scenarios"), saved.get("analytic"))
-    return measured == (args.set_name, args.seed, args.scenarios, args.analytic)
+    return stored_or_run(kind, lambda: PosteriorFocus(box, draws=args.draws), args, path)
 
 
 def _beside(args: argparse.Namespace) -> list[dict]:
     """The results in the --beside folders that were measured on the same sessions."""
-    found = []
-    for folder in args.beside:
-        for path in sorted(folder.glob("*.json")):
-            saved = json.loads(path.read_text())
-            if _same(saved, args):
-                found.append(saved)
-    return found
+    saved = [
+        json.loads(path.read_text())
+        for folder in args.beside
+        for path in sorted(folder.glob("*.json"))
+    ]
+    return [result for result in saved if same_sessions(result, args)]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -112,24 +101,7 @@ def main(argv: list[str] | None = None) -> int:
         "those of the same set, seed, scenarios and readings (repeatable)",
     )
     args = parser.parse_args(argv)
-    results: list[SetResult | dict] = [*_beside(args)]
-    for kind in args.kind or KINDS:
-        path = args.out / f"{kind}.json" if args.out is not None else None
-        if (
-            args.reuse
-            and path is not None
-            and path.exists()
-            and _same(json.loads(path.read_text()), args)
-        ):
-            print(f"{kind}: read {path}", file=sys.stderr)
-            results.append(json.loads(path.read_text()))
-            continue
-        result = run_kind(kind, args)
-        print(set_summary(result), file=sys.stderr)
-        results.append(result)
-        if path is not None:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            path.write_text(json.dumps(result.to_dict(), indent=1))
+    results = [*_beside(args), *(_result(kind, args) for kind in args.kind or KINDS)]
     readings = "analytic readings" if args.analytic else "images"
     per = f"{args.scenarios} scenarios per instrument"
     print(f"set:{args.set_name}, {per}, seed {args.seed}, {readings}")

@@ -21,6 +21,7 @@ import argparse
 import json
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -46,32 +47,46 @@ def _file(out: Path, spec: str) -> Path:
     return out / f"{spec.replace(':', '-').replace('/', '-')}.json"
 
 
-def _result(spec: str, args: argparse.Namespace) -> dict[str, Any]:
-    """The controller's set result as a dict: read from OUT with --reuse where it matches,
-    else run (and written to OUT)."""
-    path = _file(args.out, spec) if args.out else None
+def same_sessions(saved: dict[str, Any], args: argparse.Namespace) -> bool:
+    """Whether a saved set result was measured on the sessions `args` asks for."""
+    measured = (saved.get("set"), saved.get("seed"), saved.get("scenarios"), saved.get("analytic"))
+    return measured == (args.set_name, args.seed, args.scenarios, args.analytic)
+
+
+def stored_or_run(
+    name: str, make: Callable[[], Any], args: argparse.Namespace, path: Path | None, **hooks: Any
+) -> dict[str, Any]:
+    """Controller `name`'s set result as a dict: read from `path` with --reuse where it was
+    measured on the same sessions, else `make()` run over the set (run_set, with `hooks`)
+    and written to `path`."""
     if args.reuse and path is not None and path.exists():
         saved = json.loads(path.read_text())
-        same = (saved["set"], saved["seed"], saved["scenarios"], saved["analytic"])
-        if same == (args.set_name, args.seed, args.scenarios, args.analytic):
-            print(f"{spec}: read {path}", file=sys.stderr)
+        if same_sessions(saved, args):
+            print(f"{name}: read {path}", file=sys.stderr)
             return saved
     began = time.perf_counter()
     result = run_set(
-        _controller(spec),
+        make(),
         args.set_name,
         get_task("focus"),
         scenarios=args.scenarios,
         seed=args.seed,
         analytic=args.analytic,
+        **hooks,
     )
     print(f"{set_summary(result)} ({time.perf_counter() - began:.0f} s)", file=sys.stderr)
     data = result.to_dict()
-    data["controller"] = spec
+    data["controller"] = name
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(json.dumps(data, indent=1))
     return data
+
+
+def _result(spec: str, args: argparse.Namespace) -> dict[str, Any]:
+    """The controller's set result (stored_or_run, in OUT under its name)."""
+    path = _file(args.out, spec) if args.out else None
+    return stored_or_run(spec, lambda: _controller(spec), args, path)
 
 
 def verdicts(results: list[dict[str, Any]]) -> list[str]:

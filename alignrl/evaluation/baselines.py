@@ -569,7 +569,7 @@ def _posterior() -> Controller:
 
 # Controllers that know the focus family's model (alignrl/evaluation/posterior.py): run by
 # name like the classical ones (`alignrl evaluate --policy posterior`), but not among a
-# task's baselines, at a third of a second of computing per acquisition.
+# task's baselines, at seconds of computing per alignment.
 MODEL_BASED: dict[str, Callable[[], Controller]] = {"posterior": _posterior}
 
 CLASSICAL: dict[str, Callable[[], Controller | TaskController]] = {

@@ -80,6 +80,20 @@ def _narrowest_spec(family: FocusFamily, relative: float) -> float:
     return family.flat_fraction[0] + reach * family.floor_sigma_px[0] / gain
 
 
+def _systematic(weights: np.ndarray, draws: int, offset: float) -> np.ndarray:
+    """Indices of `draws` systematic picks from `weights`, the first at `offset` (in [0, 1))
+    of a pick's share."""
+    edges = np.cumsum(weights / weights.sum())
+    return np.minimum(np.searchsorted(edges, (np.arange(draws) + offset) / draws), weights.size - 1)
+
+
+def _quantiles(u: np.ndarray, weight: np.ndarray, shares: list[float]) -> np.ndarray:
+    """The weighted quantiles of `u` at `shares`."""
+    order = np.argsort(u)
+    cumulative = np.cumsum(weight[order])
+    return u[order][np.minimum(np.searchsorted(cumulative, shares), u.size - 1)]
+
+
 def widened(family: FocusFamily, reach: float) -> FocusFamily:
     """`family` with every range that the readings depend on reaching `reach` x its span
     further at both ends (on a log scale where the family draws on one), kept within what
@@ -320,12 +334,7 @@ class PosteriorFocus:
         self, posterior: np.ndarray, readings: list[tuple[float, float]], rng: np.random.Generator
     ) -> np.ndarray:
         """Columns drawn again around the likely ones, every reading weighed on them."""
-        weights = posterior.sum(axis=(1, 2))
-        count = self.models.count
-        edges = np.cumsum(weights / weights.sum())
-        picks = np.minimum(
-            np.searchsorted(edges, (np.arange(count) + rng.random()) / count), count - 1
-        )
+        picks = _systematic(posterior.sum(axis=(1, 2)), self.models.count, rng.random())
         rows = self.models.rows[picks] + self.jitter * rng.standard_normal(
             self.models.rows[picks].shape
         )
@@ -345,8 +354,7 @@ class PosteriorFocus:
         then), and their weights."""
         k, z, n, weight = self._live(posterior)
         if k.size > most:
-            edges = np.cumsum(weight / weight.sum())
-            picks = np.minimum(np.searchsorted(edges, (np.arange(most) + 0.5) / most), k.size - 1)
+            picks = _systematic(weight, most, 0.5)
             k, z, n = k[picks], z[picks], n[picks]
             weight = np.full(most, 1.0 / most)
         return k, z, n, weight / weight.sum()
@@ -360,10 +368,7 @@ class PosteriorFocus:
     def _candidates(self, u: np.ndarray, weight: np.ndarray, lag: float) -> np.ndarray:
         """Settings a probe may go to: a grid over the interval, and around the quantiles
         of the optimum's posterior (as approached from below)."""
-        order = np.argsort(u)
-        cumulative = np.cumsum(weight[order])
-        shares = [0.02, 0.1, 0.25, 0.5, 0.75, 0.9, 0.98]
-        quantiles = u[order][np.minimum(np.searchsorted(cumulative, shares), u.size - 1)]
+        quantiles = _quantiles(u, weight, [0.02, 0.1, 0.25, 0.5, 0.75, 0.9, 0.98])
         window = float(self.models.spec_half_width(self.spec_relative).mean())
         offsets = np.array([-6.0, -3.0, -1.5, 0.0, 1.5, 3.0, 6.0]) * window
         around = (quantiles[:, None] + lag + offsets[None, :]).ravel()
@@ -400,9 +405,7 @@ class PosteriorFocus:
         k, z, n, weight = self._scored(posterior, STOP_STATES)
         u = self._grid[n]
         lag = float(np.sum(weight * self.models.lag[k, 0, 0]))
-        order = np.argsort(u)
-        cumulative = np.cumsum(weight[order])
-        span = u[order][np.minimum(np.searchsorted(cumulative, [0.005, 0.995]), u.size - 1)]
+        span = _quantiles(u, weight, [0.005, 0.995])
         settings = np.linspace(span[0], span[1], 81) + lag
         chances = np.zeros(settings.size)
         spec = self.spec_relative * self.models.best_px()[k, 0, 0]
