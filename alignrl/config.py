@@ -2,8 +2,7 @@
 
 Every field has a one-line doc and a default; an unknown key, a wrong type or an impossible
 value is an error naming the file, the key path and what was expected. Configs are frozen:
-code derives new values into new objects, never edits a loaded config.
-"""
+code derives new values into new objects, never edits a loaded config."""
 
 from __future__ import annotations
 
@@ -294,6 +293,7 @@ class TaskOptions(_Strict):
     finish_window: float | None = Field(None, gt=1, description="finish fit: within x narrowest")
     approach_from_below: bool | None = Field(None, description="every reading reached from below")
     move_floor: float | None = Field(None, ge=0, le=0.2, description="least move, of the interval")
+    final_move: bool | None = Field(None, description="the stopping action's move ends it")
     success_relative: float | None = Field(None, gt=1, description="threshold x best width")
     success_absolute_px: float | None = Field(None, gt=0, description="absolute spec, px")
     directional_relative: float | None = Field(

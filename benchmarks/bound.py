@@ -1,12 +1,14 @@
 """What a controller that knows the column's model reaches on every instrument of a set: the
-Bayesian autofocus of alignrl/evaluation/posterior.py, in two kinds (issue 21):
+Bayesian autofocus of alignrl/evaluation/posterior.py, in three kinds (issue 21):
 
 * `oracle`: on each instrument, the posterior over that instrument's own file (its every
   parameter known, the optimum anywhere in the interval). What it cannot do in a number of
   acquisitions, no controller does reliably there on analytic readings;
 * `posterior`: the posterior over the training box (alignrl/apparatus/families/focus.yaml),
   the same for every instrument: it knows what training knows, no more (`alignrl evaluate
-  --policy posterior`); `--reach R` widens the box by R of each range at both ends.
+  --policy posterior`); `--reach R` widens the box by R of each range at both ends;
+* `scale-free` (only where asked): the same box, its readings in an unknown pixel scale
+  (PosteriorFocus.scale_free): what a unit-free aligner could learn from it.
 
     python -m benchmarks.bound --set heldout --analytic --out runs/bound
 
@@ -31,7 +33,8 @@ from alignrl.evaluation.instrument_sets import set_table
 from alignrl.evaluation.posterior import FAMILY_REACH, PosteriorFocus, widened
 from benchmarks.heldout import same_sessions, stored_or_run
 
-KINDS = ("oracle", "posterior")
+KINDS = ("oracle", "posterior", "scale-free")
+DEFAULT_KINDS = ("oracle", "posterior")
 
 
 class _Oracle:
@@ -62,6 +65,11 @@ def _result(kind: str, args: argparse.Namespace) -> dict:
         oracle = _Oracle(args.set_name)
         return stored_or_run(kind, lambda: oracle, args, path, on_instrument=oracle.switch)
     box = widened(load_family(family_path(args.family)), args.reach)
+    if kind == "scale-free":
+        scale_free = {"scale_free": True, "specimen_points": 1, "name": kind}
+        return stored_or_run(
+            kind, lambda: PosteriorFocus(box, draws=args.draws, **scale_free), args, path
+        )
     return stored_or_run(kind, lambda: PosteriorFocus(box, draws=args.draws), args, path)
 
 
@@ -77,7 +85,9 @@ def _beside(args: argparse.Namespace) -> list[dict]:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--kind", action="append", choices=KINDS, help="default: both")
+    parser.add_argument(
+        "--kind", action="append", choices=KINDS, help="default: oracle and posterior"
+    )
     parser.add_argument("--set", default="heldout", dest="set_name")
     parser.add_argument("--scenarios", type=int, default=100)
     parser.add_argument("--seed", type=int, default=0)
@@ -101,7 +111,7 @@ def main(argv: list[str] | None = None) -> int:
         "those of the same set, seed, scenarios and readings (repeatable)",
     )
     args = parser.parse_args(argv)
-    results = [*_beside(args), *(_result(kind, args) for kind in args.kind or KINDS)]
+    results = [*_beside(args), *(_result(kind, args) for kind in args.kind or DEFAULT_KINDS)]
     readings = "analytic readings" if args.analytic else "images"
     per = f"{args.scenarios} scenarios per instrument"
     print(f"set:{args.set_name}, {per}, seed {args.seed}, {readings}")

@@ -15,7 +15,8 @@ from gymnasium.utils.env_checker import check_env
 from pettingzoo.test import api_test
 
 from alignrl.envs import AlignmentEnv, DuelEnv
-from alignrl.envs.core import AlignmentEpisodes, align_others
+from alignrl.envs.context import align_others
+from alignrl.envs.core import AlignmentEpisodes
 from alignrl.envs.task import get_task
 from alignrl.evaluation.controllers import PolicyController, SequenceController
 from alignrl.evaluation.session import run_session

@@ -353,7 +353,8 @@ def test_the_registry_names_each_task_s_baselines() -> None:
         "column": ["column-sequence"],
     }
     baselines = {name for names in TASK_BASELINES.values() for name in names}
-    assert set(CLASSICAL) == baselines | {"posterior"}  # the model-based one runs by name only
+    # the model-based ones run by name only
+    assert set(CLASSICAL) == baselines | {"posterior", "posterior-scale-free"}
     with pytest.raises(ValueError, match="no classical controllers for task 'astigmatism'"):
         task_baselines("astigmatism")
     for make, field in ((StigmatorSearch, "shrink"), (WobbleCenter, "target_fraction")):

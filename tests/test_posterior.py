@@ -107,6 +107,69 @@ def test_knowing_only_a_box_it_still_aligns():
     assert session.successes >= 6
 
 
+def _decisions(controller: PosteriorFocus, readings, factor: float) -> list[tuple[float, bool]]:
+    """The controller's decision after each of `readings` (setting, px), the px times
+    `factor`."""
+    controller.begin()
+    decisions = [controller.decide()]
+    for setting, width in readings:
+        controller.observe(setting, width * factor)
+        decisions.append(controller.decide())
+    return decisions
+
+
+def test_a_scale_free_posterior_decides_alike_in_any_pixel_scale():
+    """The same column imaged at another magnification (every reading 3.7 x wider) leads a
+    scale_free posterior to the same probes and the same stop; the posterior in the box's
+    pixels decides otherwise."""
+    box = load_family(instrument_names("validation")["val-mid"], blur_px_per_interval=[15.0, 60.0])
+    column = FamilyColumn(load_family(instrument_names("validation")["val-mid"]), analytic=True)
+    column.reset(4)
+    low, high = column.knobs["defocus"]
+    readings = []
+    for setting in (0.2, 0.7, 0.45, 0.5):
+        column.write({"defocus": low + setting * (high - low)})
+        readings.append((setting, column.measure()))
+    free = PosteriorFocus(box, draws=16, scale_free=True, specimen_points=1)
+    once, wider = _decisions(free, readings, 1.0), _decisions(free, readings, 3.7)
+    for (a, stop_a), (b, stop_b) in zip(once, wider, strict=True):
+        assert a == pytest.approx(b, abs=1e-9) and stop_a == stop_b
+    fixed = PosteriorFocus(box, draws=16)
+    assert _decisions(fixed, readings, 1.0) != _decisions(fixed, readings, 3.7)
+
+
+def test_a_scale_free_posterior_aligns_a_column_at_another_magnification():
+    """Over the box, on a column whose every reading is 3 x what the box's columns read:
+    the scale_free posterior aligns most of eight, the posterior in the box's pixels few."""
+    path = instrument_names("validation")["val-mid"]
+    box = load_family(path, blur_px_per_interval=[15.0, 60.0], floor_sigma_px=[0.8, 1.6])
+    successes = {}
+    for scale_free in (True, False):
+        apparatus = _Magnified(FamilyColumn(load_family(path), analytic=True), 3.0)
+        options = {"scale_free": True, "specimen_points": 1} if scale_free else {}
+        controller = PosteriorFocus(box, draws=32, **options)
+        session = run_session(controller, apparatus, get_task("focus"), scenarios=8, seed=1)
+        successes[scale_free] = session.successes
+    assert successes[True] >= 6
+    assert successes[False] <= 4
+
+
+class _Magnified:
+    """A column whose readings are `factor` x its own (another pixel size)."""
+
+    def __init__(self, column, factor: float) -> None:
+        self._column, self._factor = column, factor
+
+    def __getattr__(self, name):
+        return getattr(self._column, name)
+
+    def measure(self):
+        return self._factor * self._column.measure()
+
+    def best_quality(self):
+        return self._factor * self._column.best_quality()
+
+
 class _Blind:
     """A column whose every frame has no edges."""
 
@@ -175,12 +238,15 @@ def test_a_widened_box_holds_the_box_within_what_the_family_allows():
         widened(box, -0.1)
 
 
-def test_evaluate_runs_the_family_posterior_by_name(capsys: pytest.CaptureFixture[str]) -> None:
-    """`alignrl evaluate --policy posterior`: the posterior over the training box, on
-    a validation instrument it was never given the file of."""
-    argv = ["evaluate", "--policy", "posterior", "--apparatus", "instrument:val-mid"]
+@pytest.mark.parametrize("name", ["posterior", "posterior-scale-free"])
+def test_evaluate_runs_the_family_posterior_by_name(
+    name: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`alignrl evaluate --policy posterior` (or posterior-scale-free): the posterior over
+    the training box, on a validation instrument it was never given the file of."""
+    argv = ["evaluate", "--policy", name, "--apparatus", "instrument:val-mid"]
     args = ["--apparatus-args", '{"analytic": true}', "--scenarios", "4", "--json", "--quiet"]
     assert main([*argv, *args]) == 0
     report = json.loads(capsys.readouterr().out)
-    assert report["controller"] == "posterior" and report["task"] == "focus"
+    assert report["controller"] == name and report["task"] == "focus"
     assert report["successes"] >= 3 and report["median_acquisitions"] <= 5

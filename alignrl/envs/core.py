@@ -43,7 +43,7 @@ unmeasured, its width counts as the task's `no_edges_px`, and the episode goes o
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -59,9 +59,10 @@ from alignrl.apparatus.base import (
 )
 from alignrl.apparatus.measures import measure_directional, measure_wobble
 from alignrl.envs import rewards
+from alignrl.envs.context import align_others
 from alignrl.envs.ending import EpisodeEnds
 from alignrl.envs.fit_features import FIT_FEATURES, fit_features
-from alignrl.envs.task import Task
+from alignrl.envs.task import Task, knob_change
 
 __all__ = ["AlignmentEpisodes", "EpisodeInfo", "align_others", "feature_layout", "known_optimum"]
 
@@ -101,45 +102,6 @@ def known_optimum(unit: Apparatus, knobs: Sequence[str]) -> np.ndarray | None:
         return None
     best = unit.optimum()
     return np.array([best[k] for k in knobs], float)
-
-
-CONTEXT_STREAM = 2  # second entropy word of the generator of a task's context offsets
-
-
-def align_others(
-    unit: Apparatus,
-    knobs: Sequence[str],
-    context: Mapping[str, float] | None = None,
-    seed: int | None = None,
-) -> None:
-    """Set the knobs of `unit` outside `knobs` (a task's) to their optimum, where the
-    apparatus knows it: a stigmation episode starts in focus. Nothing is written where the
-    knobs are there already, or where the apparatus has no secret (a real column).
-
-    `context` (Task.context) misaligns some of them instead: each named knob goes anywhere
-    within that offset of its optimum (uniformly, inside its interval), drawn from a
-    generator of (`seed`, CONTEXT_STREAM), so that a scenario seed fixes it; knobs the
-    apparatus lacks are passed over."""
-    if not knows_optimum(unit) or set(unit.knobs) <= set(knobs):
-        return
-    current = unit.read()
-    targets = {
-        knob: float(value)
-        for knob, value in unit.optimum().items()
-        if knob in unit.knobs and knob not in knobs
-    }
-    if context:
-        rng = np.random.default_rng(None if seed is None else [seed, CONTEXT_STREAM])
-        for knob in unit.knobs:  # the apparatus's order: the same draws every time
-            if knob in targets and knob in context:
-                low, high = unit.knobs[knob]
-                centre, offset = targets[knob], float(context[knob])
-                targets[knob] = float(
-                    rng.uniform(max(low, centre - offset), min(high, centre + offset))
-                )
-    others = {knob: value for knob, value in targets.items() if value != current[knob]}
-    if others:
-        unit.write(others)
 
 
 @dataclass
@@ -392,6 +354,9 @@ class AlignmentEpisodes:
                 self.info[index].out_of_bounds += int(hit_bound[position])
         done = stop | (self.steps[indices] >= task.episode_steps)
         finished = indices[done]
+        if task.final_move and np.any(stop):
+            hit_bound = self._move_last(indices[stop], actions[stop, : self.k])
+            reward[stop] += rewards.bound_penalty(hit_bound, task.out_of_bounds_penalty)
         if task.stop_at_best and finished.size:
             self._go_to_end(finished)
         if task.verify_final and finished.size:
@@ -415,6 +380,24 @@ class AlignmentEpisodes:
             info.acquisitions = int(self.acquisitions[index])
             info.width_px = float(self.width[index])
         return reward, done
+
+    def _move_last(self, indices: np.ndarray, actions: np.ndarray) -> np.ndarray:
+        """Task.final_move: the stopping actions of `indices` move their knobs one last time
+        (no floor), clipped at the interval's bounds, with no acquisition. A write the
+        apparatus refuses leaves the knobs where they got to, the error in the info.
+        Returns where a move hit a bound."""
+        change = knob_change(actions, self.max_step[indices], self.task.action_power)
+        target = self.setting[indices] + change
+        clipped = np.clip(target, self.low[indices], self.high[indices])
+        for position, index in enumerate(indices):
+            limits = self.low[index], self.high[index]
+            try:
+                for setting in self.ends.writes_to(index, clipped[position], *limits):
+                    self.setting[index] = self._write(index, setting)
+            except ApparatusError as error:
+                self.info[index].last_error = str(error)
+            self.info[index].out_of_bounds += int(np.any(clipped[position] != target[position]))
+        return np.any(clipped != target, axis=1)
 
     def _go_to_end(self, indices: np.ndarray) -> None:
         """Write the setting each episode ends at (Task.stop_at_best: its narrowest reading's,

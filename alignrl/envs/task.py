@@ -53,6 +53,7 @@ ACTING_OPTIONS = (
     "finish_at_fit",
     "finish_window",
     "approach_from_below",
+    "final_move",
 )
 MAX_MOVE_FLOOR = 0.2  # a share of the interval: beyond it no column could be brought to focus
 
@@ -221,6 +222,12 @@ class Task:
     # (Task.knob_change): a policy trained on the box's columns stops short near a bound and
     # under-brackets steep ones with its last, shortest moves. 0: the seed's moves.
     move_floor: float = 0.0
+    # The stopping action's knob components are one last move (as any move, but without the
+    # floor), written without an acquisition: the policy says where its episode ends, between
+    # its readings (a Bayesian autofocus ends at its posterior's best setting, not at a
+    # reading). The final reading is the verification's (verify_final, or a session's); the
+    # last reading stands until then. Not with stop_at_best, which says where instead.
+    final_move: bool = False
 
     def __post_init__(self) -> None:
         if not self.knobs:
@@ -275,6 +282,11 @@ class Task:
                 f"task {self.name!r}: finish_at_fit ends the way back to the narrowest reading "
                 f"(stop_at_best) at a focus-curve fit along one knob; the task has "
                 f"stop_at_best={self.stop_at_best} and {len(self.knobs)} knobs"
+            )
+        if self.final_move and self.stop_at_best:
+            raise ValueError(
+                f"task {self.name!r}: final_move ends where the stopping action moves, "
+                "stop_at_best at the narrowest reading: choose one"
             )
         if not self.finish_window > 1:
             raise ValueError(f"task {self.name!r}: finish_window must be above 1 (x narrowest)")

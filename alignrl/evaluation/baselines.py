@@ -567,10 +567,19 @@ def _posterior() -> Controller:
     return family_posterior()
 
 
+def _posterior_scale_free() -> Controller:
+    from alignrl.evaluation.posterior import family_posterior
+
+    return family_posterior(scale_free=True)
+
+
 # Controllers that know the focus family's model (alignrl/evaluation/posterior.py): run by
 # name like the classical ones (`alignrl evaluate --policy posterior`), but not among a
 # task's baselines, at seconds of computing per alignment.
-MODEL_BASED: dict[str, Callable[[], Controller]] = {"posterior": _posterior}
+MODEL_BASED: dict[str, Callable[[], Controller]] = {
+    "posterior": _posterior,
+    "posterior-scale-free": _posterior_scale_free,
+}
 
 CLASSICAL: dict[str, Callable[[], Controller | TaskController]] = {
     **{name: make for baselines in TASK_BASELINES.values() for name, make in baselines.items()},

@@ -23,6 +23,12 @@ settings around the posterior's quantiles; it stops once the setting most likely
 session's verification (`spec_relative` x the best width) passes with probability
 `confidence`, writes that setting and leaves.
 
+With `scale_free` the readings' pixel scale is unknown too: every reading is the model's
+times a factor of the episode, flat on a log scale, marginalised per state in closed form
+(`_ScaleSums`: the precision-weighted sums of log residuals; each reading is weighed by its
+predictive given the earlier ones, so the first one's pixels say nothing). The posterior then
+decides on ratios of readings and the curve's shape alone, alike at any magnification.
+
 Every setting is approached from below (the same lag on every reading, as the hyperbola fit
 does), so the model's backlash shifts the optimum by a known amount.
 
@@ -212,6 +218,45 @@ class ColumnModels:
 
 
 @dataclass
+class _ScaleSums:
+    """Per state, the precision-weighted sums of log residuals that marginalise an unknown
+    log scale with a flat prior (PosteriorFocus.scale_free): the scale's estimate is
+    sum1 / sum0 with variance 1 / sum0, and a new residual's predictive is normal around it."""
+
+    sum0: np.ndarray  # sum of 1 / variance
+    sum1: np.ndarray  # sum of residual / variance
+
+    UNKNOWN = 1.0  # the log scale's spread before any reading (for probe choices only)
+
+    @classmethod
+    def empty(cls, shape: tuple[int, ...]) -> _ScaleSums:
+        return cls(np.zeros(shape), np.zeros(shape))
+
+    def add(self, residual: np.ndarray, variance: np.ndarray) -> None:
+        self.sum0 = self.sum0 + 1.0 / variance
+        self.sum1 = self.sum1 + residual / variance
+
+    def predictive(self, residual: np.ndarray, variance: np.ndarray) -> np.ndarray:
+        """The density of a new log residual given the earlier ones (a constant before any:
+        the first reading's pixels say nothing of the column)."""
+        seen = self.sum0 > 0
+        if not np.any(seen):
+            return np.ones_like(residual)
+        estimate = np.where(seen, self.sum1 / np.where(seen, self.sum0, 1.0), 0.0)
+        total = variance + np.where(seen, 1.0 / np.where(seen, self.sum0, 1.0), np.inf)
+        density = np.exp(-0.5 * (residual - estimate) ** 2 / total) / np.sqrt(total)
+        return np.where(seen, density, 1.0)
+
+    def estimate(self, k: np.ndarray, z: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, ...]:
+        """(log scale, its variance) of states (S,)."""
+        sum0 = self.sum0[k, z, n]
+        seen = sum0 > 0
+        safe = np.where(seen, sum0, 1.0)
+        shift = np.where(seen, self.sum1[k, z, n] / safe, 0.0)
+        return shift, np.where(seen, 1.0 / safe, self.UNKNOWN**2)
+
+
+@dataclass
 class PosteriorFocus:
     """The Bayesian autofocus of the module docstring, for columns of `family`."""
 
@@ -234,6 +279,11 @@ class PosteriorFocus:
     # ranges) and every reading so far is weighed again on them
     renew_below: float = 0.5
     jitter: float = 0.05
+    # Readings in any pixel scale: every reading is the model's times an unknown factor of
+    # the episode, flat on a log scale, marginalised per state (module docstring): the
+    # posterior then learns only from ratios of readings and the curve's shape, as a unit-free
+    # policy must (alignrl/imitation.py), and aligns a column imaged at any magnification.
+    scale_free: bool = False
     models: ColumnModels = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -261,28 +311,53 @@ class PosteriorFocus:
         prior = (weights / weights.sum())[None, :, None] * prior_u[None, None, :]
         self._prior = np.broadcast_to(prior, (self.models.count, *prior.shape[1:])).copy()
         self._prior /= self._prior.sum()
+        self._scale: _ScaleSums | None = None
 
     # --- the Controller protocol ----------------------------------------------------------
 
     def align(self, apparatus: Apparatus, knob: str, budget: int) -> None:
         low, high = (float(value) for value in apparatus.knobs[knob])
         width = high - low
-        self.models = self._initial
-        rng = np.random.default_rng(self.seed)
-        posterior = self._prior.copy()
-        readings: list[tuple[float, float]] = []
+        self.begin()
         for _ in range(min(budget, self.max_acquisitions)):
-            setting, chance = self._final(posterior)
-            if chance >= self.confidence:
+            probe, done = self.decide()
+            if done:
                 break
-            probe = self._next_probe(posterior)
             self._write(apparatus, knob, low, width, probe)
-            readings.append((probe, measure_width(apparatus)))
-            posterior = self._drifted(posterior * self._likelihood(*readings[-1]))
-            if self._renewable(posterior):
-                posterior = self._renew(posterior, readings, rng)
-        setting, _ = self._final(posterior)
+            self.observe(probe, measure_width(apparatus))
+        setting, _ = self._final(self._posterior)
         self._write(apparatus, knob, low, width, setting)
+
+    # --- one reading at a time (what `align` does; a teacher of aligners drives it) ----------
+
+    def begin(self) -> None:
+        """Forget every reading: a new alignment starts from the prior."""
+        self.models = self._initial
+        self._rng = np.random.default_rng(self.seed)
+        self._posterior = self._prior.copy()
+        self._readings: list[tuple[float, float]] = []
+        self._scale = _ScaleSums.empty(self._prior.shape) if self.scale_free else None
+
+    def observe(self, setting: float, reading: float) -> None:
+        """A reading (px; NaN: no edges) taken at `setting`, a fraction of the interval,
+        approached from below."""
+        self._readings.append((float(setting), float(reading)))
+        posterior = self._drifted(self._posterior * self._likelihood(*self._readings[-1]))
+        if self._renewable(posterior):
+            posterior = self._renew(posterior, self._readings, self._rng)
+        self._posterior = posterior
+
+    def decide(self) -> tuple[float, bool]:
+        """(setting, done): where to take the next reading, or, done, the setting most likely
+        to pass the verification once it passes with the `confidence` asked."""
+        setting, chance = self._final(self._posterior)
+        if chance >= self.confidence:
+            return setting, True
+        return self._next_probe(self._posterior), False
+
+    def final(self) -> tuple[float, float]:
+        """The setting most likely to pass the verification now, and that chance."""
+        return self._final(self._posterior)
 
     # --- the model ------------------------------------------------------------------------
 
@@ -295,11 +370,18 @@ class PosteriorFocus:
         return np.asarray(setting)[..., None, None, None] - self.models.lag - grid
 
     def _likelihood(self, setting: float, reading: float) -> np.ndarray:
+        """Per state, the chance of `reading` (px; NaN: no edges) at `setting`; scale_free,
+        given the readings before it, which it then joins."""
         none, mean, spread = self.models.reading(
             self._errors(setting, self._grid), self.models.specimen_rel * self._scale_nodes
         )
         if not math.isfinite(reading):
             return none
+        if self._scale is not None:  # and the reading joins the scale's sums
+            residual, variance = math.log(reading) - np.log(mean), (spread / mean) ** 2
+            density = self._scale.predictive(residual, variance)
+            self._scale.add(residual, variance)
+            return (1.0 - none) * density
         density = np.exp(-0.5 * ((reading - mean) / spread) ** 2) / spread
         return (1.0 - none) * density
 
@@ -340,6 +422,8 @@ class PosteriorFocus:
         )
         self.models = ColumnModels.at(self.family, np.clip(rows, 0.0, 1.0), self.model_noise)
         posterior = self._prior.copy()
+        if self._scale is not None:
+            self._scale = _ScaleSums.empty(self._prior.shape)
         for reading in readings:
             posterior = self._drifted(posterior * self._likelihood(*reading))
         return posterior
@@ -359,11 +443,20 @@ class PosteriorFocus:
             weight = np.full(most, 1.0 / most)
         return k, z, n, weight / weight.sum()
 
-    def _state_reading(self, settings: np.ndarray, k: np.ndarray, z: np.ndarray, n: np.ndarray):
-        """The reading model at `settings` (M,) for states (S,): arrays (M, S)."""
+    def _state_reading(
+        self, settings: np.ndarray, k: np.ndarray, z: np.ndarray, n: np.ndarray,
+        scaled: bool = False,
+    ):  # fmt: skip
+        """The reading model at `settings` (M,) for states (S,): arrays (M, S); `scaled`
+        (scale_free): in the pixels of the readings so far, as each state's scale puts them."""
         models = self.models.picked(k)
         error = settings[:, None] - models.lag[None, :] - self._grid[n][None, :]
-        return models.reading(error, models.specimen_rel * self._scale_nodes[0, z, 0])
+        none, mean, spread = models.reading(error, models.specimen_rel * self._scale_nodes[0, z, 0])
+        if scaled and self._scale is not None:
+            shift, variance = self._scale.estimate(k, z, n)
+            spread = mean * np.sqrt((spread / mean) ** 2 + variance) * np.exp(shift)
+            mean = mean * np.exp(shift)
+        return none, mean, spread
 
     def _candidates(self, u: np.ndarray, weight: np.ndarray, lag: float) -> np.ndarray:
         """Settings a probe may go to: a grid over the interval, and around the quantiles
@@ -382,10 +475,13 @@ class PosteriorFocus:
         settings = self._candidates(u, weight, lag)
         top = 1.5 * float(self.models.saturation.max())
         bottom = 0.2 * float(self.models.best_px().min())
+        if self._scale is not None:  # the readings' own pixels: around the states' scales
+            shift = self._scale.estimate(k, z, n)[0]
+            top, bottom = top * math.exp(shift.max()), bottom * math.exp(shift.min())
         edges = np.geomspace(bottom, top, self.reading_bins - 1)
         best, best_value = float(settings[0]), math.inf
         for chunk in np.array_split(settings, max(1, settings.size // 16)):
-            none, mean, spread = self._state_reading(chunk, k, z, n)
+            none, mean, spread = self._state_reading(chunk, k, z, n, scaled=True)
             below = ndtr((edges[None, None, :] - mean[..., None]) / spread[..., None])
             bins = np.diff(below, axis=-1, prepend=0.0, append=1.0)  # (M, S, B)
             bins = bins * (1.0 - none)[..., None]
@@ -417,8 +513,13 @@ class PosteriorFocus:
         return float(settings[index]), float(chances[index])
 
 
-def family_posterior(reach: float = FAMILY_REACH) -> PosteriorFocus:
+def family_posterior(reach: float = FAMILY_REACH, scale_free: bool = False) -> PosteriorFocus:
     """The posterior over the focus training box (alignrl/apparatus/families/focus.yaml),
     widened by `reach`: a Bayesian autofocus for a column of the focus family or near it,
-    whatever its units (`alignrl evaluate --policy posterior`)."""
-    return PosteriorFocus(widened(load_family(family_path("focus")), reach))
+    whatever its units (`alignrl evaluate --policy posterior`); `scale_free`, in any pixel
+    scale too (`--policy posterior-scale-free`: one specimen point, the unknown factor covers
+    the specimen's scale)."""
+    box = widened(load_family(family_path("focus")), reach)
+    if scale_free:
+        return PosteriorFocus(box, name="posterior-scale-free", scale_free=True, specimen_points=1)
+    return PosteriorFocus(box)

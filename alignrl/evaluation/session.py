@@ -41,7 +41,7 @@ from alignrl.apparatus.base import (
 )
 from alignrl.apparatus.measures import WOBBLE_KNOB, measure_directional, measure_wobble
 from alignrl.apparatus.recorder import scenario_seed
-from alignrl.envs.core import align_others
+from alignrl.envs.context import align_others
 from alignrl.envs.task import DIRECTIONAL_BINS, SuccessRule, Task
 from alignrl.evaluation.controllers import (
     Acquisition,
