@@ -157,6 +157,10 @@ class Demonstrations:
                 acquisitions=tuple(int(a) for a in data["acquisitions"]),
             )  # fmt: skip
 
+    def rows(self, rows: np.ndarray) -> Demonstrations:
+        """The steps `rows` alone (episode counts are left out)."""
+        return Demonstrations(**{name: getattr(self, name)[rows] for name in STEP_FIELDS})
+
     @classmethod
     def joined(cls, parts: list[Demonstrations]) -> Demonstrations:
         arrays = {
@@ -242,15 +246,20 @@ def clone(
     batch_size: int = 256,
     learning_rate: float = 1e-3,
     log: Callable[[int, float], None] | None = None,
+    continue_weight: float = 1.0,
 ) -> float:
     """Fit `actor` (alignrl.agents.sac.Actor: a tanh-Gaussian) to the teacher's actions: its
     mean by least squares on their pre-tanh values, its spread by their likelihood around it;
-    returns the last epoch's mean loss."""
+    returns the last epoch's mean loss. `continue_weight` weighs the stop component of the
+    steps where the teacher goes on (a stop too early loses the column, one too late costs an
+    image)."""
     generator = torch.Generator().manual_seed(seed)
     observations = torch.as_tensor(data.observation, dtype=torch.float32)
     target = torch.atanh(
         torch.as_tensor(np.clip(data.label, -LABEL_LIMIT, LABEL_LIMIT), dtype=torch.float32)
     )
+    weight = torch.ones_like(target)
+    weight[:, -1] = torch.where(target[:, -1] < 0, continue_weight, 1.0)
     optimizer = torch.optim.Adam(actor.parameters(), lr=learning_rate)
     loss_value = math.nan
     for epoch in range(epochs):
@@ -263,7 +272,8 @@ def clone(
             # likelihood of the teacher's actions around that mean (its own gradient only).
             error = target[batch] - mean
             z = error.detach() / log_std.exp()
-            loss = (0.5 * error.square() + 0.5 * z.square() + log_std).sum(-1).mean()
+            loss = 0.5 * weight[batch] * error.square() + 0.5 * z.square() + log_std
+            loss = loss.sum(-1).mean()
             optimizer.zero_grad()
             loss.backward()
             optimizer.step()

@@ -12,7 +12,9 @@ labelling every step; with `--student RUN` the run's best.pt acts and the poster
 labels (a DAgger round). `clone` creates the run (as `alignrl train` would), fits its actor to
 every file's labels, keeps the replay of the transitions, runs a validation session (best.pt)
 and a checkpoint: `alignrl evaluate --policy runs/s12/NAME` judges it, and `alignrl train
---resume` (or `alignrl adapt --from`) continues it with SAC.
+--resume` (or `alignrl adapt --from`) continues it with SAC. `agreement` fits a fresh actor on
+nine tenths of the steps and prints how closely it follows the teacher on the rest, per
+number of readings in its history.
 """
 
 from __future__ import annotations
@@ -71,7 +73,7 @@ def _clone(args: argparse.Namespace) -> None:
     learner = trainer.agent.learner
     start = time.monotonic()
     loss = clone(
-        learner.actor, data, args.epochs, config.seed,
+        learner.actor, data, args.epochs, config.seed, continue_weight=args.continue_weight,
         log=lambda epoch, value: print(f"epoch {epoch + 1}: loss {value:.4f}", flush=True),
     )  # fmt: skip
     trainer.agent.observe(
@@ -85,6 +87,39 @@ def _clone(args: argparse.Namespace) -> None:
         f"(loss {loss:.4f}, {time.monotonic() - start:.0f} s); validation "
         f"{result.successes}/{result.scenarios} at a median of {result.median_acquisitions:g}"
     )
+
+
+def _agreement(args: argparse.Namespace) -> None:
+    """How well a network that sees what a policy sees can follow the teacher: fitted on
+    nine tenths of the steps, judged on the rest, per number of readings in its history."""
+    from alignrl.agents.sac import Actor
+    from alignrl.runs.training_runs import member_spec
+
+    config = load_experiment(args.config)
+    torch.manual_seed(config.seed)
+    data = Demonstrations.joined([Demonstrations.load(path) for path in args.data])
+    order = np.random.default_rng(config.seed).permutation(len(data.label))
+    judged, fitted = order[: len(order) // 10], order[len(order) // 10 :]
+    spec = member_spec(config)
+    actor = Actor(*spec.observation_shape, spec.action_dim, spec.learner_config())
+    clone(actor, data.rows(fitted), args.epochs, config.seed)
+    test = data.rows(judged)
+    with torch.no_grad():
+        mean, _ = actor(torch.as_tensor(test.observation))
+    action = np.tanh(mean.numpy())
+    readings = test.observation[:, :, 0].sum(axis=1).astype(int)
+    print("| readings in the history | steps | knob action, mean absolute error | stop agrees |")
+    print("| --- | --- | --- | --- |")
+    for count in range(1, int(readings.max()) + 1):
+        rows = readings == count
+        if rows.sum() < 10:
+            continue
+        error = np.abs(action[rows, 0] - test.label[rows, 0]).mean()
+        agree = np.mean((action[rows, 1] > 0) == (test.label[rows, 1] > 0))
+        print(f"| {count} | {rows.sum()} | {error:.3f} | {agree:.1%} |")
+    error = np.abs(action[:, 0] - test.label[:, 0]).mean()
+    agree = np.mean((action[:, 1] > 0) == (test.label[:, 1] > 0))
+    print(f"| all | {len(test.label)} | {error:.3f} | {agree:.1%} |")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -105,9 +140,17 @@ def main(argv: list[str] | None = None) -> int:
     two.add_argument("--data", action="append", required=True)
     two.add_argument("--epochs", type=int, default=30)
     two.add_argument("--runs-dir", default="runs")
+    two.add_argument(
+        "--continue-weight", type=float, default=1.0,
+        help="weight of the stop component where the teacher goes on (alignrl.imitation.clone)",
+    )  # fmt: skip
     two.add_argument("--set", action="append", default=[], help="config override key=value")
+    three = verbs.add_parser("agreement", help="how well the teacher can be followed")
+    three.add_argument("--config", required=True)
+    three.add_argument("--data", action="append", required=True)
+    three.add_argument("--epochs", type=int, default=40)
     args = parser.parse_args(argv)
-    {"collect": _collect, "clone": _clone}[args.verb](args)
+    {"collect": _collect, "clone": _clone, "agreement": _agreement}[args.verb](args)
     return 0
 
 

@@ -84,6 +84,9 @@ def test_demonstrations_round_trip_and_join(tmp_path) -> None:
     assert loaded.acquisitions == data.acquisitions and loaded.episodes == data.episodes
     both = Demonstrations.joined([data, loaded])
     assert len(both.label) == 2 * len(data.label) and both.episodes == 2 * data.episodes
+    part = both.rows(np.array([0, len(data.label)]))  # the first step of each copy
+    np.testing.assert_array_equal(part.observation[0], part.observation[1])
+    np.testing.assert_array_equal(part.label[0], data.label[0])
 
 
 def test_a_student_acts_while_the_teacher_labels() -> None:
@@ -96,3 +99,27 @@ def test_a_student_acts_while_the_teacher_labels() -> None:
     assert np.all(data.action == student_actions[0])  # never stops: runs to the step limit
     assert not np.array_equal(data.label, data.action)
     assert len(data.label) == 2 * env.task.episode_steps
+
+
+def test_a_continue_weight_tips_an_undecided_stop_towards_going_on() -> None:
+    """The same history labelled stop half the time and go on the other half: weighing the
+    go-on labels more makes the clone go on, weighing them less makes it stop."""
+    rows = 64
+    observation = np.zeros((rows, 6, 7), np.float32)
+    observation[:, -1, 0] = 1.0
+    label = np.zeros((rows, 2))
+    label[:, 1] = np.where(np.arange(rows) % 2 == 0, 1.0, -1.0)
+    data = Demonstrations(
+        observation=observation, label=label, action=label, reward=np.zeros(rows),
+        next_observation=observation, done=label[:, 1] > 0, secret=np.zeros((rows, 1)),
+        next_secret=np.zeros((rows, 1)),
+    )  # fmt: skip
+    stops = {}
+    for weight in (3.0, 1.0 / 3.0):
+        torch.manual_seed(0)
+        actor = Actor(6, 7, 2, SACConfig(encoder="mlp", hidden=(32,)))
+        clone(actor, data, epochs=200, seed=0, batch_size=64, continue_weight=weight)
+        with torch.no_grad():
+            mean, _ = actor(torch.as_tensor(observation[:1]))
+        stops[weight] = float(mean[0, 1])
+    assert stops[3.0] < 0 < stops[1.0 / 3.0]
