@@ -3,7 +3,7 @@
 
 The Bayesian autofocus of alignrl/evaluation/posterior.py aligns more of the held-out columns
 than any trained champion, in fewer acquisitions, but costs seconds per alignment. Here it
-teaches a network that acts in a millisecond: it plays the alignment env's episodes (the
+teaches a network that acts in one forward pass: it plays the alignment env's episodes (the
 training family's columns), and at every step says the action it would take; the network is
 fitted to those actions (behaviour cloning), and, in later rounds, the network itself plays
 while the teacher labels every state it reaches (DAgger: the network learns to recover from
@@ -130,19 +130,7 @@ class Demonstrations:
     acquisitions: tuple[int, ...] = ()
 
     def save(self, path: str) -> None:
-        arrays = {
-            name: getattr(self, name)
-            for name in (
-                "observation",
-                "label",
-                "action",
-                "reward",
-                "next_observation",
-                "done",
-                "secret",
-                "next_secret",
-            )
-        }
+        arrays = {name: getattr(self, name) for name in STEP_FIELDS}
         np.savez_compressed(
             path, **arrays, episodes=self.episodes, successes=self.successes,
             acquisitions=np.array(self.acquisitions, np.int64),
@@ -164,17 +152,7 @@ class Demonstrations:
     @classmethod
     def joined(cls, parts: list[Demonstrations]) -> Demonstrations:
         arrays = {
-            name: np.concatenate([getattr(part, name) for part in parts])
-            for name in (
-                "observation",
-                "label",
-                "action",
-                "reward",
-                "next_observation",
-                "done",
-                "secret",
-                "next_secret",
-            )
+            name: np.concatenate([getattr(part, name) for part in parts]) for name in STEP_FIELDS
         }
         return cls(
             **arrays,
@@ -197,19 +175,7 @@ def collect(
     observation, infos = env.reset(seed=seed)
     secret = infos["secret"]
     teacher.start(np.arange(env.num_envs))
-    rows: dict[str, list[np.ndarray]] = {
-        name: []
-        for name in (
-            "observation",
-            "label",
-            "action",
-            "reward",
-            "next_observation",
-            "done",
-            "secret",
-            "next_secret",
-        )
-    }
+    rows: dict[str, list[np.ndarray]] = {name: [] for name in STEP_FIELDS}
     finished = successes = 0
     acquisitions: list[int] = []
     while finished < episodes:

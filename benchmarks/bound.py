@@ -30,7 +30,7 @@ from alignrl.apparatus.base import Apparatus
 from alignrl.apparatus.family import family_path, load_family
 from alignrl.apparatus.instruments import load_set
 from alignrl.evaluation.instrument_sets import set_table
-from alignrl.evaluation.posterior import FAMILY_REACH, PosteriorFocus, widened
+from alignrl.evaluation.posterior import FAMILY_REACH, SCALE_FREE, PosteriorFocus, widened
 from benchmarks.heldout import same_sessions, stored_or_run
 
 KINDS = ("oracle", "posterior", "scale-free")
@@ -66,9 +66,8 @@ def _result(kind: str, args: argparse.Namespace) -> dict:
         return stored_or_run(kind, lambda: oracle, args, path, on_instrument=oracle.switch)
     box = widened(load_family(family_path(args.family)), args.reach)
     if kind == "scale-free":
-        scale_free = {"scale_free": True, "specimen_points": 1, "name": kind}
         return stored_or_run(
-            kind, lambda: PosteriorFocus(box, draws=args.draws, **scale_free), args, path
+            kind, lambda: PosteriorFocus(box, draws=args.draws, name=kind, **SCALE_FREE), args, path
         )
     return stored_or_run(kind, lambda: PosteriorFocus(box, draws=args.draws), args, path)
 

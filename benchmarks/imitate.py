@@ -32,7 +32,7 @@ from alignrl.apparatus.family import family_path, load_family
 from alignrl.apparatus.registry import make_apparatus_copies
 from alignrl.config import load_experiment
 from alignrl.envs.vector import VectorAlignmentEnv
-from alignrl.evaluation.posterior import PosteriorFocus
+from alignrl.evaluation.posterior import SCALE_FREE, PosteriorFocus
 from alignrl.imitation import Demonstrations, PosteriorTeacher, clone, collect
 
 
@@ -49,7 +49,7 @@ def _collect(args: argparse.Namespace) -> None:
         agent, _ = load_policy(args.student)
         student = lambda observation: agent.act(observation, deterministic=True)  # noqa: E731
     box = load_family(family_path("focus"))
-    options = {"scale_free": True, "specimen_points": 1} if args.teacher == "scale-free" else {}
+    options = SCALE_FREE if args.teacher == "scale-free" else {}
     teacher = PosteriorTeacher(env, lambda: PosteriorFocus(box, **options))
     bar = tqdm(total=args.episodes, unit="episode", desc=Path(args.out).stem, dynamic_ncols=True)
     start = time.monotonic()

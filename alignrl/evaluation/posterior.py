@@ -65,7 +65,14 @@ from alignrl.apparatus.probe import focus_sigma_px, levelled_px
 from alignrl.apparatus.quality import TEN_NINETY_PER_SIGMA
 from alignrl.evaluation.controllers import approach_from_below, measure_width
 
-__all__ = ["FAMILY_REACH", "ColumnModels", "PosteriorFocus", "family_posterior", "widened"]
+__all__ = [
+    "FAMILY_REACH",
+    "SCALE_FREE",
+    "ColumnModels",
+    "PosteriorFocus",
+    "family_posterior",
+    "widened",
+]
 
 SCORED_STATES = 2000  # states the probe choice is scored on (a systematic resample beyond)
 STOP_STATES = 20000  # states a stop is judged on (a systematic resample beyond)
@@ -225,6 +232,7 @@ class _ScaleSums:
 
     sum0: np.ndarray  # sum of 1 / variance
     sum1: np.ndarray  # sum of residual / variance
+    readings: int = 0  # every measured reading adds to every state
 
     UNKNOWN = 1.0  # the log scale's spread before any reading (for probe choices only)
 
@@ -235,25 +243,22 @@ class _ScaleSums:
     def add(self, residual: np.ndarray, variance: np.ndarray) -> None:
         self.sum0 = self.sum0 + 1.0 / variance
         self.sum1 = self.sum1 + residual / variance
+        self.readings += 1
 
     def predictive(self, residual: np.ndarray, variance: np.ndarray) -> np.ndarray:
         """The density of a new log residual given the earlier ones (a constant before any:
         the first reading's pixels say nothing of the column)."""
-        seen = self.sum0 > 0
-        if not np.any(seen):
+        if not self.readings:
             return np.ones_like(residual)
-        estimate = np.where(seen, self.sum1 / np.where(seen, self.sum0, 1.0), 0.0)
-        total = variance + np.where(seen, 1.0 / np.where(seen, self.sum0, 1.0), np.inf)
-        density = np.exp(-0.5 * (residual - estimate) ** 2 / total) / np.sqrt(total)
-        return np.where(seen, density, 1.0)
+        total = variance + 1.0 / self.sum0
+        return np.exp(-0.5 * (residual - self.sum1 / self.sum0) ** 2 / total) / np.sqrt(total)
 
     def estimate(self, k: np.ndarray, z: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, ...]:
         """(log scale, its variance) of states (S,)."""
+        if not self.readings:
+            return np.zeros(k.shape), np.full(k.shape, self.UNKNOWN**2)
         sum0 = self.sum0[k, z, n]
-        seen = sum0 > 0
-        safe = np.where(seen, sum0, 1.0)
-        shift = np.where(seen, self.sum1[k, z, n] / safe, 0.0)
-        return shift, np.where(seen, 1.0 / safe, self.UNKNOWN**2)
+        return self.sum1[k, z, n] / sum0, 1.0 / sum0
 
 
 @dataclass
@@ -513,6 +518,11 @@ class PosteriorFocus:
         return float(settings[index]), float(chances[index])
 
 
+# PosteriorFocus in any pixel scale: one specimen point, the unknown factor covers the
+# specimen's scale too.
+SCALE_FREE = {"scale_free": True, "specimen_points": 1}
+
+
 def family_posterior(reach: float = FAMILY_REACH, scale_free: bool = False) -> PosteriorFocus:
     """The posterior over the focus training box (alignrl/apparatus/families/focus.yaml),
     widened by `reach`: a Bayesian autofocus for a column of the focus family or near it,
@@ -521,5 +531,5 @@ def family_posterior(reach: float = FAMILY_REACH, scale_free: bool = False) -> P
     the specimen's scale)."""
     box = widened(load_family(family_path("focus")), reach)
     if scale_free:
-        return PosteriorFocus(box, name="posterior-scale-free", scale_free=True, specimen_points=1)
+        return PosteriorFocus(box, name="posterior-scale-free", **SCALE_FREE)
     return PosteriorFocus(box)
