@@ -12,7 +12,8 @@ its own mistakes, not only to follow a path it never leaves).
 `PosteriorTeacher` turns the posterior's settings into the env's actions: a probe becomes the
 move that lands there (the inverse of Task.knob_change, within the task's maximum step and
 above its floor), a stop becomes the stopping action whose move ends the episode at the
-posterior's best setting (Task.final_move), once it is within one move. The teacher reads the
+posterior's best setting (Task.final_move), once it is within one move (of the fit's optimum
+where the task's last move starts there: finish_at_fit). The teacher reads the
 readings in px, as the env measures them; a unit-free policy sees their ratios only, so the
 teacher that a network can follow is the posterior in an unknown pixel scale
 (`PosteriorFocus(scale_free=True)`), whose decisions depend on the ratios alone: the box
@@ -30,11 +31,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
 
+from alignrl.envs.core import feature_layout
+from alignrl.envs.fit_features import FIT_FEATURES, bracketed_optimum, fit_features
+from alignrl.envs.task import knob_change
 from alignrl.envs.vector import VectorAlignmentEnv
 from alignrl.evaluation.posterior import PosteriorFocus
 
@@ -90,20 +94,40 @@ class PosteriorTeacher:
                 infos["position"][index, 0], infos["edge_width_px"][index]
             )
 
+    def ends(self, indices: np.ndarray) -> np.ndarray:
+        """(len(indices),): the knob action of a stopping move that ends each slot's episode
+        at its posterior's best setting now (from the task's stop origin, within the last
+        move's reach): what the teacher would end with, wherever it stands."""
+        episodes = self.env.episodes
+        origins = (episodes.stop_origins(indices) - episodes.low[indices]) / episodes.span[indices]
+        reach = (episodes.max_step / episodes.span)[indices, 0] * self.env.task.final_move_reach
+        out = np.zeros(len(indices))
+        for position, index in enumerate(indices):
+            target = float(np.clip(self.posteriors[index].final()[0], 0.0, 1.0))
+            move = target - float(origins[position, 0])
+            out[position] = action_for_move(move, reach[position], self.power, 0.0)
+        return out
+
     def actions(self) -> np.ndarray:
         """(N, 2): the teacher's action for every slot's present state."""
         episodes = self.env.episodes
         positions = episodes.positions()[:, 0]
+        slots = np.arange(self.env.num_envs)
+        # A stopping move starts from the fit's optimum with finish_at_fit (Task.final_move).
+        origins = ((episodes.stop_origins(slots) - episodes.low) / episodes.span)[:, 0]
         max_steps = (episodes.max_step / episodes.span)[:, 0]
+        reach = max_steps * self.env.task.final_move_reach  # of the stopping move
         left = self.env.task.episode_steps - episodes.steps
         out = np.zeros((self.env.num_envs, 2))
         for index, posterior in enumerate(self.posteriors):
             target, done = posterior.decide()
             if left[index] <= 1 and not done:  # the last move: end at the best setting now
                 target, done = posterior.final()[0], True
-            move = float(np.clip(target, 0.0, 1.0)) - float(positions[index])
-            if done and abs(move) <= max_steps[index]:
-                out[index] = [action_for_move(move, max_steps[index], self.power, 0.0), 1.0]
+            target = float(np.clip(target, 0.0, 1.0))
+            move = target - float(positions[index])
+            last = target - float(origins[index])
+            if done and abs(last) <= reach[index]:
+                out[index] = [action_for_move(last, reach[index], self.power, 0.0), 1.0]
             else:  # a probe, or on the way to a best setting beyond one move
                 out[index] = [
                     action_for_move(move, max_steps[index], self.power, self.floor),
@@ -128,12 +152,15 @@ class Demonstrations:
     episodes: int = 0
     successes: int = 0
     acquisitions: tuple[int, ...] = ()
+    # The stopping actions move from a fit's optimum (collected with finish_at_fit, or
+    # moved_from_fit), not from the present setting.
+    ends_from_fit: bool = False
 
     def save(self, path: str) -> None:
         arrays = {name: getattr(self, name) for name in STEP_FIELDS}
         np.savez_compressed(
             path, **arrays, episodes=self.episodes, successes=self.successes,
-            acquisitions=np.array(self.acquisitions, np.int64),
+            acquisitions=np.array(self.acquisitions, np.int64), ends_from_fit=self.ends_from_fit,
         )  # fmt: skip
 
     @classmethod
@@ -143,14 +170,55 @@ class Demonstrations:
             return cls(
                 **fields, episodes=int(data["episodes"]), successes=int(data["successes"]),
                 acquisitions=tuple(int(a) for a in data["acquisitions"]),
+                ends_from_fit=bool(data["ends_from_fit"]) if "ends_from_fit" in data else False,
             )  # fmt: skip
 
     def rows(self, rows: np.ndarray) -> Demonstrations:
         """The steps `rows` alone (episode counts are left out)."""
-        return Demonstrations(**{name: getattr(self, name)[rows] for name in STEP_FIELDS})
+        return Demonstrations(
+            **{name: getattr(self, name)[rows] for name in STEP_FIELDS},
+            ends_from_fit=self.ends_from_fit,
+        )  # fmt: skip
+
+    def with_fit_features(self, step: float, window: float) -> Demonstrations:
+        """These steps as a task with `fit_features` would have shown them: every history
+        row gains the fit features of the window it was written into (the rows up to it;
+        alignrl/envs/fit_features.py), with one maximum step of `step` in the knob column's
+        units and the task's `fit_window`. A window that had already lost its oldest rows
+        (an episode longer than the history) is fitted on the rows it still holds."""
+        fields = {name: getattr(self, name) for name in STEP_FIELDS}
+        for name in ("observation", "next_observation"):
+            fields[name] = _with_fit_features(fields[name], step, window)
+        return replace(self, **fields)
+
+    def moved_from_fit(
+        self, max_step: float, power: float, window: float, reach: float = 1.0
+    ) -> Demonstrations:
+        """These steps as a task with final_move and finish_at_fit asks for them: every
+        stopping action (the teacher's label, and the action taken) says the same end as a
+        move from where a fit of the episode's readings puts the optimum (a bracketed one,
+        within `window` x the narrowest; alignrl/envs/ending.py) instead of from the present
+        setting, a move of `reach` x `max_step` at most (Task.final_move_reach). `max_step`:
+        one maximum step, a fraction of the interval; `power`: the task's action_power. An
+        end beyond one last move of the fit is clipped to it (the episode then ends at the
+        fit's side of it), and a fit is made on the readings the history still holds. Steps
+        whose ends already move from a fit are returned as they are."""
+        if self.ends_from_fit:
+            return self
+        moved = {}
+        for name in ("label", "action"):
+            actions = getattr(self, name).copy()
+            for row in np.flatnonzero(actions[:, 1] > 0):
+                actions[row, 0] = _from_fit(self.observation[row], actions[row, 0], max_step,
+                                            power, window, reach)  # fmt: skip
+            moved[name] = actions
+        return replace(self, **moved, ends_from_fit=True)
 
     @classmethod
     def joined(cls, parts: list[Demonstrations]) -> Demonstrations:
+        if len({part.ends_from_fit for part in parts}) > 1:
+            raise ValueError("steps whose ends move from a fit and steps whose ends do not: "
+                             "move the others first (moved_from_fit)")  # fmt: skip
         arrays = {
             name: np.concatenate([getattr(part, name) for part in parts]) for name in STEP_FIELDS
         }
@@ -159,7 +227,46 @@ class Demonstrations:
             episodes=sum(part.episodes for part in parts),
             successes=sum(part.successes for part in parts),
             acquisitions=tuple(a for part in parts for a in part.acquisitions),
+            ends_from_fit=parts[0].ends_from_fit,
         )
+
+
+def _from_fit(
+    history: np.ndarray, action: float, max_step: float, power: float, window: float,
+    reach: float,
+) -> float:  # fmt: skip
+    """The stopping action from the fit's optimum that ends where `action` from the present
+    setting ends (Demonstrations.moved_from_fit)."""
+    layout = feature_layout(1)
+    knob = (history[:, layout["knobs"].start].astype(np.float64) + 1.0) / 2.0
+    measured = (history[:, layout["valid"].start] > 0) & (history[:, layout["measured"].start] > 0)
+    quality = history[:, layout["quality"].start].astype(np.float64)
+    optimum = bracketed_optimum(knob[measured], np.exp(quality[measured]), window)
+    end = knob[-1] + knob_change(np.array([action]), np.array([max_step]), power)[0]
+    origin = knob[-1] if optimum is None else np.clip(optimum, 0.0, 1.0)
+    return action_for_move(float(end - origin), reach * max_step, power, 0.0)
+
+
+def _with_fit_features(histories: np.ndarray, step: float, window: float) -> np.ndarray:
+    """(T, H, F) histories of a one-knob task without extra features -> (T, H, F + 3)."""
+    count, rows, width = histories.shape
+    layout = feature_layout(1)
+    if width != layout["steps_left"].stop:
+        raise ValueError(f"histories of {width} features: fit features go on rows without extras")
+    out = np.zeros((count, rows, width + FIT_FEATURES), np.float32)
+    out[:, :, :width] = histories
+    steps = np.full(count, step)
+    for row in range(rows):
+        written = np.zeros((count, rows, width), np.float32)  # the window when row was new
+        written[:, rows - 1 - row :] = histories[:, : row + 1]
+        valid = written[:, -1, layout["valid"].start] > 0
+        features = fit_features(
+            written[valid, :, layout["knobs"].start], written[valid, :, layout["quality"].start],
+            written[valid, :, layout["valid"].start] * written[valid, :, layout["measured"].start],
+            steps[valid], window,
+        )  # fmt: skip
+        out[valid, row, width:] = features
+    return out
 
 
 def collect(
@@ -201,7 +308,8 @@ def collect(
     for name in ("observation", "next_observation"):
         arrays[name] = arrays[name].astype(np.float32)
     return Demonstrations(**arrays, episodes=finished, successes=successes,
-                          acquisitions=tuple(acquisitions))  # fmt: skip
+                          acquisitions=tuple(acquisitions),
+                          ends_from_fit=env.task.final_move and env.task.finish_at_fit)  # fmt: skip
 
 
 def clone(
@@ -213,12 +321,14 @@ def clone(
     learning_rate: float = 1e-3,
     log: Callable[[int, float], None] | None = None,
     continue_weight: float = 1.0,
+    anneal: bool = False,
 ) -> float:
     """Fit `actor` (alignrl.agents.sac.Actor: a tanh-Gaussian) to the teacher's actions: its
     mean by least squares on their pre-tanh values, its spread by their likelihood around it;
     returns the last epoch's mean loss. `continue_weight` weighs the stop component of the
     steps where the teacher goes on (a stop too early loses the column, one too late costs an
-    image)."""
+    image). `anneal`: the learning rate falls to zero over the epochs along a half cosine
+    (the fit settles where a constant rate keeps it wandering)."""
     generator = torch.Generator().manual_seed(seed)
     observations = torch.as_tensor(data.observation, dtype=torch.float32)
     target = torch.atanh(
@@ -227,6 +337,10 @@ def clone(
     weight = torch.ones_like(target)
     weight[:, -1] = torch.where(target[:, -1] < 0, continue_weight, 1.0)
     optimizer = torch.optim.Adam(actor.parameters(), lr=learning_rate)
+    batches = epochs * math.ceil(len(observations) / batch_size)
+    schedule = torch.optim.lr_scheduler.LambdaLR(
+        optimizer, lambda done: 0.5 * (1.0 + math.cos(math.pi * done / batches)) if anneal else 1.0
+    )
     loss_value = math.nan
     for epoch in range(epochs):
         order = torch.randperm(len(observations), generator=generator)
@@ -243,6 +357,7 @@ def clone(
             optimizer.zero_grad()
             loss.backward()
             optimizer.step()
+            schedule.step()
             total += float(loss.detach()) * len(batch)
             count += len(batch)
         loss_value = total / count

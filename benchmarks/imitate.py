@@ -31,6 +31,8 @@ from tqdm import tqdm
 from alignrl.apparatus.family import family_path, load_family
 from alignrl.apparatus.registry import make_apparatus_copies
 from alignrl.config import load_experiment
+from alignrl.envs.core import feature_layout
+from alignrl.envs.task import knob_change
 from alignrl.envs.vector import VectorAlignmentEnv
 from alignrl.evaluation.posterior import SCALE_FREE, PosteriorFocus
 from alignrl.imitation import Demonstrations, PosteriorTeacher, clone, collect
@@ -51,6 +53,19 @@ def _collect(args: argparse.Namespace) -> None:
     box = load_family(family_path("focus"))
     options = SCALE_FREE if args.teacher == "scale-free" else {}
     teacher = PosteriorTeacher(env, lambda: PosteriorFocus(box, **options))
+    if args.teacher_ends:
+        if student is None:
+            raise SystemExit(
+                "--teacher-ends: the student's stops end as the teacher's; name --student"
+            )
+        acting = student
+
+        def student(observation: np.ndarray) -> np.ndarray:
+            action = np.array(acting(observation), np.float64)
+            stops = np.flatnonzero(action[:, 1] > 0)
+            action[stops, 0] = teacher.ends(stops)
+            return action
+
     bar = tqdm(total=args.episodes, unit="episode", desc=Path(args.out).stem, dynamic_ncols=True)
     start = time.monotonic()
     data = collect(env, teacher, args.episodes, args.seed, student, progress=bar.update)
@@ -64,16 +79,44 @@ def _collect(args: argparse.Namespace) -> None:
     )
 
 
+def _demonstrations(paths: list[str], config) -> Demonstrations:
+    """The files' steps joined, with fit features where the config's task shows them and
+    the files were collected without (Demonstrations.with_fit_features), their stopping
+    actions moved from the fit where its last move starts there (moved_from_fit)."""
+    parts = [Demonstrations.load(path) for path in paths]
+    task = config.resolved_task()
+    if task.max_step and (task.fit_features or task.finish_at_fit):
+        raise SystemExit("steps are changed afterwards for max_step_fraction tasks only")
+    if task.finish_at_fit:
+        parts = [
+            part.moved_from_fit(
+                task.max_step_fraction, task.action_power, task.finish_window, task.final_move_reach
+            )
+            for part in parts
+        ]
+    elif any(part.ends_from_fit for part in parts):
+        raise SystemExit("steps whose ends move from a fit need a task with finish_at_fit")
+    if task.fit_features:
+        plain = feature_layout(1)["steps_left"].stop
+        parts = [
+            part.with_fit_features(2.0 * task.max_step_fraction, task.fit_window)
+            if part.observation.shape[2] == plain else part
+            for part in parts
+        ]  # fmt: skip
+    return Demonstrations.joined(parts)
+
+
 def _clone(args: argparse.Namespace) -> None:
     from alignrl.training import Trainer
 
     config = load_experiment(args.config, args.set)
-    data = Demonstrations.joined([Demonstrations.load(path) for path in args.data])
+    data = _demonstrations(args.data, config)
     trainer = Trainer.create(config, args.runs_dir)
     learner = trainer.agent.learner
     start = time.monotonic()
     loss = clone(
         learner.actor, data, args.epochs, config.seed, continue_weight=args.continue_weight,
+        learning_rate=args.learning_rate, anneal=args.anneal,
         log=lambda epoch, value: print(f"epoch {epoch + 1}: loss {value:.4f}", flush=True),
     )  # fmt: skip
     trainer.agent.observe(
@@ -97,12 +140,13 @@ def _agreement(args: argparse.Namespace) -> None:
 
     config = load_experiment(args.config)
     torch.manual_seed(config.seed)
-    data = Demonstrations.joined([Demonstrations.load(path) for path in args.data])
+    data = _demonstrations(args.data, config)
     order = np.random.default_rng(config.seed).permutation(len(data.label))
     judged, fitted = order[: len(order) // 10], order[len(order) // 10 :]
     spec = member_spec(config)
     actor = Actor(*spec.observation_shape, spec.action_dim, spec.learner_config())
-    clone(actor, data.rows(fitted), args.epochs, config.seed)
+    clone(actor, data.rows(fitted), args.epochs, config.seed,
+          learning_rate=args.learning_rate, anneal=args.anneal)  # fmt: skip
     test = data.rows(judged)
     with torch.no_grad():
         mean, _ = actor(torch.as_tensor(test.observation))
@@ -120,6 +164,22 @@ def _agreement(args: argparse.Namespace) -> None:
     error = np.abs(action[:, 0] - test.label[:, 0]).mean()
     agree = np.mean((action[:, 1] > 0) == (test.label[:, 1] > 0))
     print(f"| all | {len(test.label)} | {error:.3f} | {agree:.1%} |")
+    # Where the teacher stops: how far from its end the network's last move ends, in shares
+    # of the interval, beside a last move of 0 (the fit's optimum with finish_at_fit, else
+    # the present setting).
+    task = config.resolved_task()
+    stops = test.label[:, 1] > 0
+    reach = np.full((int(stops.sum()), 1), task.max_step_fraction * task.final_move_reach)
+    ends = knob_change(test.label[stops, :1], reach, task.action_power)[:, 0]
+    print("\n| last move | stops | end error, median | p90 | within 0.005 of the interval |")
+    print("| --- | --- | --- | --- | --- |")
+    for name, end in (
+        ("the network's", knob_change(action[stops, :1], reach, task.action_power)[:, 0]),
+        ("none", np.zeros_like(ends)),
+    ):
+        error = np.abs(end - ends)
+        print(f"| {name} | {stops.sum()} | {np.median(error):.4f} | "
+              f"{np.percentile(error, 90):.4f} | {np.mean(error < 0.005):.0%} |")  # fmt: skip
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -130,6 +190,11 @@ def main(argv: list[str] | None = None) -> int:
     one.add_argument("--episodes", type=int, default=1000)
     one.add_argument("--seed", type=int, default=1)
     one.add_argument("--student", help="a run whose best.pt acts (a DAgger round)")
+    one.add_argument(
+        "--teacher-ends", action="store_true",
+        help="the student's stops end where the teacher would end (a diagnosis: its probes "
+        "and stops, with the teacher's last move)",
+    )  # fmt: skip
     one.add_argument(
         "--teacher", choices=("scale-free", "posterior"), default="scale-free",
         help="the box posterior in an unknown pixel scale (default), or in the box's pixels",
@@ -149,6 +214,12 @@ def main(argv: list[str] | None = None) -> int:
     three.add_argument("--config", required=True)
     three.add_argument("--data", action="append", required=True)
     three.add_argument("--epochs", type=int, default=40)
+    for verb in (two, three):
+        verb.add_argument("--learning-rate", type=float, default=1e-3)
+        verb.add_argument(
+            "--anneal", action="store_true",
+            help="the learning rate falls to zero along a half cosine (alignrl.imitation.clone)",
+        )  # fmt: skip
     args = parser.parse_args(argv)
     {"collect": _collect, "clone": _clone, "agreement": _agreement}[args.verb](args)
     return 0

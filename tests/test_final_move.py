@@ -114,3 +114,42 @@ def test_a_refused_final_move_ends_the_episode_with_the_error_on_record() -> Non
 def test_final_move_and_stop_at_best_are_refused_together() -> None:
     with pytest.raises(ValueError, match="final_move"):
         TaskOptions(final_move=True, stop_at_best=True).apply(get_task("focus"))
+
+
+def test_a_final_move_reach_scales_the_last_move_alone() -> None:
+    """final_move_reach 0.2: the stopping move is a fifth of what the same action asks for
+    without it; probes keep their reach."""
+    episodes, slot, _ = _episode(_task(final_move_reach=0.2))
+    start, max_step = float(episodes.setting[0, 0]), float(episodes.max_step[0, 0])
+    span = float(episodes.span[0, 0])
+    episodes.step(slot, np.array([[0.5, -1.0]]))  # a probe: 0.25 x max_step and the floor
+    probed = float(episodes.setting[0, 0])
+    assert probed == pytest.approx(start + 0.25 * max_step + 0.02 * span)
+    episodes.step(slot, np.array([[-0.5, 1.0]]))
+    assert episodes.setting[0, 0] == pytest.approx(probed - 0.2 * 0.25 * max_step)
+
+
+def test_a_last_move_from_the_fit_starts_at_the_bracketed_optimum() -> None:
+    """finish_at_fit with final_move: a stopping action of 0 ends at the fit's optimum of
+    readings that bracket it; before a fit exists, at the present setting."""
+    task = _task(finish_at_fit=True)
+    episodes, slot, _ = _episode(task)
+    assert episodes.stop_origins(slot)[0, 0] == episodes.setting[0, 0]  # one reading: no fit
+    optimum, span = float(episodes.aligned[0, 0]), float(episodes.span[0, 0])
+    for offset in (-0.06, 0.05, -0.01):  # readings on both sides of the optimum
+        move = optimum + offset * span - float(episodes.setting[0, 0])
+        action = np.sign(move) * np.sqrt(max(abs(move) - 0.02 * span, 0) / episodes.max_step[0, 0])
+        episodes.step(slot, np.array([[float(action[()]), -1.0]]))
+    origin = float(episodes.stop_origins(slot)[0, 0])
+    assert origin != float(episodes.setting[0, 0])
+    assert abs(origin - optimum) < 0.02 * span  # the fit lands near the column's optimum
+    episodes.step(slot, np.array([[0.0, 1.0]]))
+    assert episodes.setting[0, 0] == pytest.approx(origin)
+
+
+@pytest.mark.parametrize("options", [{"final_move_reach": 0.0}, {"final_move_reach": 1.5}])
+def test_a_final_move_reach_outside_its_range_is_refused(options) -> None:
+    with pytest.raises(ValueError, match="final_move_reach"):
+        _task(**options)
+    with pytest.raises(ValueError, match="final_move_reach"):
+        TaskOptions(final_move_reach=0.5).apply(get_task("focus"))  # without final_move

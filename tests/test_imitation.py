@@ -12,6 +12,7 @@ from alignrl.agents.sac import Actor, SACConfig
 from alignrl.apparatus.family import family_path, load_family
 from alignrl.apparatus.registry import make_apparatus_copies
 from alignrl.config import TaskOptions
+from alignrl.envs.fit_features import bracketed_optimum
 from alignrl.envs.task import get_task, knob_change
 from alignrl.envs.vector import VectorAlignmentEnv
 from alignrl.evaluation.posterior import PosteriorFocus
@@ -23,10 +24,10 @@ OPTIONS = dict(
 )  # fmt: skip
 
 
-def _env(envs: int = 2, **options) -> VectorAlignmentEnv:
+def _env(envs: int = 2, history: int = 6, **options) -> VectorAlignmentEnv:
     task = TaskOptions(**{**OPTIONS, **options}).apply(get_task("focus"))
     apparatus = make_apparatus_copies("family:focus", {"analytic": True}, envs)
-    return VectorAlignmentEnv(apparatus, task, history=6)
+    return VectorAlignmentEnv(apparatus, task, history=history)
 
 
 def _small_posterior() -> PosteriorFocus:
@@ -80,6 +81,7 @@ def test_demonstrations_round_trip_and_join(tmp_path) -> None:
     path = tmp_path / "d.npz"
     data.save(str(path))
     loaded = Demonstrations.load(str(path))
+    assert not loaded.ends_from_fit
     np.testing.assert_array_equal(loaded.observation, data.observation)
     assert loaded.acquisitions == data.acquisitions and loaded.episodes == data.episodes
     both = Demonstrations.joined([data, loaded])
@@ -123,3 +125,127 @@ def test_a_continue_weight_tips_an_undecided_stop_towards_going_on() -> None:
             mean, _ = actor(torch.as_tensor(observation[:1]))
         stops[weight] = float(mean[0, 1])
     assert stops[3.0] < 0 < stops[1.0 / 3.0]
+
+
+def test_an_annealed_clone_settles_on_a_sharp_switch() -> None:
+    """The teacher's first probe switches direction across the interval (the posterior's
+    mirror-image probes): with the learning rate annealed the clone follows the switch more
+    closely than at a constant rate, over the same epochs."""
+    rows = 512
+    knob = np.linspace(-1.0, 1.0, rows, dtype=np.float32)
+    observation = np.zeros((rows, 6, 7), np.float32)
+    observation[:, -1, 0] = 1.0
+    observation[:, -1, 1] = knob
+    label = np.stack([np.where(knob < 0.1, 0.8, -0.8), -np.ones(rows)], axis=1)
+    data = Demonstrations(
+        observation=observation, label=label, action=label, reward=np.zeros(rows),
+        next_observation=observation, done=np.zeros(rows, bool), secret=np.zeros((rows, 1)),
+        next_secret=np.zeros((rows, 1)),
+    )  # fmt: skip
+    errors = {}
+    for anneal in (False, True):
+        torch.manual_seed(0)
+        actor = Actor(6, 7, 2, SACConfig(encoder="mlp", hidden=(32, 32)))
+        clone(actor, data, epochs=60, seed=0, batch_size=64, learning_rate=3e-3, anneal=anneal)
+        with torch.no_grad():
+            mean, _ = actor(torch.as_tensor(observation))
+        errors[anneal] = float(np.mean(np.abs(np.tanh(mean[:, 0].numpy()) - label[:, 0])))
+    assert errors[True] < 0.8 * errors[False]
+
+
+def test_fit_features_added_afterwards_are_those_the_env_shows() -> None:
+    """Steps collected without fit features, given them afterwards, read as the same
+    teacher's steps collected in an env that shows them (the same columns and readings):
+    a history longer than an episode, so that every window is whole."""
+    plain, fitted = _env(envs=2, history=12), _env(envs=2, history=12, fit_features=True)
+    base = collect(plain, PosteriorTeacher(plain, _small_posterior), episodes=4, seed=3)
+    shown = collect(fitted, PosteriorTeacher(fitted, _small_posterior), episodes=4, seed=3)
+    steps = 2.0 * fitted.episodes.max_step[:, 0] / fitted.episodes.span[:, 0]
+    assert np.allclose(steps, steps[0])
+    added = base.with_fit_features(float(steps[0]), fitted.task.fit_window)
+    np.testing.assert_array_equal(added.label, shown.label)
+    np.testing.assert_allclose(added.observation, shown.observation, atol=1e-6)
+    np.testing.assert_allclose(added.next_observation, shown.next_observation, atol=1e-6)
+    assert shown.observation[..., -3].max() == 1.0  # some rows were fitted
+    with pytest.raises(ValueError, match="extras"):
+        shown.with_fit_features(float(steps[0]), 3.0)
+
+
+def test_a_last_move_from_the_fit_ends_where_the_teacher_asks() -> None:
+    """With finish_at_fit the stopping move starts from the fit's optimum: the teacher's
+    stopping actions end every episode at the posterior's best setting all the same, and
+    steps collected in the plain task, moved from the fit afterwards, end where they did."""
+    env = _env(envs=1, history=12, finish_at_fit=True)
+    teacher = PosteriorTeacher(env, _small_posterior)
+    env.reset(seed=5)
+    teacher.start(np.arange(1))
+    ends, moved_from_fit = 0, 0
+    while ends < 4:
+        action = teacher.actions()
+        if action[0, 1] > 0:
+            target = float(np.clip(teacher.posteriors[0].final()[0], 0.0, 1.0))
+            origin = env.episodes.stop_origins(np.arange(1))[0, 0]
+            moved_from_fit += origin != env.episodes.setting[0, 0]
+        _, _, done, _, infos = env.step(action)
+        if done[0]:
+            if action[0, 1] > 0:
+                ends += 1
+                assert infos["position"][0, 0] == pytest.approx(target, abs=1e-9)
+            teacher.start(np.arange(1))
+        else:
+            teacher.read(np.arange(1), infos)
+    assert moved_from_fit >= 1
+    plain = _env(envs=2, history=12)
+    base = collect(plain, PosteriorTeacher(plain, _small_posterior), episodes=6, seed=5)
+    step = float(plain.episodes.max_step[0, 0] / plain.episodes.span[0, 0])
+    moved = base.moved_from_fit(step, plain.task.action_power, plain.task.finish_window)
+    stops = np.flatnonzero(base.label[:, 1] > 0)
+    assert np.any(np.abs(moved.label[stops, 0] - base.label[stops, 0]) > 1e-3)
+    assert moved.ends_from_fit and not base.ends_from_fit
+    with pytest.raises(ValueError, match="moved_from_fit"):
+        Demonstrations.joined([base, moved])
+    for row in stops:
+        history = base.observation[row]
+        present = (history[-1, 1] + 1.0) / 2.0
+        measured = (history[:, 0] > 0) & (history[:, 3] > 0)
+        fit = bracketed_optimum(
+            (history[measured, 1] + 1.0) / 2.0, np.exp(history[measured, 2].astype(float))
+        )
+        origin = present if fit is None else fit
+        before = present + knob_change(base.label[row, :1], np.array([step]), 2.0)[0]
+        after = origin + knob_change(moved.label[row, :1], np.array([step]), 2.0)[0]
+        if abs(before - origin) <= step:
+            assert after == pytest.approx(before, abs=1e-5)
+        else:  # beyond one move of the fit: as far towards it as one move goes
+            assert after == pytest.approx(origin + np.sign(before - origin) * step, abs=1e-5)
+
+
+def test_finish_at_fit_needs_an_end_to_start_from() -> None:
+    with pytest.raises(ValueError, match="finish_at_fit"):
+        TaskOptions(finish_at_fit=True).apply(get_task("focus"))
+    task = TaskOptions(finish_at_fit=True, final_move=True).apply(get_task("focus"))
+    assert task.finish_at_fit and task.final_move
+
+
+def test_the_teachers_ends_land_where_its_posterior_would_end() -> None:
+    """PosteriorTeacher.ends: a stopping move, from wherever the episode stands, that ends it
+    at the posterior's best setting (as far as one last move reaches)."""
+    env = _env(envs=2, final_move_reach=0.5, finish_at_fit=True)
+    teacher = PosteriorTeacher(env, _small_posterior)
+    env.reset(seed=8)
+    slots = np.arange(2)
+    teacher.start(slots)
+    for _ in range(2):  # two probes of the teacher's, then the teacher's ends at once
+        _, _, done, _, infos = env.step(teacher.actions() * np.array([1.0, 0.0]) - [0, 1])
+        teacher.read(np.flatnonzero(~done), infos)
+        teacher.start(np.flatnonzero(done))
+    origin = ((env.episodes.stop_origins(slots) - env.episodes.low) / env.episodes.span)[:, 0]
+    reach = 0.5 * (env.episodes.max_step / env.episodes.span)[:, 0]
+    targets = np.array(
+        [np.clip(posterior.final()[0], 0.0, 1.0) for posterior in teacher.posteriors]
+    )
+    action = np.stack([teacher.ends(slots), np.ones(2)], axis=1)
+    _, _, done, _, infos = env.step(action)
+    assert done.all()
+    expected = np.clip(targets, origin - reach, origin + reach)
+    np.testing.assert_allclose(infos["position"][:, 0], expected, atol=1e-9)

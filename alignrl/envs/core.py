@@ -381,13 +381,24 @@ class AlignmentEpisodes:
             info.width_px = float(self.width[index])
         return reward, done
 
+    def stop_origins(self, indices: np.ndarray) -> np.ndarray:
+        """(len(indices), k), units: where a stopping action's move starts (Task.final_move):
+        with finish_at_fit, the fitted optimum where the readings bracket one; else (and
+        elsewhere) the present setting."""
+        origins = self.setting[indices].copy()
+        for position, index in enumerate(indices if self.task.finish_at_fit else ()):
+            fitted = self.ends.fitted(index)
+            if fitted is not None:
+                origins[position] = np.clip(fitted, self.low[index], self.high[index])
+        return origins
+
     def _move_last(self, indices: np.ndarray, actions: np.ndarray) -> np.ndarray:
         """Task.final_move: the stopping actions of `indices` move their knobs one last time
-        (no floor), clipped at the interval's bounds, with no acquisition. A write the
-        apparatus refuses leaves the knobs where they got to, the error in the info.
-        Returns where a move hit a bound."""
-        change = knob_change(actions, self.max_step[indices], self.task.action_power)
-        target = self.setting[indices] + change
+        (from stop_origins, final_move_reach x max_step; no floor), clipped at the interval's
+        bounds, with no acquisition. A write the apparatus refuses leaves the knobs where they
+        got to, the error in the info. Returns where a move hit a bound."""
+        reach = self.max_step[indices] * self.task.final_move_reach
+        target = self.stop_origins(indices) + knob_change(actions, reach, self.task.action_power)
         clipped = np.clip(target, self.low[indices], self.high[indices])
         for position, index in enumerate(indices):
             limits = self.low[index], self.high[index]
@@ -548,7 +559,7 @@ class AlignmentEpisodes:
         normalized = 2.0 * (self.setting[indices] - self.low[indices]) / self.span[indices] - 1.0
         rows[:, layout["knobs"]] = np.clip(normalized, -1.0, 1.0)
         measured = np.isfinite(widths)
-        if self.task.stop_at_best:
+        if self.task.stop_at_best or self.task.finish_at_fit:
             opening = self.steps[indices] == 0
             self.ends.note(indices, self.setting[indices], widths, measured, opening)
         reference = self.quality_ref[indices]

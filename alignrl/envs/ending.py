@@ -9,6 +9,10 @@ them (the seed), or go back:
   between them (alignrl/envs/fit_features.py, `bracketed_optimum`), where the readings
   bracket it, else to the narrowest reading.
 
+With `final_move` the stopping action's own move ends the episode instead; with
+`finish_at_fit` too, that move starts from the fit's optimum where the readings bracket one
+(`fitted`): the policy says how far from the fit, not how far from where it stands.
+
 The way back arrives at every knob from the side the narrowest reading was approached from:
 where it would come from the other side it first goes past the target by
 `backlash_overshoot` x the interval (kept inside it), so that backlash and lens hysteresis,
@@ -121,6 +125,19 @@ class EpisodeEnds:
         readings = self.readings[index]
         return min(readings, key=lambda reading: reading.width) if readings else None
 
+    def fitted(self, index: int) -> np.ndarray | None:
+        """(1,): where a focus-curve fit of episode `index`'s readings places the optimum
+        between them (its units; `finish_window`); None where they bracket none."""
+        readings = self.readings[index]
+        if not readings:
+            return None
+        optimum = bracketed_optimum(
+            np.array([reading.setting[0] for reading in readings]),
+            np.array([reading.width for reading in readings]),
+            self.task.finish_window,
+        )
+        return None if optimum is None else np.array([optimum])
+
     def plan(
         self, index: int, setting: np.ndarray, low: np.ndarray, high: np.ndarray
     ) -> EndPlan | None:
@@ -130,15 +147,9 @@ class EpisodeEnds:
         if narrowest is None:
             return None
         target, fitted = narrowest.setting, False
-        if self.task.finish_at_fit:
-            readings = self.readings[index]
-            optimum = bracketed_optimum(
-                np.array([reading.setting[0] for reading in readings]),
-                np.array([reading.width for reading in readings]),
-                self.task.finish_window,
-            )
-            if optimum is not None:
-                target, fitted = np.clip([optimum], low, high), True
+        optimum = self.fitted(index) if self.task.finish_at_fit else None
+        if optimum is not None:
+            target, fitted = np.clip(optimum, low, high), True
         if np.array_equal(target, setting):
             return None
         # Every knob arrives from the side the narrowest reading came from.

@@ -54,6 +54,7 @@ ACTING_OPTIONS = (
     "finish_window",
     "approach_from_below",
     "final_move",
+    "final_move_reach",
 )
 MAX_MOVE_FLOOR = 0.2  # a share of the interval: beyond it no column could be brought to focus
 
@@ -209,7 +210,9 @@ class Task:
     # With stop_at_best: where a focus-curve fit of the episode's readings places the optimum
     # between readings (alignrl/envs/fit_features.py, bracketed_optimum), the way back goes
     # there instead of to the narrowest reading. No reading is taken there: the final one is
-    # the verification's (verify_final), or the narrowest stands. One-knob width tasks.
+    # the verification's (verify_final), or the narrowest stands. With final_move: the
+    # stopping action's move starts from that optimum, not from the present setting (the
+    # policy corrects the fit). One-knob width tasks.
     finish_at_fit: bool = False
     finish_window: float = FINISH_WINDOW  # that fit takes the readings within this x the narrowest
     # Every setting a reading is taken at is reached from below, as a microscopist approaches
@@ -228,6 +231,9 @@ class Task:
     # reading). The final reading is the verification's (verify_final, or a session's); the
     # last reading stands until then. Not with stop_at_best, which says where instead.
     final_move: bool = False
+    # The last move's reach as a share of max_step (action_power as any move's): below 1, a
+    # finer last move for a policy that corrects an estimate (finish_at_fit) by a little.
+    final_move_reach: float = 1.0
 
     def __post_init__(self) -> None:
         if not self.knobs:
@@ -277,11 +283,22 @@ class Task:
                 f"task {self.name!r}: stop_at_best returns to the narrowest reading, a task "
                 f"that measures the width alone; it measures {', '.join(self.measures)}"
             )
-        if self.finish_at_fit and not (self.stop_at_best and len(self.knobs) == 1):
+        if self.finish_at_fit and not (
+            (self.stop_at_best or self.final_move) and len(self.knobs) == 1
+        ):
             raise ValueError(
                 f"task {self.name!r}: finish_at_fit ends the way back to the narrowest reading "
-                f"(stop_at_best) at a focus-curve fit along one knob; the task has "
-                f"stop_at_best={self.stop_at_best} and {len(self.knobs)} knobs"
+                f"(stop_at_best), or starts the last move (final_move), at a focus-curve fit "
+                f"along one knob; the task has stop_at_best={self.stop_at_best}, "
+                f"final_move={self.final_move} and {len(self.knobs)} knobs"
+            )
+        if not 0.0 < self.final_move_reach <= 1.0 or (
+            self.final_move_reach != 1.0 and not self.final_move
+        ):
+            raise ValueError(
+                f"task {self.name!r}: final_move_reach is the last move's share of max_step, "
+                f"in (0, 1], with final_move; got {self.final_move_reach} "
+                f"(final_move={self.final_move})"
             )
         if self.final_move and self.stop_at_best:
             raise ValueError(
