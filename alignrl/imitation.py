@@ -322,13 +322,15 @@ def clone(
     log: Callable[[int, float], None] | None = None,
     continue_weight: float = 1.0,
     anneal: bool = False,
+    end_weight: float = 1.0,
 ) -> float:
     """Fit `actor` (alignrl.agents.sac.Actor: a tanh-Gaussian) to the teacher's actions: its
     mean by least squares on their pre-tanh values, its spread by their likelihood around it;
     returns the last epoch's mean loss. `continue_weight` weighs the stop component of the
     steps where the teacher goes on (a stop too early loses the column, one too late costs an
-    image). `anneal`: the learning rate falls to zero over the epochs along a half cosine
-    (the fit settles where a constant rate keeps it wandering)."""
+    image); `end_weight` the knob components of the steps where it stops (the last move,
+    which must land within the spec). `anneal`: the learning rate falls to zero over the
+    epochs along a half cosine (the fit settles where a constant rate keeps it wandering)."""
     generator = torch.Generator().manual_seed(seed)
     observations = torch.as_tensor(data.observation, dtype=torch.float32)
     target = torch.atanh(
@@ -336,6 +338,7 @@ def clone(
     )
     weight = torch.ones_like(target)
     weight[:, -1] = torch.where(target[:, -1] < 0, continue_weight, 1.0)
+    weight[:, :-1] = torch.where(target[:, -1:] > 0, end_weight, 1.0)
     optimizer = torch.optim.Adam(actor.parameters(), lr=learning_rate)
     batches = epochs * math.ceil(len(observations) / batch_size)
     schedule = torch.optim.lr_scheduler.LambdaLR(

@@ -116,7 +116,7 @@ def _clone(args: argparse.Namespace) -> None:
     start = time.monotonic()
     loss = clone(
         learner.actor, data, args.epochs, config.seed, continue_weight=args.continue_weight,
-        learning_rate=args.learning_rate, anneal=args.anneal,
+        learning_rate=args.learning_rate, anneal=args.anneal, end_weight=args.end_weight,
         log=lambda epoch, value: print(f"epoch {epoch + 1}: loss {value:.4f}", flush=True),
     )  # fmt: skip
     trainer.agent.observe(
@@ -138,15 +138,15 @@ def _agreement(args: argparse.Namespace) -> None:
     from alignrl.agents.sac import Actor
     from alignrl.runs.training_runs import member_spec
 
-    config = load_experiment(args.config)
+    config = load_experiment(args.config, args.set)
     torch.manual_seed(config.seed)
     data = _demonstrations(args.data, config)
     order = np.random.default_rng(config.seed).permutation(len(data.label))
     judged, fitted = order[: len(order) // 10], order[len(order) // 10 :]
     spec = member_spec(config)
     actor = Actor(*spec.observation_shape, spec.action_dim, spec.learner_config())
-    clone(actor, data.rows(fitted), args.epochs, config.seed,
-          learning_rate=args.learning_rate, anneal=args.anneal)  # fmt: skip
+    clone(actor, data.rows(fitted), args.epochs, config.seed, learning_rate=args.learning_rate,
+          anneal=args.anneal, end_weight=args.end_weight)  # fmt: skip
     test = data.rows(judged)
     with torch.no_grad():
         mean, _ = actor(torch.as_tensor(test.observation))
@@ -180,6 +180,8 @@ def _agreement(args: argparse.Namespace) -> None:
         error = np.abs(end - ends)
         print(f"| {name} | {stops.sum()} | {np.median(error):.4f} | "
               f"{np.percentile(error, 90):.4f} | {np.mean(error < 0.005):.0%} |")  # fmt: skip
+    beyond = np.mean(np.abs(test.label[stops, 0]) >= 1.0)
+    print(f"\nthe teacher's ends beyond one last move's reach (clipped to it): {beyond:.1%}")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -214,8 +216,13 @@ def main(argv: list[str] | None = None) -> int:
     three.add_argument("--config", required=True)
     three.add_argument("--data", action="append", required=True)
     three.add_argument("--epochs", type=int, default=40)
+    three.add_argument("--set", action="append", default=[], help="config override key=value")
     for verb in (two, three):
         verb.add_argument("--learning-rate", type=float, default=1e-3)
+        verb.add_argument(
+            "--end-weight", type=float, default=1.0,
+            help="weight of the last move's knob error where the teacher stops (clone)",
+        )  # fmt: skip
         verb.add_argument(
             "--anneal", action="store_true",
             help="the learning rate falls to zero along a half cosine (alignrl.imitation.clone)",

@@ -127,6 +127,30 @@ def test_a_continue_weight_tips_an_undecided_stop_towards_going_on() -> None:
     assert stops[3.0] < 0 < stops[1.0 / 3.0]
 
 
+def test_an_end_weight_pulls_the_knob_towards_the_last_moves() -> None:
+    """The same history labelled half as a stop with a knob of +0.5, half as a probe of -0.5:
+    weighing the stops' knob error more pulls the knob towards +0.5, less towards -0.5."""
+    rows = 64
+    observation = np.zeros((rows, 6, 7), np.float32)
+    observation[:, -1, 0] = 1.0
+    stop = np.arange(rows) % 2 == 0
+    label = np.stack([np.where(stop, 0.5, -0.5), np.where(stop, 1.0, -1.0)], axis=1)
+    data = Demonstrations(
+        observation=observation, label=label, action=label, reward=np.zeros(rows),
+        next_observation=observation, done=stop, secret=np.zeros((rows, 1)),
+        next_secret=np.zeros((rows, 1)),
+    )  # fmt: skip
+    knobs = {}
+    for weight in (3.0, 1.0 / 3.0):
+        torch.manual_seed(0)
+        actor = Actor(6, 7, 2, SACConfig(encoder="mlp", hidden=(32,)))
+        clone(actor, data, epochs=200, seed=0, batch_size=64, end_weight=weight)
+        with torch.no_grad():
+            mean, _ = actor(torch.as_tensor(observation[:1]))
+        knobs[weight] = float(mean[0, 0])
+    assert knobs[1.0 / 3.0] < 0 < knobs[3.0]
+
+
 def test_an_annealed_clone_settles_on_a_sharp_switch() -> None:
     """The teacher's first probe switches direction across the interval (the posterior's
     mirror-image probes): with the learning rate annealed the clone follows the switch more
