@@ -11,6 +11,8 @@ run resumes from the checkpoint before, with events after it on disk.
 from __future__ import annotations
 
 import collections
+import socket
+import time
 from pathlib import Path
 
 import pytest
@@ -195,3 +197,18 @@ def test_a_league_killed_after_its_events_resumes_to_the_same_curves(
     league_steps = assert_each_step_once(run / "tensorboard")
     assert "league/success_rate" in league_steps
     assert league_steps == assert_each_step_once(reference)
+
+
+def test_a_writer_opened_in_the_second_of_an_older_file_sorts_after_it(tmp_path: Path) -> None:
+    """TensorBoard reads a folder's event files in name order: a resumed run's file must sort
+    after the killed run's, even when both open within one second (in the same process a
+    counter of 10 would sort before one of 9; in another, a smaller process id first)."""
+    folder = tmp_path / "tensorboard"
+    folder.mkdir()
+    older = folder / f"events.out.tfevents.{int(time.time()):010d}.{socket.gethostname()}.999999.9"
+    older.write_bytes(b"")
+    log = TensorBoardLog(folder)
+    log.add_scalar("x", 1.0, 1)
+    log.close()
+    names = sorted(path.name for path in folder.glob("*tfevents*"))
+    assert len(names) == 2 and names[0] == older.name

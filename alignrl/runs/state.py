@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 import math
+import time
 from collections.abc import Mapping
 from functools import partial
 from pathlib import Path
@@ -105,6 +106,23 @@ EVENT_FILES = "*tfevents*"  # what TensorBoard reads as an event file (its io_wr
 HPARAMS_TAG = "_hparams_/session_start_info"
 
 
+def _after_existing_events(folder: Path) -> None:
+    """Wait (a second at most) until the clock has passed the second every event file in
+    `folder` was opened in. TensorBoard reads a folder's files in name order, and a name
+    starts with its writer's second (then host, process id and a counter, compared as text):
+    a run resumed within the second its killed run opened would otherwise sort before it,
+    and its points would show first."""
+    seconds = []
+    for path in folder.glob(EVENT_FILES):
+        parts = path.name.split(".")
+        if len(parts) > 3 and parts[3].isdigit():
+            seconds.append(int(parts[3]))
+    if seconds:
+        wait = max(seconds) + 1 - time.time()
+        if wait > 0:
+            time.sleep(min(wait, 1.0))
+
+
 class TensorBoardLog:
     """A run's TensorBoard events in `folder` (one TensorBoard run). The writer opens on first
     use (TensorBoard takes seconds to import).
@@ -133,6 +151,7 @@ class TensorBoardLog:
         if self._writer is None:
             from torch.utils.tensorboard import SummaryWriter
 
+            _after_existing_events(self.folder)
             self._writer = SummaryWriter(str(self.folder), purge_step=self.purge_step)
         return self._writer
 
