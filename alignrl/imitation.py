@@ -98,41 +98,42 @@ class PosteriorTeacher:
         """(len(indices),): the knob action of a stopping move that ends each slot's episode
         at its posterior's best setting now (from the task's stop origin, within the last
         move's reach): what the teacher would end with, wherever it stands."""
+        targets = np.array([self.posteriors[index].final()[0] for index in indices])
+        return self._last_moves(indices, targets)[0]
+
+    def _last_moves(self, indices: np.ndarray, targets: np.ndarray) -> tuple[np.ndarray, ...]:
+        """The stopping knob actions that end `indices` at `targets` (fractions of the
+        interval) from the task's stop origins (Task.final_move; finish_at_fit), and where
+        each target lies within the last move's reach."""
         episodes = self.env.episodes
         origins = (episodes.stop_origins(indices) - episodes.low[indices]) / episodes.span[indices]
         reach = (episodes.max_step / episodes.span)[indices, 0] * self.env.task.final_move_reach
-        out = np.zeros(len(indices))
-        for position, index in enumerate(indices):
-            target = float(np.clip(self.posteriors[index].final()[0], 0.0, 1.0))
-            move = target - float(origins[position, 0])
-            out[position] = action_for_move(move, reach[position], self.power, 0.0)
-        return out
+        moves = np.clip(targets, 0.0, 1.0) - origins[:, 0]
+        actions = [action_for_move(float(move), float(most), self.power, 0.0)
+                   for move, most in zip(moves, reach, strict=True)]  # fmt: skip
+        return np.array(actions), np.abs(moves) <= reach
 
     def actions(self) -> np.ndarray:
-        """(N, 2): the teacher's action for every slot's present state."""
+        """(N, 2): the teacher's action for every slot's present state: a stop where the
+        posterior is done and its best setting lies within the last move's reach, else a
+        probe (or a move on the way to a best setting beyond that reach)."""
         episodes = self.env.episodes
-        positions = episodes.positions()[:, 0]
-        slots = np.arange(self.env.num_envs)
-        # A stopping move starts from the fit's optimum with finish_at_fit (Task.final_move).
-        origins = ((episodes.stop_origins(slots) - episodes.low) / episodes.span)[:, 0]
         max_steps = (episodes.max_step / episodes.span)[:, 0]
-        reach = max_steps * self.env.task.final_move_reach  # of the stopping move
         left = self.env.task.episode_steps - episodes.steps
-        out = np.zeros((self.env.num_envs, 2))
+        targets, done = np.zeros(self.env.num_envs), np.zeros(self.env.num_envs, bool)
         for index, posterior in enumerate(self.posteriors):
-            target, done = posterior.decide()
-            if left[index] <= 1 and not done:  # the last move: end at the best setting now
-                target, done = posterior.final()[0], True
-            target = float(np.clip(target, 0.0, 1.0))
-            move = target - float(positions[index])
-            last = target - float(origins[index])
-            if done and abs(last) <= reach[index]:
-                out[index] = [action_for_move(last, reach[index], self.power, 0.0), 1.0]
-            else:  # a probe, or on the way to a best setting beyond one move
-                out[index] = [
-                    action_for_move(move, max_steps[index], self.power, self.floor),
-                    -1.0,
-                ]
+            targets[index], done[index] = posterior.decide()
+            if left[index] <= 1 and not done[index]:  # the last move: end at the best now
+                targets[index], done[index] = posterior.final()[0], True
+        targets = np.clip(targets, 0.0, 1.0)
+        moves = targets - episodes.positions()[:, 0]
+        out = np.zeros((self.env.num_envs, 2))
+        out[:, 0] = [action_for_move(float(move), float(most), self.power, self.floor)
+                     for move, most in zip(moves, max_steps, strict=True)]  # fmt: skip
+        out[:, 1] = -1.0
+        ending = np.flatnonzero(done)
+        last, within = self._last_moves(ending, targets[ending])
+        out[ending[within]] = np.stack([last[within], np.ones(within.sum())], axis=1)
         return out
 
 

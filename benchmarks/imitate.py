@@ -211,13 +211,12 @@ def main(argv: list[str] | None = None) -> int:
         "--continue-weight", type=float, default=1.0,
         help="weight of the stop component where the teacher goes on (alignrl.imitation.clone)",
     )  # fmt: skip
-    two.add_argument("--set", action="append", default=[], help="config override key=value")
     three = verbs.add_parser("agreement", help="how well the teacher can be followed")
     three.add_argument("--config", required=True)
     three.add_argument("--data", action="append", required=True)
     three.add_argument("--epochs", type=int, default=40)
-    three.add_argument("--set", action="append", default=[], help="config override key=value")
     for verb in (two, three):
+        verb.add_argument("--set", action="append", default=[], help="config override key=value")
         verb.add_argument("--learning-rate", type=float, default=1e-3)
         verb.add_argument(
             "--end-weight", type=float, default=1.0,

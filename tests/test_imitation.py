@@ -103,51 +103,51 @@ def test_a_student_acts_while_the_teacher_labels() -> None:
     assert len(data.label) == 2 * env.task.episode_steps
 
 
-def test_a_continue_weight_tips_an_undecided_stop_towards_going_on() -> None:
-    """The same history labelled stop half the time and go on the other half: weighing the
-    go-on labels more makes the clone go on, weighing them less makes it stop."""
-    rows = 64
+def _one_row_steps(label: np.ndarray, knob: np.ndarray | None = None) -> Demonstrations:
+    """Steps of histories of one valid row (its knob at `knob`, else 0) labelled `label`."""
+    rows = len(label)
     observation = np.zeros((rows, 6, 7), np.float32)
     observation[:, -1, 0] = 1.0
-    label = np.zeros((rows, 2))
-    label[:, 1] = np.where(np.arange(rows) % 2 == 0, 1.0, -1.0)
-    data = Demonstrations(
+    if knob is not None:
+        observation[:, -1, 1] = knob
+    return Demonstrations(
         observation=observation, label=label, action=label, reward=np.zeros(rows),
         next_observation=observation, done=label[:, 1] > 0, secret=np.zeros((rows, 1)),
         next_secret=np.zeros((rows, 1)),
     )  # fmt: skip
-    stops = {}
-    for weight in (3.0, 1.0 / 3.0):
-        torch.manual_seed(0)
-        actor = Actor(6, 7, 2, SACConfig(encoder="mlp", hidden=(32,)))
-        clone(actor, data, epochs=200, seed=0, batch_size=64, continue_weight=weight)
-        with torch.no_grad():
-            mean, _ = actor(torch.as_tensor(observation[:1]))
-        stops[weight] = float(mean[0, 1])
+
+
+def _cloned_mean(data: Demonstrations, hidden: tuple[int, ...], **options) -> np.ndarray:
+    """The pre-tanh mean action, on every step, of a small MLP actor cloned on `data`."""
+    torch.manual_seed(0)
+    actor = Actor(6, 7, 2, SACConfig(encoder="mlp", hidden=hidden))
+    clone(actor, data, seed=0, batch_size=64, **options)
+    with torch.no_grad():
+        return actor(torch.as_tensor(data.observation))[0].numpy()
+
+
+def test_a_continue_weight_tips_an_undecided_stop_towards_going_on() -> None:
+    """The same history labelled stop half the time and go on the other half: weighing the
+    go-on labels more makes the clone go on, weighing them less makes it stop."""
+    label = np.zeros((64, 2))
+    label[:, 1] = np.where(np.arange(64) % 2 == 0, 1.0, -1.0)
+    data = _one_row_steps(label)
+    stops = {
+        weight: float(_cloned_mean(data, (32,), epochs=200, continue_weight=weight)[0, 1])
+        for weight in (3.0, 1.0 / 3.0)
+    }
     assert stops[3.0] < 0 < stops[1.0 / 3.0]
 
 
 def test_an_end_weight_pulls_the_knob_towards_the_last_moves() -> None:
     """The same history labelled half as a stop with a knob of +0.5, half as a probe of -0.5:
     weighing the stops' knob error more pulls the knob towards +0.5, less towards -0.5."""
-    rows = 64
-    observation = np.zeros((rows, 6, 7), np.float32)
-    observation[:, -1, 0] = 1.0
-    stop = np.arange(rows) % 2 == 0
-    label = np.stack([np.where(stop, 0.5, -0.5), np.where(stop, 1.0, -1.0)], axis=1)
-    data = Demonstrations(
-        observation=observation, label=label, action=label, reward=np.zeros(rows),
-        next_observation=observation, done=stop, secret=np.zeros((rows, 1)),
-        next_secret=np.zeros((rows, 1)),
-    )  # fmt: skip
-    knobs = {}
-    for weight in (3.0, 1.0 / 3.0):
-        torch.manual_seed(0)
-        actor = Actor(6, 7, 2, SACConfig(encoder="mlp", hidden=(32,)))
-        clone(actor, data, epochs=200, seed=0, batch_size=64, end_weight=weight)
-        with torch.no_grad():
-            mean, _ = actor(torch.as_tensor(observation[:1]))
-        knobs[weight] = float(mean[0, 0])
+    stop = np.arange(64) % 2 == 0
+    data = _one_row_steps(np.stack([np.where(stop, 0.5, -0.5), np.where(stop, 1.0, -1.0)], 1))
+    knobs = {
+        weight: float(_cloned_mean(data, (32,), epochs=200, end_weight=weight)[0, 0])
+        for weight in (3.0, 1.0 / 3.0)
+    }
     assert knobs[1.0 / 3.0] < 0 < knobs[3.0]
 
 
@@ -155,25 +155,13 @@ def test_an_annealed_clone_settles_on_a_sharp_switch() -> None:
     """The teacher's first probe switches direction across the interval (the posterior's
     mirror-image probes): with the learning rate annealed the clone follows the switch more
     closely than at a constant rate, over the same epochs."""
-    rows = 512
-    knob = np.linspace(-1.0, 1.0, rows, dtype=np.float32)
-    observation = np.zeros((rows, 6, 7), np.float32)
-    observation[:, -1, 0] = 1.0
-    observation[:, -1, 1] = knob
-    label = np.stack([np.where(knob < 0.1, 0.8, -0.8), -np.ones(rows)], axis=1)
-    data = Demonstrations(
-        observation=observation, label=label, action=label, reward=np.zeros(rows),
-        next_observation=observation, done=np.zeros(rows, bool), secret=np.zeros((rows, 1)),
-        next_secret=np.zeros((rows, 1)),
-    )  # fmt: skip
+    knob = np.linspace(-1.0, 1.0, 512, dtype=np.float32)
+    label = np.stack([np.where(knob < 0.1, 0.8, -0.8), -np.ones(512)], axis=1)
+    data = _one_row_steps(label, knob)
     errors = {}
     for anneal in (False, True):
-        torch.manual_seed(0)
-        actor = Actor(6, 7, 2, SACConfig(encoder="mlp", hidden=(32, 32)))
-        clone(actor, data, epochs=60, seed=0, batch_size=64, learning_rate=3e-3, anneal=anneal)
-        with torch.no_grad():
-            mean, _ = actor(torch.as_tensor(observation))
-        errors[anneal] = float(np.mean(np.abs(np.tanh(mean[:, 0].numpy()) - label[:, 0])))
+        mean = _cloned_mean(data, (32, 32), epochs=60, learning_rate=3e-3, anneal=anneal)
+        errors[anneal] = float(np.mean(np.abs(np.tanh(mean[:, 0]) - label[:, 0])))
     assert errors[True] < 0.8 * errors[False]
 
 

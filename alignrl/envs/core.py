@@ -386,7 +386,9 @@ class AlignmentEpisodes:
         with finish_at_fit, the fitted optimum where the readings bracket one; else (and
         elsewhere) the present setting."""
         origins = self.setting[indices].copy()
-        for position, index in enumerate(indices if self.task.finish_at_fit else ()):
+        if not self.task.finish_at_fit:
+            return origins
+        for position, index in enumerate(indices):
             fitted = self.ends.fitted(index)
             if fitted is not None:
                 origins[position] = np.clip(fitted, self.low[index], self.high[index])
