@@ -290,6 +290,7 @@ class TaskOptions(_Strict):
     stop_at_best: bool | None = Field(None, description="end at the narrowest reading's setting")
     backlash_overshoot: float | None = Field(None, ge=0, le=0.5, description="way back: past by")
     finish_at_fit: bool | None = Field(None, description="way back to / last move from a fit")
+    finish_at_posterior: bool | None = Field(None, description="as finish_at_fit: posterior")
     finish_window: float | None = Field(None, gt=1, description="finish fit: within x narrowest")
     approach_from_below: bool | None = Field(None, description="every reading reached from below")
     move_floor: float | None = Field(None, ge=0, le=0.2, description="least move, of the interval")

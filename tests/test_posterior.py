@@ -12,11 +12,12 @@ import pytest
 
 from alignrl.apparatus.base import NoEdgesError
 from alignrl.apparatus.family import BOUNDED, FamilyColumn, family_path, load_family
+from alignrl.apparatus.family_posterior import _FAMILY_NAMES, ColumnModels, widened
 from alignrl.apparatus.instruments import instrument_names
 from alignrl.cli import main
 from alignrl.envs.task import get_task
 from alignrl.evaluation.controllers import CountingApparatus
-from alignrl.evaluation.posterior import _FAMILY_NAMES, ColumnModels, PosteriorFocus, widened
+from alignrl.evaluation.posterior import PosteriorFocus
 from alignrl.evaluation.session import run_session
 
 
@@ -199,6 +200,20 @@ def test_a_column_without_edges_ends_inside_the_interval_and_budget():
     PosteriorFocus(family, name="oracle").align(counting, "defocus", budget=5)
     assert counting.acquisitions <= 5
     assert blind.written and all(-10.0 <= value <= 30.0 for value in blind.written)
+
+
+def test_a_setting_at_the_top_of_an_interval_that_rounds_is_written_inside_it():
+    # set:validation's val-low-bound reads [-2000, -1.1e-13]: low + 1.0 x (high - low) is
+    # 0.0, past high; the driver refused it and `evaluate --policy posterior-scale-free` ended
+    blind = _Blind()
+    low, high = -2000.0, -1.1368683772161603e-13
+    blind.knobs = {"defocus": (low, high)}
+    blind.setting = low
+    assert low + 1.0 * (high - low) > high
+    PosteriorFocus(_instrument("val-mid"), name="oracle")._write(
+        blind, "defocus", low, high - low, 1.0
+    )
+    assert blind.written[-1] == high
 
 
 @pytest.mark.parametrize(

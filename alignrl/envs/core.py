@@ -116,7 +116,7 @@ class EpisodeInfo:
     out_of_bounds: int = 0
     failed_measurements: int = 0
     last_error: str = ""
-    ended_at_fit: bool = False  # Task.finish_at_fit: the way back went to a fitted optimum
+    ended_at_fit: bool = False  # Task.ends_at_estimate: the way back went to the estimate
 
 
 class AlignmentEpisodes:
@@ -383,15 +383,16 @@ class AlignmentEpisodes:
 
     def stop_origins(self, indices: np.ndarray) -> np.ndarray:
         """(len(indices), k), units: where a stopping action's move starts (Task.final_move):
-        with finish_at_fit, the fitted optimum where the readings bracket one; else (and
-        elsewhere) the present setting."""
+        with finish_at_fit, the fitted optimum where the readings bracket one (with
+        finish_at_posterior, the posterior's best setting); else (and elsewhere) the present
+        setting."""
         origins = self.setting[indices].copy()
-        if not self.task.finish_at_fit:
+        if not self.task.ends_at_estimate:
             return origins
         for position, index in enumerate(indices):
-            fitted = self.ends.fitted(index)
-            if fitted is not None:
-                origins[position] = np.clip(fitted, self.low[index], self.high[index])
+            estimate = self.ends.estimated(index, self.low[index], self.high[index])
+            if estimate is not None:
+                origins[position] = np.clip(estimate, self.low[index], self.high[index])
         return origins
 
     def _move_last(self, indices: np.ndarray, actions: np.ndarray) -> np.ndarray:
@@ -561,7 +562,7 @@ class AlignmentEpisodes:
         normalized = 2.0 * (self.setting[indices] - self.low[indices]) / self.span[indices] - 1.0
         rows[:, layout["knobs"]] = np.clip(normalized, -1.0, 1.0)
         measured = np.isfinite(widths)
-        if self.task.stop_at_best or self.task.finish_at_fit:
+        if self.task.stop_at_best or self.task.ends_at_estimate:
             opening = self.steps[indices] == 0
             self.ends.note(indices, self.setting[indices], widths, measured, opening)
         reference = self.quality_ref[indices]

@@ -69,6 +69,7 @@ class EpisodeEnds:
         self.approach = np.zeros((n, k))
         self.written = np.full((n, k), np.nan)
         self.readings: list[list[Noted]] = [[] for _ in range(n)]
+        self._posterior = None  # finish_at_posterior's FamilyPosterior, made on first use
 
     def restart(self, indices: np.ndarray, found: np.ndarray | None = None) -> None:
         """New episodes on `indices`: no side known; the knobs as `found` where the episode
@@ -125,18 +126,36 @@ class EpisodeEnds:
         readings = self.readings[index]
         return min(readings, key=lambda reading: reading.width) if readings else None
 
-    def fitted(self, index: int) -> np.ndarray | None:
-        """(1,): where a focus-curve fit of episode `index`'s readings places the optimum
-        between them (its units; `finish_window`); None where they bracket none."""
+    def estimated(self, index: int, low: np.ndarray, high: np.ndarray) -> np.ndarray | None:
+        """(1,), its units: where episode `index` ends, estimated from its readings
+        (Task.ends_at_estimate): a focus-curve fit's optimum between them (finish_at_fit,
+        `finish_window`; None where they bracket none), or the setting the posterior over
+        the training box holds most likely to pass (finish_at_posterior; None before a
+        reading). `low`, `high`: the knob's interval."""
         readings = self.readings[index]
         if not readings:
             return None
-        optimum = bracketed_optimum(
-            np.array([reading.setting[0] for reading in readings]),
-            np.array([reading.width for reading in readings]),
-            self.task.finish_window,
-        )
+        settings = np.array([reading.setting[0] for reading in readings])
+        widths = np.array([reading.width for reading in readings])
+        if self.task.finish_at_posterior:
+            return np.array([self._posterior_best(settings, widths, low[0], high[0])])
+        optimum = bracketed_optimum(settings, widths, self.task.finish_window)
         return None if optimum is None else np.array([optimum])
+
+    def _posterior_best(self, settings: np.ndarray, widths: np.ndarray, low: float,
+                        high: float) -> float:  # fmt: skip
+        """The scale-free posterior's best setting (units) given readings at `settings`."""
+        if self._posterior is None:  # scipy's Sobol' and the box, on the first end
+            from alignrl.apparatus.family_posterior import SCALE_FREE, FamilyPosterior, focus_box
+
+            self._posterior = FamilyPosterior(
+                focus_box(), spec_relative=self.task.success.relative, **SCALE_FREE
+            )
+        posterior = self._posterior
+        posterior.begin()
+        for setting, width in zip((settings - low) / (high - low), widths, strict=True):
+            posterior.observe(float(setting), float(width))
+        return low + posterior.final()[0] * (high - low)
 
     def plan(
         self, index: int, setting: np.ndarray, low: np.ndarray, high: np.ndarray
@@ -147,7 +166,7 @@ class EpisodeEnds:
         if narrowest is None:
             return None
         target, fitted = narrowest.setting, False
-        optimum = self.fitted(index) if self.task.finish_at_fit else None
+        optimum = self.estimated(index, low, high) if self.task.ends_at_estimate else None
         if optimum is not None:
             target, fitted = np.clip(optimum, low, high), True
         if np.array_equal(target, setting):

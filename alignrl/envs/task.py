@@ -51,6 +51,7 @@ ACTING_OPTIONS = (
     "stop_at_best",
     "backlash_overshoot",
     "finish_at_fit",
+    "finish_at_posterior",
     "finish_window",
     "approach_from_below",
     "final_move",
@@ -214,6 +215,12 @@ class Task:
     # stopping action's move starts from that optimum, not from the present setting (the
     # policy corrects the fit). One-knob width tasks.
     finish_at_fit: bool = False
+    # As finish_at_fit, with the setting that the scale-free Bayesian autofocus over the
+    # focus training box (alignrl/apparatus/family_posterior.py) holds most likely to pass,
+    # given the episode's measured readings, in place of the fit's optimum: the policy
+    # probes and stops, the posterior says where it ends. Focus tasks approached from below
+    # (its reading model); a fraction of a second of computing per episode end.
+    finish_at_posterior: bool = False
     finish_window: float = FINISH_WINDOW  # that fit takes the readings within this x the narrowest
     # Every setting a reading is taken at is reached from below, as a microscopist approaches
     # focus from one side: a step down first goes past its target by backlash_overshoot x the
@@ -292,6 +299,19 @@ class Task:
                 f"along one knob; the task has stop_at_best={self.stop_at_best}, "
                 f"final_move={self.final_move} and {len(self.knobs)} knobs"
             )
+        if self.finish_at_posterior and not (
+            (self.stop_at_best or self.final_move) and self.knobs == ("defocus",)
+            and self.approach_from_below and not self.finish_at_fit
+        ):  # fmt: skip
+            raise ValueError(
+                f"task {self.name!r}: finish_at_posterior ends the way back (stop_at_best), or "
+                f"starts the last move (final_move), where the focus posterior puts the best "
+                f"setting, in place of finish_at_fit; it needs the defocus knob alone, every "
+                f"reading approached from below (approach_from_below) and no finish_at_fit; "
+                f"the task has stop_at_best={self.stop_at_best}, final_move={self.final_move}, "
+                f"knobs {', '.join(self.knobs)}, approach_from_below={self.approach_from_below}"
+                f" and finish_at_fit={self.finish_at_fit}"
+            )
         if not 0.0 < self.final_move_reach <= 1.0 or (
             self.final_move_reach != 1.0 and not self.final_move
         ):
@@ -360,6 +380,12 @@ class Task:
         """The task as an evaluation session or `align` runs a policy on it: without the
         training verification image (`verify_final`), since they verify themselves."""
         return dataclasses.replace(self, verify_final=False) if self.verify_final else self
+
+    @property
+    def ends_at_estimate(self) -> bool:
+        """Whether episodes end at an estimate from their readings (finish_at_fit or
+        finish_at_posterior: alignrl/envs/ending.py, EpisodeEnds.estimated)."""
+        return self.finish_at_fit or self.finish_at_posterior
 
     @property
     def directional(self) -> bool:

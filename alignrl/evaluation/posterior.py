@@ -1,68 +1,35 @@
 """A Bayesian autofocus that knows its columns' model: what a controller can do with
 everything but the optimum (issue 21).
 
-`PosteriorFocus(family)` aligns the focus knob of a column drawn from `family`
-(alignrl/apparatus/family.py, "The instrument family"). It knows the model of the analytic
-readings and the box the column came from; it never sees the column's optimum, its specimen's
-scale or its noise. It keeps a posterior over
+`PosteriorFocus(family)` aligns the focus knob of a column drawn from `family`: the inference
+of alignrl/apparatus/family_posterior.py (`FamilyPosterior`: a posterior over where the
+optimum lies and which of the box's columns it is on, updated by every reading), written to
+an apparatus. Each probe goes where the expected posterior variance of the optimum is
+least; once the setting most likely to pass the session's verification passes with the
+`confidence` asked, it writes that setting and leaves. Every setting is approached from
+below, as the hyperbola fit does, so that the model's backlash is the same on every reading.
 
-* where the optimum lies: a grid over the knob's interval (or the box's `optimum_fraction`
-  range), as fractions of the interval, padded so that drift can carry it out;
-* which column it is on: `draws` columns drawn from the box where the box has ranges (one
-  where it is a single instrument, as the files of alignrl/apparatus/instruments are);
-* the specimen's per-episode scale: a Gauss-Hermite grid over its normal draw;
-
-and after every reading multiplies in that reading's likelihood (a frame without edges: the
-model's chance of one; a width: the model's mean, with a spread of the model's noise and
-`model_noise` more, for what the model does not know of a real column), then lets drift blur
-the optimum. Where the readings have left few of the columns likely, it draws the columns
-again around the likely ones and weighs every reading on them (a resample-move step), so
-that a box of a dozen parameters is searched where the readings point. Each probe goes
-where the expected posterior variance of the optimum is least, over a grid of settings and
-settings around the posterior's quantiles; it stops once the setting most likely to pass the
-session's verification (`spec_relative` x the best width) passes with probability
-`confidence`, writes that setting and leaves.
-
-With `scale_free` the readings' pixel scale is unknown too: every reading is the model's
-times a factor of the episode, flat on a log scale, marginalised per state in closed form
-(`_ScaleSums`: the precision-weighted sums of log residuals; each reading is weighed by its
-predictive given the earlier ones, so the first one's pixels say nothing). The posterior then
-decides on ratios of readings and the curve's shape alone, alike at any magnification.
-
-Every setting is approached from below (the same lag on every reading, as the hyperbola fit
-does), so the model's backlash shifts the optimum by a known amount.
-
-Given a single instrument's own file it is an oracle: it knows that instrument exactly, and
-what it reaches shows what the readings allow when the column's model is known (a greedy
-choice of one probe at a time: a controller that plans further may need fewer). Given the
-training box (alignrl/apparatus/families/focus.yaml) it knows what training knows.
-`python -m benchmarks.bound` runs both on every instrument of a set. On images its reading
-model is approximate (an edge width measured on a rendered frame is not the analytic
-reading): `model_noise` is what covers the difference.
+Given a single instrument's own file it is an oracle; given the training box
+(`family_posterior`) it knows what training knows (`alignrl evaluate --policy posterior`,
+and `posterior-scale-free` in any pixel scale). `python -m benchmarks.bound` runs both on
+every instrument of a set.
 """
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass
 
 import numpy as np
-from scipy.special import ndtr
-from scipy.stats import qmc
 
 from alignrl.apparatus.base import Apparatus
-from alignrl.apparatus.family import (
-    BOUNDED,
-    LOG_SCALE,
-    NO_EDGES_SPREAD,
-    PAIR_FIELDS,
-    FocusFamily,
-    column_at,
-    family_path,
-    load_family,
+from alignrl.apparatus.family_posterior import (
+    FAMILY_REACH,
+    SCALE_FREE,
+    ColumnModels,
+    FamilyPosterior,
+    focus_box,
+    widened,
 )
-from alignrl.apparatus.probe import focus_sigma_px, levelled_px
-from alignrl.apparatus.quality import TEN_NINETY_PER_SIGMA
 from alignrl.evaluation.controllers import approach_from_below, measure_width
 
 __all__ = [
@@ -74,251 +41,12 @@ __all__ = [
     "widened",
 ]
 
-SCORED_STATES = 2000  # states the probe choice is scored on (a systematic resample beyond)
-STOP_STATES = 20000  # states a stop is judged on (a systematic resample beyond)
-LIVE = 1e-12  # states below this share of the largest posterior weight are left out
-GRID_POINTS_PER_WINDOW = 3  # optimum grid points across the half-width that passes the spec
-MAX_GRID = 4000
 OVERSHOOT = 0.01  # share of the interval a setting below the present one is approached from
-# How far beyond the training box `family_posterior` looks (`widened`), chosen on
-# set:validation (analytic, 30 alignments per instrument, seed 3,000,000): at 0 it aligned
-# 170/180 at medians of 3-4 acquisitions, at 0.25 173/180 at medians of 4-7 (p90 up to 17).
-FAMILY_REACH = 0.0
-
-
-def _narrowest_spec(family: FocusFamily, relative: float) -> float:
-    """The narrowest half-width within the spec any column of the box has (fractions)."""
-    reach = min((relative**q - 1.0) ** (1.0 / q) for q in family.curve_power)
-    gain = family.blur_px_per_interval[1] * math.sqrt(family.asymmetry[1])
-    return family.flat_fraction[0] + reach * family.floor_sigma_px[0] / gain
-
-
-def _systematic(weights: np.ndarray, draws: int, offset: float) -> np.ndarray:
-    """Indices of `draws` systematic picks from `weights`, the first at `offset` (in [0, 1))
-    of a pick's share."""
-    edges = np.cumsum(weights / weights.sum())
-    return np.minimum(np.searchsorted(edges, (np.arange(draws) + offset) / draws), weights.size - 1)
-
-
-def _quantiles(u: np.ndarray, weight: np.ndarray, shares: list[float]) -> np.ndarray:
-    """The weighted quantiles of `u` at `shares`."""
-    order = np.argsort(u)
-    cumulative = np.cumsum(weight[order])
-    return u[order][np.minimum(np.searchsorted(cumulative, shares), u.size - 1)]
-
-
-def widened(family: FocusFamily, reach: float) -> FocusFamily:
-    """`family` with every range that the readings depend on reaching `reach` x its span
-    further at both ends (on a log scale where the family draws on one), kept within what
-    the family allows: a prior for columns beyond the box a policy trained on. Points stay
-    points; the optimum's range is left alone (`PosteriorFocus.optimum_prior` says where
-    the optimum may lie)."""
-    if not (math.isfinite(reach) and reach >= 0.0):
-        raise ValueError(f"reach must be a finite share >= 0, got {reach}")
-    update = {}
-    for name in _FAMILY_NAMES.values():
-        low, high = getattr(family, name)
-        if name in LOG_SCALE:
-            ratio = (high / low) ** reach
-            low, high = low / ratio, high * ratio
-        else:
-            span = reach * (high - low)
-            low, high = max(low - span, 0.0), high + span
-        lowest, highest = BOUNDED.get(name, (0.0, math.inf))
-        update[name] = (max(low, lowest), min(high, highest))
-    return FocusFamily.model_validate({**family.model_dump(), **update})
-
-
-# ColumnModels' parameters and the family's names for them
-_FAMILY_NAMES = {
-    "gain": "blur_px_per_interval",
-    "floor": "floor_sigma_px",
-    "power": "curve_power",
-    "flat": "flat_fraction",
-    "asymmetry": "asymmetry",
-    "noise_rel": "reading_noise_rel",
-    "noise_px": "reading_noise_px",
-    "specimen_rel": "specimen_rel",
-    "saturation": "saturation_px",
-    "no_edges": "no_edges_px",
-    "drift": "drift_fraction",
-    "lag": "hysteresis_fraction",
-}
-
-
-@dataclass(frozen=True)
-class ColumnModels:
-    """The reading model of K columns, each parameter an array of shape (K, 1, 1) in units of
-    the interval (fractions) and px, broadcasting against the posterior's (K, Z, N)."""
-
-    gain: np.ndarray  # px of sigma per interval
-    floor: np.ndarray
-    power: np.ndarray
-    flat: np.ndarray
-    asymmetry: np.ndarray
-    noise_rel: np.ndarray
-    noise_px: np.ndarray
-    specimen_rel: np.ndarray
-    saturation: np.ndarray
-    no_edges: np.ndarray
-    drift: np.ndarray
-    lag: np.ndarray
-    rows: np.ndarray  # (K, len(PAIR_FIELDS)): where in the box each column lies
-    model_noise: float = 0.01
-
-    @classmethod
-    def of(cls, family: FocusFamily, draws: int, seed: int, model_noise: float) -> ColumnModels:
-        """One model where `family` is a single column in every parameter the readings
-        depend on; else `draws` columns drawn from it: a scrambled Sobol' sequence over the
-        box's fractions (generator `seed`), which spreads them over every parameter's range
-        more evenly than independent draws."""
-        single = all(
-            getattr(family, name)[0] == getattr(family, name)[1] for name in _FAMILY_NAMES.values()
-        )
-        rows = qmc.Sobol(len(PAIR_FIELDS), scramble=True, seed=seed).random(1 if single else draws)
-        return cls.at(family, rows, model_noise)
-
-    @classmethod
-    def at(cls, family: FocusFamily, rows: np.ndarray, model_noise: float) -> ColumnModels:
-        """The columns at `rows` (K, len(PAIR_FIELDS)) of fractions of the box (column_at)."""
-        columns = [column_at(family, dict(zip(PAIR_FIELDS, row, strict=True)), 0) for row in rows]
-        values = {
-            name: np.array([getattr(draw, attribute) for draw in columns], float)[:, None, None]
-            for name, attribute in _FAMILY_NAMES.items()
-        }
-        return cls(**values, rows=np.asarray(rows, float), model_noise=model_noise)
-
-    @property
-    def count(self) -> int:
-        return int(self.gain.shape[0])
-
-    def best_px(self) -> np.ndarray:
-        """The width a frame in focus reads, noise-free (K, 1, 1)."""
-        return levelled_px(TEN_NINETY_PER_SIGMA * self.floor, self.saturation)
-
-    def spec_half_width(self, relative: float) -> np.ndarray:
-        """How far from the optimum (fractions) the probe stays within `relative` x its
-        floor, on the steeper side (K, 1, 1)."""
-        reach = (relative**self.power - 1.0) ** (1.0 / self.power) * self.floor
-        return self.flat + reach / (self.gain * np.sqrt(self.asymmetry))
-
-    def picked(self, columns: np.ndarray) -> ColumnModels:
-        """The models of `columns` (S,), one per state: parameters of shape (S,)."""
-        picked = {name: getattr(self, name)[columns, 0, 0] for name in _FAMILY_NAMES}
-        return replace(self, **picked, rows=self.rows[columns])
-
-    def reading(self, error: np.ndarray, scale: np.ndarray) -> tuple[np.ndarray, ...]:
-        """At focus errors `error` (fractions) and specimen scales `scale` (the log of the
-        specimen's factor): the chance of a frame without edges, the mean reading and its
-        spread (px), broadcast against the parameters. The spread has the model's noise and
-        `model_noise` x the mean more: what the model does not know of a real column."""
-        true = TEN_NINETY_PER_SIGMA * focus_sigma_px(
-            error, self.gain, self.floor, self.power, self.flat, self.asymmetry
-        )
-        spread_px = NO_EDGES_SPREAD * self.no_edges
-        none = 0.5 * (1.0 + np.tanh(0.5 * (true - self.no_edges) / spread_px))
-        mean = levelled_px(true, self.saturation) * np.exp(scale)
-        spread = np.sqrt(
-            (mean * self.noise_rel) ** 2 + self.noise_px**2 + (self.model_noise * mean) ** 2
-        )
-        return none, mean, spread
 
 
 @dataclass
-class _ScaleSums:
-    """Per state, the precision-weighted sums of log residuals that marginalise an unknown
-    log scale with a flat prior (PosteriorFocus.scale_free): the scale's estimate is
-    sum1 / sum0 with variance 1 / sum0, and a new residual's predictive is normal around it."""
-
-    sum0: np.ndarray  # sum of 1 / variance
-    sum1: np.ndarray  # sum of residual / variance
-    readings: int = 0  # every measured reading adds to every state
-
-    UNKNOWN = 1.0  # the log scale's spread before any reading (for probe choices only)
-
-    @classmethod
-    def empty(cls, shape: tuple[int, ...]) -> _ScaleSums:
-        return cls(np.zeros(shape), np.zeros(shape))
-
-    def add(self, residual: np.ndarray, variance: np.ndarray) -> None:
-        self.sum0 = self.sum0 + 1.0 / variance
-        self.sum1 = self.sum1 + residual / variance
-        self.readings += 1
-
-    def predictive(self, residual: np.ndarray, variance: np.ndarray) -> np.ndarray:
-        """The density of a new log residual given the earlier ones (a constant before any:
-        the first reading's pixels say nothing of the column)."""
-        if not self.readings:
-            return np.ones_like(residual)
-        total = variance + 1.0 / self.sum0
-        return np.exp(-0.5 * (residual - self.sum1 / self.sum0) ** 2 / total) / np.sqrt(total)
-
-    def estimate(self, k: np.ndarray, z: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, ...]:
-        """(log scale, its variance) of states (S,)."""
-        if not self.readings:
-            return np.zeros(k.shape), np.full(k.shape, self.UNKNOWN**2)
-        sum0 = self.sum0[k, z, n]
-        return self.sum1[k, z, n] / sum0, 1.0 / sum0
-
-
-@dataclass
-class PosteriorFocus:
+class PosteriorFocus(FamilyPosterior):
     """The Bayesian autofocus of the module docstring, for columns of `family`."""
-
-    family: FocusFamily
-    name: str = "posterior"
-    confidence: float = 0.99  # stop once the final setting passes with this probability
-    spec_relative: float = 1.15  # the session's success rule (alignrl/envs/task.py)
-    draws: int = 256  # columns drawn from the box where it has ranges
-    specimen_points: int = 3  # Gauss-Hermite points over the specimen's scale
-    max_acquisitions: int = 20
-    reading_bins: int = 24
-    seed: int = 0
-    # where the optimum may lie before the first reading: "box", the family's
-    # optimum_fraction range; "interval", anywhere in the knob's interval (what an operator
-    # knows of a column whose focus has moved)
-    optimum_prior: str = "interval"
-    model_noise: float = 0.03  # spread of a reading beyond the model's, x its mean
-    # where the readings leave fewer than this share of the columns' weight effective, the
-    # columns are drawn again around the likely ones (jittered by `jitter` of the box's
-    # ranges) and every reading so far is weighed again on them
-    renew_below: float = 0.5
-    jitter: float = 0.05
-    # Readings in any pixel scale: every reading is the model's times an unknown factor of
-    # the episode, flat on a log scale, marginalised per state (module docstring): the
-    # posterior then learns only from ratios of readings and the curve's shape, as a unit-free
-    # policy must (alignrl/imitation.py), and aligns a column imaged at any magnification.
-    scale_free: bool = False
-    models: ColumnModels = field(init=False, repr=False)
-
-    def __post_init__(self) -> None:
-        if not 0.0 < self.confidence < 1.0:
-            raise ValueError(f"confidence must lie in (0, 1), got {self.confidence}")
-        if not self.spec_relative > 1.0:
-            raise ValueError(f"spec_relative must exceed 1, got {self.spec_relative}")
-        if self.draws < 1 or self.specimen_points < 1 or self.max_acquisitions < 1:
-            raise ValueError("draws, specimen_points and max_acquisitions must be at least 1")
-        if self.optimum_prior not in ("box", "interval"):
-            raise ValueError(f"optimum_prior must be box or interval, got {self.optimum_prior!r}")
-        self.models = ColumnModels.of(self.family, self.draws, self.seed, self.model_noise)
-        self._initial = self.models
-        low, high = self.family.optimum_fraction if self.optimum_prior == "box" else (0.0, 1.0)
-        spacing = float(min(self.models.spec_half_width(self.spec_relative).min(),
-                            _narrowest_spec(self.family, self.spec_relative)))  # fmt: skip
-        spacing /= GRID_POINTS_PER_WINDOW
-        spacing = max(spacing, (high - low + 0.1) / MAX_GRID)
-        pad = 0.05 + 3.0 * spacing
-        self._grid = np.arange(low - pad, high + pad + spacing / 2, spacing)
-        self._spacing = spacing
-        nodes, weights = np.polynomial.hermite_e.hermegauss(self.specimen_points)
-        self._scale_nodes = nodes[None, :, None]  # (1, Z, 1), x specimen_rel: the log scale
-        prior_u = ((self._grid >= low) & (self._grid <= high)).astype(float)
-        prior = (weights / weights.sum())[None, :, None] * prior_u[None, None, :]
-        self._prior = np.broadcast_to(prior, (self.models.count, *prior.shape[1:])).copy()
-        self._prior /= self._prior.sum()
-        self._scale: _ScaleSums | None = None
-
-    # --- the Controller protocol ----------------------------------------------------------
 
     def align(self, apparatus: Apparatus, knob: str, budget: int) -> None:
         low, high = (float(value) for value in apparatus.knobs[knob])
@@ -330,197 +58,13 @@ class PosteriorFocus:
                 break
             self._write(apparatus, knob, low, width, probe)
             self.observe(probe, measure_width(apparatus))
-        setting, _ = self._final(self._posterior)
+        setting, _ = self.final()
         self._write(apparatus, knob, low, width, setting)
 
-    # --- one reading at a time (what `align` does; a teacher of aligners drives it) ----------
-
-    def begin(self) -> None:
-        """Forget every reading: a new alignment starts from the prior."""
-        self.models = self._initial
-        self._rng = np.random.default_rng(self.seed)
-        self._posterior = self._prior.copy()
-        self._readings: list[tuple[float, float]] = []
-        self._scale = _ScaleSums.empty(self._prior.shape) if self.scale_free else None
-
-    def observe(self, setting: float, reading: float) -> None:
-        """A reading (px; NaN: no edges) taken at `setting`, a fraction of the interval,
-        approached from below."""
-        self._readings.append((float(setting), float(reading)))
-        posterior = self._drifted(self._posterior * self._likelihood(*self._readings[-1]))
-        if self._renewable(posterior):
-            posterior = self._renew(posterior, self._readings, self._rng)
-        self._posterior = posterior
-
-    def decide(self) -> tuple[float, bool]:
-        """(setting, done): where to take the next reading, or, done, the setting most likely
-        to pass the verification once it passes with the `confidence` asked."""
-        setting, chance = self._final(self._posterior)
-        if chance >= self.confidence:
-            return setting, True
-        return self._next_probe(self._posterior), False
-
-    def final(self) -> tuple[float, float]:
-        """The setting most likely to pass the verification now, and that chance."""
-        return self._final(self._posterior)
-
-    # --- the model ------------------------------------------------------------------------
-
     def _write(self, apparatus: Apparatus, knob: str, low: float, width: float, u: float) -> None:
-        target = low + float(np.clip(u, 1e-6, 1.0)) * width
+        high = float(apparatus.knobs[knob][1])  # low + 1.0 x width may round past it
+        target = min(low + float(np.clip(u, 1e-6, 1.0)) * width, high)
         approach_from_below(apparatus, knob, target, OVERSHOOT * width)
-
-    def _errors(self, setting: np.ndarray | float, grid: np.ndarray) -> np.ndarray:
-        """Focus errors of a setting approached from below, against optimum grid points."""
-        return np.asarray(setting)[..., None, None, None] - self.models.lag - grid
-
-    def _likelihood(self, setting: float, reading: float) -> np.ndarray:
-        """Per state, the chance of `reading` (px; NaN: no edges) at `setting`; scale_free,
-        given the readings before it, which it then joins."""
-        none, mean, spread = self.models.reading(
-            self._errors(setting, self._grid), self.models.specimen_rel * self._scale_nodes
-        )
-        if not math.isfinite(reading):
-            return none
-        if self._scale is not None:  # and the reading joins the scale's sums
-            residual, variance = math.log(reading) - np.log(mean), (spread / mean) ** 2
-            density = self._scale.predictive(residual, variance)
-            self._scale.add(residual, variance)
-            return (1.0 - none) * density
-        density = np.exp(-0.5 * ((reading - mean) / spread) ** 2) / spread
-        return (1.0 - none) * density
-
-    def _drifted(self, posterior: np.ndarray) -> np.ndarray:
-        """The posterior normalised, then each column's optimum blurred by its drift over
-        one acquisition: passes of a three-point kernel whose variances add up to the
-        drift's (in grid steps squared)."""
-        total = posterior.sum()
-        if not total > 0:  # every state ruled out: the model is wrong here; start again
-            return self._prior.copy()
-        posterior = posterior / total
-        variance = (self.models.drift / self._spacing) ** 2  # (K, 1, 1)
-        passes = math.ceil(float(variance.max()))  # at most 1 grid step squared per pass
-        if variance.max() < 0.01:
-            return posterior
-        share = 0.5 * variance / passes  # to each neighbour, per pass
-        for _ in range(passes):
-            spread = np.zeros_like(posterior)
-            spread[..., 1:] += posterior[..., :-1]
-            spread[..., :-1] += posterior[..., 1:]
-            posterior = (1.0 - 2.0 * share) * posterior + share * spread
-        return posterior / posterior.sum()
-
-    def _renewable(self, posterior: np.ndarray) -> bool:
-        """Whether the columns' weights have collapsed onto a few (module docstring)."""
-        if self.models.count == 1:
-            return False
-        weights = posterior.sum(axis=(1, 2))
-        return 1.0 / float(np.sum(weights**2)) < self.renew_below * self.models.count
-
-    def _renew(
-        self, posterior: np.ndarray, readings: list[tuple[float, float]], rng: np.random.Generator
-    ) -> np.ndarray:
-        """Columns drawn again around the likely ones, every reading weighed on them."""
-        picks = _systematic(posterior.sum(axis=(1, 2)), self.models.count, rng.random())
-        rows = self.models.rows[picks] + self.jitter * rng.standard_normal(
-            self.models.rows[picks].shape
-        )
-        self.models = ColumnModels.at(self.family, np.clip(rows, 0.0, 1.0), self.model_noise)
-        posterior = self._prior.copy()
-        if self._scale is not None:
-            self._scale = _ScaleSums.empty(self._prior.shape)
-        for reading in readings:
-            posterior = self._drifted(posterior * self._likelihood(*reading))
-        return posterior
-
-    def _live(self, posterior: np.ndarray) -> tuple[np.ndarray, ...]:
-        """Indices (k, z, n) and weights of the states that still count."""
-        k, z, n = np.nonzero(posterior > LIVE * posterior.max())
-        return k, z, n, posterior[k, z, n]
-
-    def _scored(self, posterior: np.ndarray, most: int) -> tuple[np.ndarray, ...]:
-        """The live states, systematically resampled to at most `most` (equal weights
-        then), and their weights."""
-        k, z, n, weight = self._live(posterior)
-        if k.size > most:
-            picks = _systematic(weight, most, 0.5)
-            k, z, n = k[picks], z[picks], n[picks]
-            weight = np.full(most, 1.0 / most)
-        return k, z, n, weight / weight.sum()
-
-    def _state_reading(
-        self, settings: np.ndarray, k: np.ndarray, z: np.ndarray, n: np.ndarray,
-        scaled: bool = False,
-    ):  # fmt: skip
-        """The reading model at `settings` (M,) for states (S,): arrays (M, S); `scaled`
-        (scale_free): in the pixels of the readings so far, as each state's scale puts them."""
-        models = self.models.picked(k)
-        error = settings[:, None] - models.lag[None, :] - self._grid[n][None, :]
-        none, mean, spread = models.reading(error, models.specimen_rel * self._scale_nodes[0, z, 0])
-        if scaled and self._scale is not None:
-            shift, variance = self._scale.estimate(k, z, n)
-            spread = mean * np.sqrt((spread / mean) ** 2 + variance) * np.exp(shift)
-            mean = mean * np.exp(shift)
-        return none, mean, spread
-
-    def _candidates(self, u: np.ndarray, weight: np.ndarray, lag: float) -> np.ndarray:
-        """Settings a probe may go to: a grid over the interval, and around the quantiles
-        of the optimum's posterior (as approached from below)."""
-        quantiles = _quantiles(u, weight, [0.02, 0.1, 0.25, 0.5, 0.75, 0.9, 0.98])
-        window = float(self.models.spec_half_width(self.spec_relative).mean())
-        offsets = np.array([-6.0, -3.0, -1.5, 0.0, 1.5, 3.0, 6.0]) * window
-        around = (quantiles[:, None] + lag + offsets[None, :]).ravel()
-        return np.unique(np.clip(np.concatenate([np.linspace(0.0, 1.0, 17), around]), 0, 1))
-
-    def _next_probe(self, posterior: np.ndarray) -> float:
-        """The setting whose reading leaves the least expected variance of the optimum."""
-        k, z, n, weight = self._scored(posterior, SCORED_STATES)
-        u = self._grid[n]
-        lag = float(np.sum(weight * self.models.lag[k, 0, 0]))
-        settings = self._candidates(u, weight, lag)
-        top = 1.5 * float(self.models.saturation.max())
-        bottom = 0.2 * float(self.models.best_px().min())
-        if self._scale is not None:  # the readings' own pixels: around the states' scales
-            shift = self._scale.estimate(k, z, n)[0]
-            top, bottom = top * math.exp(shift.max()), bottom * math.exp(shift.min())
-        edges = np.geomspace(bottom, top, self.reading_bins - 1)
-        best, best_value = float(settings[0]), math.inf
-        for chunk in np.array_split(settings, max(1, settings.size // 16)):
-            none, mean, spread = self._state_reading(chunk, k, z, n, scaled=True)
-            below = ndtr((edges[None, None, :] - mean[..., None]) / spread[..., None])
-            bins = np.diff(below, axis=-1, prepend=0.0, append=1.0)  # (M, S, B)
-            bins = bins * (1.0 - none)[..., None]
-            outcomes = np.concatenate([bins, none[..., None]], axis=-1)  # (M, S, B + 1)
-            joint = outcomes * weight[None, :, None]
-            mass = joint.sum(axis=1)
-            first = np.einsum("msb,s->mb", joint, u)
-            second = np.einsum("msb,s->mb", joint, u * u)
-            variance = (second - first**2 / np.maximum(mass, 1e-300)).sum(axis=1)
-            index = int(np.argmin(variance))
-            if variance[index] < best_value:
-                best, best_value = float(chunk[index]), float(variance[index])
-        return best
-
-    def _final(self, posterior: np.ndarray) -> tuple[float, float]:
-        """The setting most likely to pass the verification, and that chance."""
-        k, z, n, weight = self._scored(posterior, STOP_STATES)
-        u = self._grid[n]
-        lag = float(np.sum(weight * self.models.lag[k, 0, 0]))
-        span = _quantiles(u, weight, [0.005, 0.995])
-        settings = np.linspace(span[0], span[1], 81) + lag
-        chances = np.zeros(settings.size)
-        spec = self.spec_relative * self.models.best_px()[k, 0, 0]
-        for chunk in np.array_split(np.arange(settings.size), 9):
-            none, mean, spread = self._state_reading(settings[chunk], k, z, n)
-            passes = (1.0 - none) * ndtr((spec[None, :] - mean) / spread)
-            chances[chunk] = passes @ weight
-        index = int(np.argmax(chances))
-        return float(settings[index]), float(chances[index])
-
-
-# PosteriorFocus in any pixel scale: one specimen point, the unknown factor covers the
-# specimen's scale too.
-SCALE_FREE = {"scale_free": True, "specimen_points": 1}
 
 
 def family_posterior(reach: float = FAMILY_REACH, scale_free: bool = False) -> PosteriorFocus:
@@ -529,7 +73,7 @@ def family_posterior(reach: float = FAMILY_REACH, scale_free: bool = False) -> P
     whatever its units (`alignrl evaluate --policy posterior`); `scale_free`, in any pixel
     scale too (`--policy posterior-scale-free`: one specimen point, the unknown factor covers
     the specimen's scale)."""
-    box = widened(load_family(family_path("focus")), reach)
+    box = focus_box(reach)
     if scale_free:
         return PosteriorFocus(box, name="posterior-scale-free", **SCALE_FREE)
     return PosteriorFocus(box)

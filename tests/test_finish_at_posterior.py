@@ -1,0 +1,93 @@
+"""The task option `finish_at_posterior`: an episode ends (the way back of stop_at_best, or the
+start of final_move's last move) where the scale-free posterior over the focus training box
+puts the best setting given the episode's readings; nearer focus than its narrowest reading;
+refused where its reading model does not hold."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from alignrl.apparatus.family_posterior import SCALE_FREE, FamilyPosterior, focus_box
+from alignrl.apparatus.registry import make_apparatus
+from alignrl.config import TaskOptions
+from alignrl.envs.core import AlignmentEpisodes
+from alignrl.envs.task import get_task
+
+WALK = [0.9, -0.6, 0.4, -0.3]  # probes on both sides of focus, from the episode's start
+
+
+def _task(**options):
+    options = {"approach_from_below": True, "action_power": 2.0, "move_floor": 0.02, **options}
+    return TaskOptions(finish_at_posterior=True, **options).apply(get_task("focus"))
+
+
+def _walked(task, seed: int = 3):
+    unit = make_apparatus("family:focus", {"analytic": True}, seed=seed)
+    episodes = AlignmentEpisodes([unit], task, history=8)
+    slot = np.array([0])
+    episodes.begin(slot, [21])
+    episodes.misalign(slot, np.array([0.0]))
+    for change in WALK:
+        episodes.step(slot, np.array([[change, -1.0]]))
+    return episodes, slot, unit
+
+
+def _posterior_best(episodes) -> float:
+    """What a FamilyPosterior of its own says of episode 0's readings (its units)."""
+    posterior = FamilyPosterior(focus_box(), **SCALE_FREE)
+    posterior.begin()
+    low, span = float(episodes.low[0, 0]), float(episodes.span[0, 0])
+    for reading in episodes.ends.readings[0]:
+        posterior.observe((float(reading.setting[0]) - low) / span, reading.width)
+    return low + posterior.final()[0] * span
+
+
+def test_a_stop_goes_back_to_the_posteriors_best_setting_without_an_image() -> None:
+    episodes, slot, unit = _walked(_task(stop_at_best=True))
+    assert len(episodes.ends.readings[0]) == 1 + len(WALK)
+    expected, acquisitions = _posterior_best(episodes), int(episodes.acquisitions[0])
+    episodes.step(slot, np.array([[0.0, 1.0]]))
+    assert episodes.info[0].ended_at_fit
+    assert float(unit.read()["defocus"]) == pytest.approx(expected)
+    assert episodes.acquisitions[0] == acquisitions
+
+
+def test_a_last_move_starts_at_the_posteriors_best_setting() -> None:
+    episodes, slot, unit = _walked(_task(final_move=True, final_move_reach=0.2))
+    origin = float(episodes.stop_origins(slot)[0, 0])
+    assert origin == pytest.approx(_posterior_best(episodes))
+    assert origin != float(episodes.setting[0, 0])
+    episodes.step(slot, np.array([[0.0, 1.0]]))  # a stop of 0: ends at the posterior's best
+    assert float(unit.read()["defocus"]) == pytest.approx(origin)
+
+
+def test_the_posterior_ends_nearer_focus_than_the_narrowest_reading() -> None:
+    """The same walks on six of the family's columns: ended at the posterior's best setting
+    they lie nearer their optima, in all, than at their narrowest readings."""
+    plain = TaskOptions(stop_at_best=True, approach_from_below=True, action_power=2.0,
+                        move_floor=0.02).apply(get_task("focus"))  # fmt: skip
+    errors = {}
+    for name, task in {"posterior": _task(stop_at_best=True), "narrowest": plain}.items():
+        total = 0.0
+        for seed in range(6):
+            episodes, slot, unit = _walked(task, seed=seed)
+            episodes.step(slot, np.array([[0.0, 1.0]]))
+            total += abs(unit.focus_error()) / float(episodes.span[0, 0])
+        errors[name] = total
+    assert errors["posterior"] < 0.5 * errors["narrowest"]
+
+
+@pytest.mark.parametrize(
+    ("options", "task"),
+    [
+        ({"approach_from_below": False, "stop_at_best": True}, "focus"),  # its reading model
+        ({"stop_at_best": True, "finish_at_fit": True}, "focus"),  # one estimate or the other
+        ({}, "focus"),  # neither a way back nor a last move
+        ({"final_move": True}, "stigmation"),  # a focus curve's posterior
+    ],
+)
+def test_finishing_at_the_posterior_is_refused_where_its_model_does_not_hold(options, task):
+    options = {"approach_from_below": True, **options}
+    with pytest.raises(ValueError, match="finish_at_posterior"):
+        TaskOptions(finish_at_posterior=True, **options).apply(get_task(task))
