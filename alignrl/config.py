@@ -198,9 +198,7 @@ class LearnerConfig(_Strict):
     value_coef: float | None = _own_setting("value_coef", "value loss weight", gt=0)
     epochs: Count | None = _own_setting("epochs", "passes per rollout", ge=1, le=100)
     rollout_steps: Count | None = _own_setting("rollout_steps", "steps per env slot", ge=1)
-    initial_log_std: float | None = _own_setting(
-        "initial_log_std", "initial policy log-std", ge=-5, le=1
-    )
+    initial_log_std: float | None = _own_setting("initial_log_std", "initial log-std", ge=-5, le=1)
 
     @field_validator("algorithm", mode="wrap")
     @classmethod
@@ -291,6 +289,7 @@ class TaskOptions(_Strict):
     backlash_overshoot: float | None = Field(None, ge=0, le=0.5, description="way back: past by")
     finish_at_fit: bool | None = Field(None, description="way back to / last move from a fit")
     finish_at_posterior: bool | None = Field(None, description="as finish_at_fit: posterior")
+    stop_when_sure: float | None = Field(None, ge=0, lt=1, description="posterior stops at")
     finish_window: float | None = Field(None, gt=1, description="finish fit: within x narrowest")
     approach_from_below: bool | None = Field(None, description="every reading reached from below")
     move_floor: float | None = Field(None, ge=0, le=0.2, description="least move, of the interval")

@@ -1,6 +1,7 @@
 """How a trained focus aligner's alignments end, compared on one instrument set: as it was
 trained, at its narrowest reading (straight back, or taking up backlash), and at a fit of its
-readings (`finish_at_fit`) for several fit windows. docs/benchmarks.md, "Ending at a fit of
+readings (`finish_at_fit`) for several fit windows, and where the posterior over the training
+box puts the best setting (`finish_at_posterior`). docs/benchmarks.md, "Ending at a fit of
 the readings" (issue 21).
 
     python -m benchmarks.endings --policy champion:focus-v2 --set validation --analytic \
@@ -14,9 +15,10 @@ task option move_floor), with --below also every reading from below (approach_fr
         --scenarios 200 --seed 3000000 --floors 0 0.01 0.02 0.035 --floors-only [--below]
 
 The policy acts exactly as trained (the same observations and actions); only what happens
-once it stops changes (the task options stop_at_best, backlash_overshoot, finish_at_fit and
-finish_window of alignrl/envs/task.py), and in the last row how it reaches each setting
-(approach_from_below: every reading from below, the backlash taken up before it). Every
+once it stops changes (the task options stop_at_best, backlash_overshoot, finish_at_fit,
+finish_at_posterior and finish_window of alignrl/envs/task.py), and in the last two rows how
+it reaches each setting (approach_from_below: every reading from below, the backlash taken up
+before it). Every
 ending runs one session per instrument of the set on the same seeded columns and starts
 (alignrl.evaluation.instrument_sets). The held-out set is refused: this chooses a setting,
 and choices are made on validation only.
@@ -37,8 +39,11 @@ from alignrl.evaluation.instrument_sets import run_set, set_summary, set_table
 
 def floors(task: Task, values: list[float], below: bool = False) -> list[tuple[str, Task]]:
     """(label, the policy's task with every move at least that share of the interval, and
-    with `below` every reading approached from below)."""
+    with `below` every reading approached from below; without it, a task that ends at the
+    posterior (whose reading model needs them from below) ends at the fit instead)."""
     label = ", every reading from below" if below else ""
+    if not below and task.finish_at_posterior:
+        task = dataclasses.replace(task, finish_at_posterior=False, finish_at_fit=True)
     return [
         (
             f"moves at least {v:g}{label}",
@@ -50,7 +55,9 @@ def floors(task: Task, values: list[float], below: bool = False) -> list[tuple[s
 
 def endings(task: Task, windows: list[float]) -> list[tuple[str, Task]]:
     """(label, the policy's task with that ending) for every ending compared."""
-    plain = dataclasses.replace(task, finish_at_fit=False, stop_at_best=True)
+    plain = dataclasses.replace(
+        task, finish_at_fit=False, finish_at_posterior=False, stop_at_best=True
+    )
     fitted = dataclasses.replace(plain, finish_at_fit=True)
     return [
         ("as trained", task),
@@ -60,6 +67,10 @@ def endings(task: Task, windows: list[float]) -> list[tuple[str, Task]]:
         (
             "as trained, every reading from below",
             dataclasses.replace(task, approach_from_below=True),
+        ),
+        (
+            "at the posterior, every reading from below",
+            dataclasses.replace(plain, approach_from_below=True, finish_at_posterior=True),
         ),
     ]
 

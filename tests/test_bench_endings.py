@@ -16,12 +16,15 @@ def test_each_ending_changes_only_what_happens_once_the_policy_stops() -> None:
     compared = endings(trained, [3.0, 10.0])
     assert [label for label, _ in compared] == [
         "as trained", "narrowest, straight back", "narrowest", "fit within 3x", "fit within 10x",
-        "as trained, every reading from below",
+        "as trained, every reading from below", "at the posterior, every reading from below",
     ]  # fmt: skip
     assert compared[0][1] is trained
     assert compared[1][1].backlash_overshoot == 0 and not compared[1][1].finish_at_fit
     assert [task.finish_window for _, task in compared[3:5]] == [3.0, 10.0]
     assert compared[5][1] == dataclasses.replace(trained, approach_from_below=True)
+    assert compared[6][1] == dataclasses.replace(
+        compared[2][1], approach_from_below=True, finish_at_posterior=True
+    )
     for _, task in compared[1:5]:
         assert task.stop_at_best
         assert (task.knobs, task.episode_steps, task.action_power) == (
@@ -36,7 +39,8 @@ def test_the_endings_table_has_a_column_per_ending(capsys: pytest.CaptureFixture
     header = next(line for line in out.splitlines() if line.startswith("| instrument"))
     cells = [cell.strip() for cell in header.strip("|").split("|")]
     assert cells == ["instrument", "as trained", "narrowest, straight back", "narrowest",
-                     "fit within 10x", "as trained, every reading from below"]  # fmt: skip
+                     "fit within 10x", "as trained, every reading from below",
+                     "at the posterior, every reading from below"]  # fmt: skip
     assert "val-steep" in out and "**total**" in out
 
 

@@ -22,12 +22,17 @@ def _task(**options):
     return TaskOptions(finish_at_posterior=True, **options).apply(get_task("focus"))
 
 
-def _walked(task, seed: int = 3):
+def _started(task, seed: int = 3):
     unit = make_apparatus("family:focus", {"analytic": True}, seed=seed)
     episodes = AlignmentEpisodes([unit], task, history=8)
     slot = np.array([0])
     episodes.begin(slot, [21])
     episodes.misalign(slot, np.array([0.0]))
+    return episodes, slot, unit
+
+
+def _walked(task, seed: int = 3):
+    episodes, slot, unit = _started(task, seed)
     for change in WALK:
         episodes.step(slot, np.array([[change, -1.0]]))
     return episodes, slot, unit
@@ -78,6 +83,34 @@ def test_the_posterior_ends_nearer_focus_than_the_narrowest_reading() -> None:
     assert errors["posterior"] < 0.5 * errors["narrowest"]
 
 
+def _towards_the_posterior(episodes) -> np.ndarray:
+    """A probe of episode 0 towards where its posterior puts the best setting (the task's
+    action_power 2 and floor 0.02: at most a whole step, nothing within the floor)."""
+    span = float(episodes.span[0, 0])
+    move = episodes.ends.best(0)[0] - (float(episodes.setting[0, 0] - episodes.low[0, 0])) / span
+    reach = max(abs(move) - 0.02, 0.0) / (float(episodes.max_step[0, 0]) / span)
+    return np.array([[float(np.sign(move) * min(np.sqrt(reach), 1.0)), -1.0]])
+
+
+def test_a_sure_posterior_ends_the_episode_where_it_puts_the_best_setting() -> None:
+    """stop_when_sure: the policy never stops; the episode ends on the step after which the
+    posterior's best setting passes with the chance asked, there, and not before."""
+    for options in ({"stop_at_best": True}, {"final_move": True}):
+        task = _task(stop_when_sure=0.7, **options)
+        episodes, slot, unit = _started(task)
+        chances = []
+        while episodes.active[0]:
+            chances.append(episodes.ends.best(0)[1])
+            episodes.step(slot, _towards_the_posterior(episodes))
+        assert 2 <= episodes.steps[0] < task.episode_steps, options  # before the step limit
+        assert max(chances) < 0.7 <= episodes.ends.best(0)[1]
+        expected = _posterior_best(episodes)
+        assert float(unit.read()["defocus"]) == pytest.approx(expected), options
+    plain, slot, _ = _started(_task(stop_at_best=True))
+    for _ in range(6):  # without it, the same policy goes on
+        assert not plain.step(slot, _towards_the_posterior(plain))[1][0]
+
+
 @pytest.mark.parametrize(
     ("options", "task"),
     [
@@ -91,3 +124,10 @@ def test_finishing_at_the_posterior_is_refused_where_its_model_does_not_hold(opt
     options = {"approach_from_below": True, **options}
     with pytest.raises(ValueError, match="finish_at_posterior"):
         TaskOptions(finish_at_posterior=True, **options).apply(get_task(task))
+
+
+def test_stopping_when_sure_needs_the_posterior_and_a_chance_below_one() -> None:
+    with pytest.raises(ValueError, match="stop_when_sure"):
+        TaskOptions(stop_at_best=True, stop_when_sure=0.9).apply(get_task("focus"))
+    with pytest.raises(ValueError, match="stop_when_sure"):
+        _task(stop_at_best=True, stop_when_sure=1.0)

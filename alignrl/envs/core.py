@@ -353,6 +353,9 @@ class AlignmentEpisodes:
             for position, index in enumerate(moving):
                 self.info[index].out_of_bounds += int(hit_bound[position])
         done = stop | (self.steps[indices] >= task.episode_steps)
+        if task.stop_when_sure:  # the posterior is sure: a stop whose last move is 0
+            sure = ~done & np.array([self.ends.sure(index) for index in indices], bool)
+            done, stop, actions[sure, : self.k] = done | sure, stop | sure, 0.0
         finished = indices[done]
         if task.final_move and np.any(stop):
             hit_bound = self._move_last(indices[stop], actions[stop, : self.k])
@@ -564,7 +567,8 @@ class AlignmentEpisodes:
         measured = np.isfinite(widths)
         if self.task.stop_at_best or self.task.ends_at_estimate:
             opening = self.steps[indices] == 0
-            self.ends.note(indices, self.setting[indices], widths, measured, opening)
+            positions = (normalized + 1.0) / 2.0
+            self.ends.note(indices, self.setting[indices], widths, measured, opening, positions)
         reference = self.quality_ref[indices]
         first = measured & ~np.isfinite(reference)  # the episode's first measured width
         reference[first] = widths[first]

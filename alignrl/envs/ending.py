@@ -32,6 +32,7 @@ of the last change written to each knob (from the writes themselves: `wrote`).
 
 from __future__ import annotations
 
+import copy
 from typing import NamedTuple
 
 import numpy as np
@@ -69,7 +70,10 @@ class EpisodeEnds:
         self.approach = np.zeros((n, k))
         self.written = np.full((n, k), np.nan)
         self.readings: list[list[Noted]] = [[] for _ in range(n)]
-        self._posterior = None  # finish_at_posterior's FamilyPosterior, made on first use
+        # finish_at_posterior: per episode a FamilyPosterior fed every measured reading (made
+        # on first use), and its final() until the next reading
+        self._posteriors: list = [None] * n
+        self._best: list[tuple[float, float] | None] = [None] * n
 
     def restart(self, indices: np.ndarray, found: np.ndarray | None = None) -> None:
         """New episodes on `indices`: no side known; the knobs as `found` where the episode
@@ -108,17 +112,26 @@ class EpisodeEnds:
         widths: np.ndarray,
         measured: np.ndarray,
         opening: np.ndarray,
+        positions: np.ndarray,
     ) -> None:
-        """Readings of `indices` taken at `settings`; `opening`: the episode's first row (its
-        record starts afresh)."""
+        """Readings of `indices` taken at `settings` (`positions`: as fractions of the
+        intervals); `opening`: the episode's first row (its record starts afresh)."""
+        posterior = self.task.finish_at_posterior
         for position, index in enumerate(indices):
             if opening[position]:
                 self.readings[index] = []
+                if posterior:
+                    self._posterior(index).begin()
             if measured[position]:
                 self.readings[index].append(
                     Noted(settings[position].copy(), float(widths[position]),
                           self.approach[index].copy())
                 )  # fmt: skip
+                if posterior:
+                    self._posterior(index).observe(
+                        float(positions[position, 0]), float(widths[position])
+                    )
+            self._best[index] = None
 
     def narrowest(self, index: int) -> Noted | None:
         """Episode `index`'s narrowest reading (the first of equals); None where none was
@@ -135,27 +148,42 @@ class EpisodeEnds:
         readings = self.readings[index]
         if not readings:
             return None
+        if self.task.finish_at_posterior:
+            return np.array([low[0] + self.best(index)[0] * (high[0] - low[0])])
         settings = np.array([reading.setting[0] for reading in readings])
         widths = np.array([reading.width for reading in readings])
-        if self.task.finish_at_posterior:
-            return np.array([self._posterior_best(settings, widths, low[0], high[0])])
         optimum = bracketed_optimum(settings, widths, self.task.finish_window)
         return None if optimum is None else np.array([optimum])
 
-    def _posterior_best(self, settings: np.ndarray, widths: np.ndarray, low: float,
-                        high: float) -> float:  # fmt: skip
-        """The scale-free posterior's best setting (units) given readings at `settings`."""
-        if self._posterior is None:  # scipy's Sobol' and the box, on the first end
-            from alignrl.apparatus.family_posterior import SCALE_FREE, FamilyPosterior, focus_box
+    def best(self, index: int) -> tuple[float, float]:
+        """finish_at_posterior: the setting (a fraction of the interval) the posterior of
+        episode `index` holds most likely to pass, and that chance."""
+        if self._best[index] is None:
+            self._best[index] = self._posteriors[index].final()
+        return self._best[index]
 
-            self._posterior = FamilyPosterior(
-                focus_box(), spec_relative=self.task.success.relative, **SCALE_FREE
-            )
-        posterior = self._posterior
-        posterior.begin()
-        for setting, width in zip((settings - low) / (high - low), widths, strict=True):
-            posterior.observe(float(setting), float(width))
-        return low + posterior.final()[0] * (high - low)
+    def sure(self, index: int) -> bool:
+        """Whether episode `index`'s posterior best setting passes with Task.stop_when_sure."""
+        return bool(self.readings[index]) and self.best(index)[1] >= self.task.stop_when_sure
+
+    def _posterior(self, index: int):
+        """Episode `index`'s FamilyPosterior: the scale-free posterior over the focus training
+        box, made once (scipy's Sobol' and the box) and copied for every other slot (`begin`
+        gives each copy its own state)."""
+        if self._posteriors[index] is None:
+            made = next((each for each in self._posteriors if each is not None), None)
+            if made is None:
+                from alignrl.apparatus.family_posterior import (
+                    SCALE_FREE,
+                    FamilyPosterior,
+                    focus_box,
+                )
+
+                made = FamilyPosterior(
+                    focus_box(), spec_relative=self.task.success.relative, **SCALE_FREE
+                )
+            self._posteriors[index] = copy.copy(made)
+        return self._posteriors[index]
 
     def plan(
         self, index: int, setting: np.ndarray, low: np.ndarray, high: np.ndarray

@@ -52,6 +52,7 @@ ACTING_OPTIONS = (
     "backlash_overshoot",
     "finish_at_fit",
     "finish_at_posterior",
+    "stop_when_sure",
     "finish_window",
     "approach_from_below",
     "final_move",
@@ -221,6 +222,9 @@ class Task:
     # probes and stops, the posterior says where it ends. Focus tasks approached from below
     # (its reading model); a fraction of a second of computing per episode end.
     finish_at_posterior: bool = False
+    # With finish_at_posterior: an episode also ends (as a stop whose last move is 0) once
+    # that best setting passes with this probability; 0: only the policy stops.
+    stop_when_sure: float = 0.0
     finish_window: float = FINISH_WINDOW  # that fit takes the readings within this x the narrowest
     # Every setting a reading is taken at is reached from below, as a microscopist approaches
     # focus from one side: a step down first goes past its target by backlash_overshoot x the
@@ -311,6 +315,14 @@ class Task:
                 f"the task has stop_at_best={self.stop_at_best}, final_move={self.final_move}, "
                 f"knobs {', '.join(self.knobs)}, approach_from_below={self.approach_from_below}"
                 f" and finish_at_fit={self.finish_at_fit}"
+            )
+        if not 0.0 <= self.stop_when_sure < 1.0 or (
+            self.stop_when_sure and not self.finish_at_posterior
+        ):
+            raise ValueError(
+                f"task {self.name!r}: stop_when_sure is the chance, in [0, 1), at which the "
+                f"posterior of finish_at_posterior ends an episode; got {self.stop_when_sure} "
+                f"(finish_at_posterior={self.finish_at_posterior})"
             )
         if not 0.0 < self.final_move_reach <= 1.0 or (
             self.final_move_reach != 1.0 and not self.final_move
