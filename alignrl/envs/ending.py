@@ -1,5 +1,6 @@
 """Where alignment episodes end (alignrl/envs/core.py): the task options `stop_at_best`,
-`backlash_overshoot`, `finish_at_fit` and `finish_window` of alignrl/envs/task.py.
+`backlash_overshoot`, `finish_at_fit`, `finish_at_posterior`, `stop_when_sure` and
+`finish_window` of alignrl/envs/task.py.
 
 An episode that ends (stop, or the step limit) may leave its knobs where its last step took
 them (the seed), or go back:
@@ -11,7 +12,12 @@ them (the seed), or go back:
 
 With `final_move` the stopping action's own move ends the episode instead; with
 `finish_at_fit` too, that move starts from the fit's optimum where the readings bracket one
-(`fitted`): the policy says how far from the fit, not how far from where it stands.
+(`estimated`): the policy says how far from the fit, not how far from where it stands.
+
+With `finish_at_posterior` the fit's place is taken by the setting that a posterior over the
+focus training box (alignrl/apparatus/family_posterior.py, one per episode, fed every
+measured reading) holds most likely to pass; with `stop_when_sure` too, an episode also ends
+once that setting passes with the chance asked (`sure`).
 
 The way back arrives at every knob from the side the narrowest reading was approached from:
 where it would come from the other side it first goes past the target by
@@ -33,12 +39,15 @@ of the last change written to each knob (from the writes themselves: `wrote`).
 from __future__ import annotations
 
 import copy
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
 from alignrl.envs.fit_features import bracketed_optimum
 from alignrl.envs.task import Task
+
+if TYPE_CHECKING:  # made on first use: scipy's Sobol' and the box
+    from alignrl.apparatus.family_posterior import FamilyPosterior
 
 __all__ = ["EndPlan", "EpisodeEnds", "Noted"]
 
@@ -72,7 +81,7 @@ class EpisodeEnds:
         self.readings: list[list[Noted]] = [[] for _ in range(n)]
         # finish_at_posterior: per episode a FamilyPosterior fed every measured reading (made
         # on first use), and its final() until the next reading
-        self._posteriors: list = [None] * n
+        self._posteriors: list[FamilyPosterior | None] = [None] * n
         self._best: list[tuple[float, float] | None] = [None] * n
 
     def restart(self, indices: np.ndarray, found: np.ndarray | None = None) -> None:
@@ -166,7 +175,7 @@ class EpisodeEnds:
         """Whether episode `index`'s posterior best setting passes with Task.stop_when_sure."""
         return bool(self.readings[index]) and self.best(index)[1] >= self.task.stop_when_sure
 
-    def _posterior(self, index: int):
+    def _posterior(self, index: int) -> FamilyPosterior:
         """Episode `index`'s FamilyPosterior: the scale-free posterior over the focus training
         box, made once (scipy's Sobol' and the box) and copied for every other slot (`begin`
         gives each copy its own state)."""
