@@ -18,10 +18,9 @@ The policy acts exactly as trained (the same observations and actions); only wha
 once it stops changes (the task options stop_at_best, backlash_overshoot, finish_at_fit,
 finish_at_posterior and finish_window of alignrl/envs/task.py), and in the last two rows how
 it reaches each setting (approach_from_below: every reading from below, the backlash taken up
-before it). Every
-ending runs one session per instrument of the set on the same seeded columns and starts
-(alignrl.evaluation.instrument_sets). The held-out set is refused: this chooses a setting,
-and choices are made on validation only.
+before it). Every ending runs one session per instrument of the set on the same seeded
+columns and starts (alignrl.evaluation.instrument_sets). The held-out set is refused: this
+chooses a setting, and choices are made on validation only.
 """
 
 from __future__ import annotations

@@ -355,7 +355,8 @@ class AlignmentEpisodes:
         done = stop | (self.steps[indices] >= task.episode_steps)
         if task.stop_when_sure:  # the posterior is sure: a stop whose last move is 0
             sure = ~done & np.array([self.ends.sure(index) for index in indices], bool)
-            done, stop, actions[sure, : self.k] = done | sure, stop | sure, 0.0
+            done, stop = done | sure, stop | sure
+            actions[sure, : self.k] = 0.0
         finished = indices[done]
         if task.final_move and np.any(stop):
             hit_bound = self._move_last(indices[stop], actions[stop, : self.k])
@@ -562,12 +563,11 @@ class AlignmentEpisodes:
         layout = self.layout
         rows = np.zeros((len(indices), self.n_features), np.float32)
         rows[:, layout["valid"]] = 1.0
-        normalized = 2.0 * (self.setting[indices] - self.low[indices]) / self.span[indices] - 1.0
-        rows[:, layout["knobs"]] = np.clip(normalized, -1.0, 1.0)
+        positions = (self.setting[indices] - self.low[indices]) / self.span[indices]
+        rows[:, layout["knobs"]] = np.clip(2.0 * positions - 1.0, -1.0, 1.0)
         measured = np.isfinite(widths)
         if self.task.stop_at_best or self.task.ends_at_estimate:
             opening = self.steps[indices] == 0
-            positions = (normalized + 1.0) / 2.0
             self.ends.note(indices, self.setting[indices], widths, measured, opening, positions)
         reference = self.quality_ref[indices]
         first = measured & ~np.isfinite(reference)  # the episode's first measured width
