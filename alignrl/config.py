@@ -290,6 +290,7 @@ class TaskOptions(_Strict):
     finish_at_fit: bool | None = Field(None, description="way back to / last move from a fit")
     finish_at_posterior: bool | None = Field(None, description="as finish_at_fit: posterior")
     stop_when_sure: float | None = Field(None, ge=0, lt=1, description="posterior stops at")
+    posterior_draws: int | None = Field(None, ge=16, le=4096, description="posterior's columns")
     finish_window: float | None = Field(None, gt=1, description="finish fit: within x narrowest")
     approach_from_below: bool | None = Field(None, description="every reading reached from below")
     move_floor: float | None = Field(None, ge=0, le=0.2, description="least move, of the interval")

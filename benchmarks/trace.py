@@ -10,9 +10,10 @@ a line per step with the setting and its error (fractions of the interval), the 
 fit features where the policy has them (valid, step to the fit's optimum, log floor ratio)
 and the action (move in maximum steps, stop > 0); then where the episode left the column
 (its narrowest reading, or the fit's optimum: `finish_at_fit`) and the verification image
-taken there, which judges it as a session's does. Analytic readings (no images): the same
-column physics, seconds per instrument. The held-out set is refused: a diagnosis is a look
-at what went wrong, and the held-out set is only for reporting.
+taken there, which judges it as a session's does. Analytic readings (no images; the same
+column physics, seconds per instrument) unless --images (rendered frames measured as a
+session measures them). The held-out set is refused: a diagnosis is a look at what went
+wrong, and the held-out set is only for reporting.
 """
 
 from __future__ import annotations
@@ -30,10 +31,12 @@ from alignrl.envs.fit_features import FIT_FEATURES
 from alignrl.evaluation.session import verify_task
 
 
-def trace(policy_spec: str, instrument: str, episodes: int, seed: int) -> list[str]:
+def trace(
+    policy_spec: str, instrument: str, episodes: int, seed: int, images: bool = False
+) -> list[str]:
     policy = load_deployable(policy_spec)
     task = policy.task.for_acting()
-    column = make_apparatus(f"instrument:{instrument}", {"analytic": True})
+    column = make_apparatus(f"instrument:{instrument}", {"analytic": not images})
     engine = AlignmentEpisodes([column], task, policy.history)
     layout = feature_layout(len(task.knobs), task.extra_features)
     fit = slice(layout["extras"].stop - FIT_FEATURES, None) if task.fit_features else None
@@ -82,11 +85,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--instrument", required=True, help="a validation instrument's name")
     parser.add_argument("--episodes", type=int, default=6)
     parser.add_argument("--seed", type=int, default=100)
+    parser.add_argument("--images", action="store_true", help="rendered frames, not analytic")
     args = parser.parse_args(argv)
     if args.instrument in instrument_names(HELD_OUT_SET):
         print(f"{args.instrument} is held out: traces are for diagnosis", file=sys.stderr)
         return 2
-    print("\n".join(trace(args.policy, args.instrument, args.episodes, args.seed)))
+    print("\n".join(trace(args.policy, args.instrument, args.episodes, args.seed, args.images)))
     return 0
 
 

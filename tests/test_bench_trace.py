@@ -21,3 +21,13 @@ def test_a_trace_walks_each_episode_to_its_end() -> None:
 def test_a_held_out_instrument_is_refused(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["--policy", "champion:focus-v2", "--instrument", "near-bound"]) == 2
     assert "held out" in capsys.readouterr().err
+
+
+def test_images_measure_rendered_frames_instead_of_the_analytic_reading() -> None:
+    def first_reading(images: bool) -> str:
+        lines = trace("champion:focus-v2", "val-steep", episodes=1, seed=103, images=images)
+        return next(line for line in lines if line.startswith("  at ")).split(" read ")[1]
+
+    analytic, imaged = first_reading(False), first_reading(True)
+    assert analytic != imaged  # the same column and start, read two ways
+    assert float(imaged.split(" px")[0]) > 0

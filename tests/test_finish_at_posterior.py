@@ -131,3 +131,28 @@ def test_stopping_when_sure_needs_the_posterior_and_a_chance_below_one() -> None
         TaskOptions(stop_at_best=True, stop_when_sure=0.9).apply(get_task("focus"))
     with pytest.raises(ValueError, match="stop_when_sure"):
         _task(stop_at_best=True, stop_when_sure=1.0)
+
+
+def test_the_posterior_draws_as_many_columns_as_the_task_says() -> None:
+    """posterior_draws: the episode's posterior is one of that many columns, and its end is
+    what a FamilyPosterior of as many columns says of the same readings."""
+    task = _task(stop_at_best=True, posterior_draws=64)
+    episodes, slot, unit = _walked(task)
+    assert episodes.ends._posterior(0).models.count == 64
+    posterior = FamilyPosterior(focus_box(), draws=64, **SCALE_FREE)
+    posterior.begin()
+    low, span = float(episodes.low[0, 0]), float(episodes.span[0, 0])
+    for reading in episodes.ends.readings[0]:
+        posterior.observe((float(reading.setting[0]) - low) / span, reading.width)
+    episodes.step(slot, np.array([[0.0, 1.0]]))
+    assert float(unit.read()["defocus"]) == pytest.approx(low + posterior.final()[0] * span)
+    assert float(unit.read()["defocus"]) != pytest.approx(_posterior_best(episodes))
+
+
+def test_posterior_draws_needs_the_posterior_and_a_sane_count() -> None:
+    with pytest.raises(ValueError, match="posterior_draws"):
+        TaskOptions(stop_at_best=True, posterior_draws=1024).apply(get_task("focus"))
+    with pytest.raises(ValueError, match="posterior_draws"):
+        _task(stop_at_best=True, posterior_draws=8)
+    with pytest.raises(ValueError, match="posterior_draws"):
+        TaskOptions(posterior_draws=10_000)

@@ -189,7 +189,10 @@ class EpisodeEnds:
                 )
 
                 made = FamilyPosterior(
-                    focus_box(), spec_relative=self.task.success.relative, **SCALE_FREE
+                    focus_box(),
+                    spec_relative=self.task.success.relative,
+                    draws=self.task.posterior_draws,
+                    **SCALE_FREE,
                 )
             self._posteriors[index] = copy.copy(made)
         return self._posteriors[index]

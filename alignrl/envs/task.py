@@ -53,11 +53,14 @@ ACTING_OPTIONS = (
     "finish_at_fit",
     "finish_at_posterior",
     "stop_when_sure",
+    "posterior_draws",
     "finish_window",
     "approach_from_below",
     "final_move",
     "final_move_reach",
 )
+# The posterior of finish_at_posterior: the columns it draws (FamilyPosterior.draws)
+POSTERIOR_DRAWS, MIN_POSTERIOR_DRAWS, MAX_POSTERIOR_DRAWS = 256, 16, 4096
 MAX_MOVE_FLOOR = 0.2  # a share of the interval: beyond it no column could be brought to focus
 
 
@@ -225,6 +228,10 @@ class Task:
     # With finish_at_posterior: an episode also ends (as a stop whose last move is 0) once
     # that best setting passes with this probability; 0: only the policy stops.
     stop_when_sure: float = 0.0
+    # With finish_at_posterior: the columns that posterior draws from the box (and draws
+    # again around the likely ones as readings come): more columns, a chance nearer the truth
+    # where few readings are near focus, at a computing cost in proportion.
+    posterior_draws: int = POSTERIOR_DRAWS
     finish_window: float = FINISH_WINDOW  # that fit takes the readings within this x the narrowest
     # Every setting a reading is taken at is reached from below, as a microscopist approaches
     # focus from one side: a step down first goes past its target by backlash_overshoot x the
@@ -323,6 +330,14 @@ class Task:
                 f"task {self.name!r}: stop_when_sure is the chance, in [0, 1), at which the "
                 f"posterior of finish_at_posterior ends an episode; got {self.stop_when_sure} "
                 f"(finish_at_posterior={self.finish_at_posterior})"
+            )
+        if not MIN_POSTERIOR_DRAWS <= self.posterior_draws <= MAX_POSTERIOR_DRAWS or (
+            self.posterior_draws != POSTERIOR_DRAWS and not self.finish_at_posterior
+        ):
+            raise ValueError(
+                f"task {self.name!r}: posterior_draws is how many columns the posterior of "
+                f"finish_at_posterior draws, {MIN_POSTERIOR_DRAWS}-{MAX_POSTERIOR_DRAWS}; got "
+                f"{self.posterior_draws} (finish_at_posterior={self.finish_at_posterior})"
             )
         if not 0.0 < self.final_move_reach <= 1.0 or (
             self.final_move_reach != 1.0 and not self.final_move
