@@ -354,7 +354,7 @@ def test_the_registry_names_each_task_s_baselines() -> None:
     }
     baselines = {name for names in TASK_BASELINES.values() for name in names}
     # the model-based ones run by name only
-    assert set(CLASSICAL) == baselines | {"posterior", "posterior-scale-free"}
+    assert set(CLASSICAL) == baselines | {"posterior", "posterior-scale-free", "posterior-robust"}
     with pytest.raises(ValueError, match="no classical controllers for task 'astigmatism'"):
         task_baselines("astigmatism")
     for make, field in ((StigmatorSearch, "shrink"), (WobbleCenter, "target_fraction")):

@@ -253,15 +253,48 @@ def test_a_widened_box_holds_the_box_within_what_the_family_allows():
         widened(box, -0.1)
 
 
-@pytest.mark.parametrize("name", ["posterior", "posterior-scale-free"])
+@pytest.mark.parametrize("name", ["posterior", "posterior-scale-free", "posterior-robust"])
 def test_evaluate_runs_the_family_posterior_by_name(
     name: str, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    """`alignrl evaluate --policy posterior` (or posterior-scale-free): the posterior over
-    the training box, on a validation instrument it was never given the file of."""
+    """`alignrl evaluate --policy posterior` (or posterior-scale-free, posterior-robust): the
+    posterior over the training box, on a validation instrument it was never given the file
+    of."""
     argv = ["evaluate", "--policy", name, "--apparatus", "instrument:val-mid"]
     args = ["--apparatus-args", '{"analytic": true}', "--scenarios", "4", "--json", "--quiet"]
     assert main([*argv, *args]) == 0
     report = json.loads(capsys.readouterr().out)
     assert report["controller"] == name and report["task"] == "focus"
     assert report["successes"] >= 3 and report["median_acquisitions"] <= 5
+
+
+def test_far_noise_widens_the_spread_with_the_distance_from_focus_only():
+    family = _instrument("val-steep")
+    plain = ColumnModels.of(family, draws=1, seed=0, model_noise=0.03)
+    far = ColumnModels.of(family, draws=1, seed=0, model_noise=0.03, far_noise=0.1)
+    errors = np.array([[[0.0, 0.01, 0.05, 0.2]]])
+    _, mean, spread = plain.reading(errors, np.zeros((1, 1, 1)))
+    _, far_mean, far_spread = far.reading(errors, np.zeros((1, 1, 1)))
+    assert np.array_equal(mean, far_mean)
+    assert far_spread.ravel()[0] == pytest.approx(spread.ravel()[0])  # in focus: as before
+    ratio = (far_spread / spread).ravel()
+    assert np.all(np.diff(ratio) > 0) and ratio[-1] > 2  # the farther, the wider
+
+
+def test_far_noise_keeps_two_far_readings_from_making_the_posterior_sure():
+    """Two readings far below focus whose order is the wrong way round (on images, a grid
+    blurred past its pitch reads narrower as it blurs more): without far_noise the oracle of
+    val-steep is sure that focus lies below both and would end there unseen; with it, it
+    probes on."""
+    family = _instrument("val-steep")
+    decisions = {}
+    for far_noise in (0.0, 0.1):
+        posterior = PosteriorFocus(family, far_noise=far_noise)
+        posterior.begin()
+        for setting, reading in [(0.907, math.nan), (0.0414, 11.83), (0.0897, 19.81)]:
+            posterior.observe(setting, reading)
+        decisions[far_noise] = (posterior.final()[1], posterior.decide()[1])
+    assert decisions[0.0][0] > 0.99 and decisions[0.0][1]
+    assert decisions[0.1][0] < 0.9 and not decisions[0.1][1]
+    with pytest.raises(ValueError, match="far_noise"):
+        PosteriorFocus(family, far_noise=-0.1)

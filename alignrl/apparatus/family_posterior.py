@@ -161,9 +161,12 @@ class ColumnModels:
     lag: np.ndarray
     rows: np.ndarray  # (K, len(PAIR_FIELDS)): where in the box each column lies
     model_noise: float = 0.01
+    far_noise: float = 0.0
 
     @classmethod
-    def of(cls, family: FocusFamily, draws: int, seed: int, model_noise: float) -> ColumnModels:
+    def of(
+        cls, family: FocusFamily, draws: int, seed: int, model_noise: float, far_noise: float = 0.0
+    ) -> ColumnModels:
         """One model where `family` is a single column in every parameter the readings
         depend on; else `draws` columns drawn from it: a scrambled Sobol' sequence over the
         box's fractions (generator `seed`), which spreads them over every parameter's range
@@ -172,17 +175,21 @@ class ColumnModels:
             getattr(family, name)[0] == getattr(family, name)[1] for name in _FAMILY_NAMES.values()
         )
         rows = qmc.Sobol(len(PAIR_FIELDS), scramble=True, seed=seed).random(1 if single else draws)
-        return cls.at(family, rows, model_noise)
+        return cls.at(family, rows, model_noise, far_noise)
 
     @classmethod
-    def at(cls, family: FocusFamily, rows: np.ndarray, model_noise: float) -> ColumnModels:
+    def at(
+        cls, family: FocusFamily, rows: np.ndarray, model_noise: float, far_noise: float = 0.0
+    ) -> ColumnModels:
         """The columns at `rows` (K, len(PAIR_FIELDS)) of fractions of the box (column_at)."""
         columns = [column_at(family, dict(zip(PAIR_FIELDS, row, strict=True)), 0) for row in rows]
         values = {
             name: np.array([getattr(draw, attribute) for draw in columns], float)[:, None, None]
             for name, attribute in _FAMILY_NAMES.items()
         }
-        return cls(**values, rows=np.asarray(rows, float), model_noise=model_noise)
+        return cls(
+            **values, rows=np.asarray(rows, float), model_noise=model_noise, far_noise=far_noise
+        )
 
     @property
     def count(self) -> int:
@@ -207,16 +214,21 @@ class ColumnModels:
         """At focus errors `error` (fractions) and specimen scales `scale` (the log of the
         specimen's factor): the chance of a frame without edges, the mean reading and its
         spread (px), broadcast against the parameters. The spread has the model's noise and
-        `model_noise` x the mean more: what the model does not know of a real column."""
+        `model_noise` x the mean more: what the model does not know of a real column; and
+        `far_noise` x log(mean / the in-focus reading) x the mean: far from focus a measured
+        edge width tells less of the blur than the model says (on a specimen whose features
+        are a few blur widths across the readings level off early and fall again)."""
         true = TEN_NINETY_PER_SIGMA * focus_sigma_px(
             error, self.gain, self.floor, self.power, self.flat, self.asymmetry
         )
         spread_px = NO_EDGES_SPREAD * self.no_edges
         none = 0.5 * (1.0 + np.tanh(0.5 * (true - self.no_edges) / spread_px))
-        mean = levelled_px(true, self.saturation) * np.exp(scale)
-        spread = np.sqrt(
-            (mean * self.noise_rel) ** 2 + self.noise_px**2 + (self.model_noise * mean) ** 2
-        )
+        levelled = levelled_px(true, self.saturation)
+        mean = levelled * np.exp(scale)
+        relative = self.model_noise**2
+        if self.far_noise:
+            relative = relative + (self.far_noise * np.log(levelled / self.best_px())) ** 2
+        spread = np.sqrt((mean * self.noise_rel) ** 2 + self.noise_px**2 + relative * mean**2)
         return none, mean, spread
 
 
@@ -277,6 +289,8 @@ class FamilyPosterior:
     # knows of a column whose focus has moved)
     optimum_prior: str = "interval"
     model_noise: float = 0.03  # spread of a reading beyond the model's, x its mean
+    # and far from focus this x log(the reading / the in-focus one) more (ColumnModels.reading)
+    far_noise: float = 0.0
     # where the readings leave fewer than this share of the columns' weight effective, the
     # columns are drawn again around the likely ones (jittered by `jitter` of the box's
     # ranges) and every reading so far is weighed again on them
@@ -298,7 +312,11 @@ class FamilyPosterior:
             raise ValueError("draws, specimen_points and max_acquisitions must be at least 1")
         if self.optimum_prior not in ("box", "interval"):
             raise ValueError(f"optimum_prior must be box or interval, got {self.optimum_prior!r}")
-        self.models = ColumnModels.of(self.family, self.draws, self.seed, self.model_noise)
+        if not (math.isfinite(self.far_noise) and self.far_noise >= 0.0):
+            raise ValueError(f"far_noise must be a finite share >= 0, got {self.far_noise}")
+        self.models = ColumnModels.of(
+            self.family, self.draws, self.seed, self.model_noise, self.far_noise
+        )
         self._initial = self.models
         low, high = self.family.optimum_fraction if self.optimum_prior == "box" else (0.0, 1.0)
         spacing = float(min(self.models.spec_half_width(self.spec_relative).min(),
@@ -404,7 +422,9 @@ class FamilyPosterior:
         rows = self.models.rows[picks] + self.jitter * rng.standard_normal(
             self.models.rows[picks].shape
         )
-        self.models = ColumnModels.at(self.family, np.clip(rows, 0.0, 1.0), self.model_noise)
+        self.models = ColumnModels.at(
+            self.family, np.clip(rows, 0.0, 1.0), self.model_noise, self.far_noise
+        )
         posterior = self._prior.copy()
         if self._scale is not None:
             self._scale = _ScaleSums.empty(self._prior.shape)

@@ -573,12 +573,19 @@ def _posterior_scale_free() -> Controller:
     return family_posterior(scale_free=True)
 
 
+def _posterior_robust() -> Controller:
+    from alignrl.evaluation.posterior import family_posterior
+
+    return family_posterior(robust=True)
+
+
 # Controllers that know the focus family's model (alignrl/evaluation/posterior.py): run by
 # name like the classical ones (`alignrl evaluate --policy posterior`), but not among a
 # task's baselines, at seconds of computing per alignment.
 MODEL_BASED: dict[str, Callable[[], Controller]] = {
     "posterior": _posterior,
     "posterior-scale-free": _posterior_scale_free,
+    "posterior-robust": _posterior_robust,
 }
 
 CLASSICAL: dict[str, Callable[[], Controller | TaskController]] = {
