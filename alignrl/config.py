@@ -290,6 +290,7 @@ class TaskOptions(_Strict):
     finish_at_fit: bool | None = Field(None, description="way back to / last move from a fit")
     finish_at_posterior: bool | None = Field(None, description="as finish_at_fit: posterior")
     stop_when_sure: float | None = Field(None, ge=0, lt=1, description="posterior stops at")
+    probe_until_sure: float | None = Field(None, ge=0, lt=1, description="stop taken from")
     posterior_draws: int | None = Field(None, ge=16, le=4096, description="posterior's columns")
     finish_window: float | None = Field(None, gt=1, description="finish fit: within x narrowest")
     approach_from_below: bool | None = Field(None, description="every reading reached from below")
@@ -368,8 +369,7 @@ class Provenance(_Strict):
 
 class RunConfig(_Strict):
     """What every run names: where it lives, its seed, the apparatus it trains and is judged
-    on, the task, the history, and the torch settings. Training experiments and leagues add
-    their own keys."""
+    on, the task, the history, the torch settings; experiments and leagues add their keys."""
 
     name: str = Field("experiment", min_length=1, description="run name (runs/<name>/)")
     seed: Count = Field(

@@ -156,3 +156,37 @@ def test_posterior_draws_needs_the_posterior_and_a_sane_count() -> None:
         _task(stop_at_best=True, posterior_draws=8)
     with pytest.raises(ValueError, match="posterior_draws"):
         TaskOptions(posterior_draws=10_000)
+
+
+def test_an_unsure_posterior_turns_a_stop_into_a_reading_where_it_would_probe() -> None:
+    """probe_until_sure: a policy that stops at once reads where its posterior would probe
+    next, again and again, until that posterior is sure enough (or the steps run out); then
+    the stop is taken and ends at the posterior's best setting."""
+    task = _task(stop_at_best=True, probe_until_sure=0.9)
+    episodes, slot, unit = _started(task)
+    stop = np.array([[0.0, 1.0]])
+    low, span = float(episodes.low[0, 0]), float(episodes.span[0, 0])
+    probes = 0
+    while episodes.active[0] and episodes.ends.best(0)[1] < 0.9:
+        expected = low + episodes.ends._posterior(0).probe() * span
+        episodes.step(slot, stop)
+        probes += 1
+        if episodes.active[0]:  # a reading there, and the episode goes on
+            assert float(episodes.setting[0, 0]) == pytest.approx(expected)
+            assert episodes.acquisitions[0] == 1 + probes
+    assert 2 <= probes < task.episode_steps  # sure before the step limit
+    if episodes.active[0]:
+        acquisitions = int(episodes.acquisitions[0])
+        assert episodes.step(slot, stop)[1][0]  # sure now: the stop is taken, no image
+        assert episodes.acquisitions[0] == acquisitions
+    assert episodes.ends.best(0)[1] >= 0.9
+    assert float(unit.read()["defocus"]) == pytest.approx(_posterior_best(episodes))
+    plain, slot, _ = _started(_task(stop_at_best=True))
+    assert plain.step(slot, stop)[1][0]  # without it, the same stop ends the episode
+
+
+def test_probing_until_sure_needs_the_posterior_and_a_chance_below_one() -> None:
+    with pytest.raises(ValueError, match="probe_until_sure"):
+        TaskOptions(stop_at_best=True, probe_until_sure=0.9).apply(get_task("focus"))
+    with pytest.raises(ValueError, match="probe_until_sure"):
+        _task(stop_at_best=True, probe_until_sure=1.0)

@@ -359,7 +359,11 @@ class FamilyPosterior:
         setting, chance = self._final(self._posterior)
         if chance >= self.confidence:
             return setting, True
-        return self._next_probe(self._posterior), False
+        return self.probe(), False
+
+    def probe(self) -> float:
+        """Where the next reading leaves the least expected variance of the optimum."""
+        return self._next_probe(self._posterior)
 
     def final(self) -> tuple[float, float]:
         """The setting most likely to pass the verification now, and that chance."""

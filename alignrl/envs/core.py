@@ -334,6 +334,8 @@ class AlignmentEpisodes:
         if not np.all(self.active[indices]):
             raise RuntimeError("step called on an episode that has ended: reset it first")
         stop = actions[:, self.k] > 0
+        probes = self.ends.probes(indices[stop], self.low, self.high)  # probe_until_sure
+        stop &= ~np.isin(indices, list(probes))
         reward = np.zeros(len(indices))
         moving = indices[~stop]
         if moving.size:
@@ -341,6 +343,8 @@ class AlignmentEpisodes:
                 actions[~stop, : self.k], self.max_step[moving], self.span[moving]
             )
             target = self.setting[moving] + change
+            for position in np.flatnonzero(np.isin(moving, list(probes))):
+                target[position] = probes[int(moving[position])]
             clipped = np.clip(target, self.low[moving], self.high[moving])
             hit_bound = np.any(clipped != target, axis=1)
             reward[~stop] += rewards.bound_penalty(hit_bound, task.out_of_bounds_penalty)
@@ -387,9 +391,8 @@ class AlignmentEpisodes:
 
     def stop_origins(self, indices: np.ndarray) -> np.ndarray:
         """(len(indices), k), units: where a stopping action's move starts (Task.final_move):
-        with finish_at_fit, the fitted optimum where the readings bracket one (with
-        finish_at_posterior, the posterior's best setting); else (and elsewhere) the present
-        setting."""
+        with finish_at_fit, the fitted optimum where the readings bracket one, with
+        finish_at_posterior the posterior's best setting; else the present setting."""
         origins = self.setting[indices].copy()
         if not self.task.ends_at_estimate:
             return origins

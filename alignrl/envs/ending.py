@@ -175,6 +175,20 @@ class EpisodeEnds:
         """Whether episode `index`'s posterior best setting passes with Task.stop_when_sure."""
         return bool(self.readings[index]) and self.best(index)[1] >= self.task.stop_when_sure
 
+    def probes(self, indices: np.ndarray, low: np.ndarray, high: np.ndarray) -> dict[int, float]:
+        """Task.probe_until_sure: of the stopping episodes `indices`, those whose posterior
+        is not yet that sure of its best setting, each with where its posterior would read
+        next (the knob's units; `low`, `high`: every episode's interval); none without it.
+        The step takes that reading in place of the stop."""
+        sure = self.task.probe_until_sure
+        if not sure:
+            return {}
+        unsure = [i for i in indices if self.readings[i] and self.best(i)[1] < sure]
+        return {
+            int(i): float(low[i, 0] + self._posteriors[i].probe() * (high[i, 0] - low[i, 0]))
+            for i in unsure
+        }
+
     def _posterior(self, index: int) -> FamilyPosterior:
         """Episode `index`'s FamilyPosterior: the scale-free posterior over the focus training
         box, made once (scipy's Sobol' and the box) and copied for every other slot (`begin`

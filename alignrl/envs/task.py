@@ -53,6 +53,7 @@ ACTING_OPTIONS = (
     "finish_at_fit",
     "finish_at_posterior",
     "stop_when_sure",
+    "probe_until_sure",
     "posterior_draws",
     "finish_window",
     "approach_from_below",
@@ -228,6 +229,10 @@ class Task:
     # With finish_at_posterior: an episode also ends (as a stop whose last move is 0) once
     # that best setting passes with this probability; 0: only the policy stops.
     stop_when_sure: float = 0.0
+    # With finish_at_posterior: a stop is taken only once that best setting passes with this
+    # probability; before, the stopping action reads once more where the posterior would
+    # probe next (and the policy acts on); 0: every stop is taken.
+    probe_until_sure: float = 0.0
     # With finish_at_posterior: the columns that posterior draws from the box (and draws
     # again around the likely ones as readings come): more columns, a chance nearer the truth
     # where few readings are near focus, at a computing cost in proportion.
@@ -330,6 +335,14 @@ class Task:
                 f"task {self.name!r}: stop_when_sure is the chance, in [0, 1), at which the "
                 f"posterior of finish_at_posterior ends an episode; got {self.stop_when_sure} "
                 f"(finish_at_posterior={self.finish_at_posterior})"
+            )
+        if not 0.0 <= self.probe_until_sure < 1.0 or (
+            self.probe_until_sure and not self.finish_at_posterior
+        ):
+            raise ValueError(
+                f"task {self.name!r}: probe_until_sure is the chance, in [0, 1), the posterior "
+                f"of finish_at_posterior must give its best setting before a stop is taken; "
+                f"got {self.probe_until_sure} (finish_at_posterior={self.finish_at_posterior})"
             )
         if not MIN_POSTERIOR_DRAWS <= self.posterior_draws <= MAX_POSTERIOR_DRAWS or (
             self.posterior_draws != POSTERIOR_DRAWS and not self.finish_at_posterior
