@@ -73,7 +73,8 @@ class PosteriorFocus(FamilyPosterior):
 # setting that a wider choice of curves would doubt: on val-steep, analytic, 60 alignments,
 # seed 3,000,000, 48/60 at 5 acquisitions against 57/60 at 5 with 1024), and readings far
 # from focus trusted less (images: 37/60 at 6; 1024 columns 44/60 at 6; and far_noise 0.1
-# 51/60 at 7).
+# 51/60 at 7). Over set:validation (images, 100 per instrument, seed 3,000,000): 584/600 at
+# 5 (docs/benchmarks.md, "Where the posterior is too sure").
 ROBUST = {**SCALE_FREE, "draws": 1024, "far_noise": 0.1}
 
 
