@@ -31,7 +31,7 @@ import sys
 
 from alignrl.apparatus.instruments import HELD_OUT_SET
 from alignrl.deploy.policy import load_deployable
-from alignrl.envs.task import MAX_MOVE_FLOOR, Task, get_task
+from alignrl.envs.task import MAX_MOVE_FLOOR, POSTERIOR_DRAWS, Task, get_task
 from alignrl.evaluation.controllers import PolicyController
 from alignrl.evaluation.instrument_sets import run_set, set_summary, set_table
 
@@ -42,7 +42,7 @@ def floors(task: Task, values: list[float], below: bool = False) -> list[tuple[s
     posterior (whose reading model needs them from below) ends at the fit instead)."""
     label = ", every reading from below" if below else ""
     if not below and task.finish_at_posterior:
-        task = dataclasses.replace(task, finish_at_posterior=False, finish_at_fit=True)
+        task = dataclasses.replace(without_posterior(task), finish_at_fit=True)
     return [
         (
             f"moves at least {v:g}{label}",
@@ -52,11 +52,22 @@ def floors(task: Task, values: list[float], below: bool = False) -> list[tuple[s
     ]
 
 
-def endings(task: Task, windows: list[float]) -> list[tuple[str, Task]]:
-    """(label, the policy's task with that ending) for every ending compared."""
-    plain = dataclasses.replace(
-        task, finish_at_fit=False, finish_at_posterior=False, stop_at_best=True
+def without_posterior(task: Task) -> Task:
+    """`task` ending anywhere but at the posterior: finish_at_posterior and the options that
+    ask that posterior (stop_when_sure, probe_until_sure, posterior_draws) at their defaults."""
+    return dataclasses.replace(
+        task,
+        finish_at_posterior=False,
+        stop_when_sure=0.0,
+        probe_until_sure=0.0,
+        posterior_draws=POSTERIOR_DRAWS,
     )
+
+
+def endings(task: Task, windows: list[float]) -> list[tuple[str, Task]]:
+    """(label, the policy's task with that ending) for every ending compared; the ending at
+    the posterior takes every stop as the policy asks (no probe_until_sure)."""
+    plain = dataclasses.replace(without_posterior(task), finish_at_fit=False, stop_at_best=True)
     fitted = dataclasses.replace(plain, finish_at_fit=True)
     return [
         ("as trained", task),

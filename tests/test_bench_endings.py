@@ -69,3 +69,24 @@ def test_floor_rows_change_only_how_far_each_move_goes(
 def test_the_held_out_set_is_refused(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["--policy", "champion:focus-v2", "--set", "heldout"]) == 2
     assert "held out" in capsys.readouterr().err
+
+
+def test_the_posteriors_options_leave_with_it() -> None:
+    """A policy that asks its posterior more (the shipped champion's probe_until_sure) is
+    compared with endings that ask none, and the ending at the posterior takes every stop."""
+    from alignrl.config import TaskOptions
+
+    trained = TaskOptions(
+        approach_from_below=True, stop_at_best=True, finish_at_posterior=True,
+        probe_until_sure=0.9, posterior_draws=64,
+    ).apply(get_task("focus"))  # fmt: skip
+    compared = dict(endings(trained, [3.0]))
+    assert compared["as trained"] is trained
+    for label in ("narrowest", "fit within 3x", "at the posterior, every reading from below"):
+        task = compared[label]
+        assert (task.probe_until_sure, task.stop_when_sure, task.posterior_draws) == (0, 0, 256)
+    assert compared["at the posterior, every reading from below"].finish_at_posterior
+    assert not compared["fit within 3x"].finish_at_posterior
+    ((_, fitted),) = floors(trained, [0.02])
+    assert fitted.finish_at_fit and not fitted.finish_at_posterior
+    assert fitted.probe_until_sure == 0
