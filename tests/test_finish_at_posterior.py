@@ -167,18 +167,17 @@ def test_an_unsure_posterior_turns_a_stop_into_a_reading_where_it_would_probe() 
     stop = np.array([[0.0, 1.0]])
     low, span = float(episodes.low[0, 0]), float(episodes.span[0, 0])
     probes = 0
-    while episodes.active[0] and episodes.ends.best(0)[1] < 0.9:
+    while episodes.ends.best(0)[1] < 0.9:
         expected = low + episodes.ends._posterior(0).probe() * span
         episodes.step(slot, stop)
         probes += 1
-        if episodes.active[0]:  # a reading there, and the episode goes on
-            assert float(episodes.setting[0, 0]) == pytest.approx(expected)
-            assert episodes.acquisitions[0] == 1 + probes
+        assert episodes.active[0]  # a reading there, and the episode goes on
+        assert float(episodes.setting[0, 0]) == pytest.approx(expected)
+        assert episodes.acquisitions[0] == 1 + probes
     assert 2 <= probes < task.episode_steps  # sure before the step limit
-    if episodes.active[0]:
-        acquisitions = int(episodes.acquisitions[0])
-        assert episodes.step(slot, stop)[1][0]  # sure now: the stop is taken, no image
-        assert episodes.acquisitions[0] == acquisitions
+    acquisitions = int(episodes.acquisitions[0])
+    assert episodes.step(slot, stop)[1][0]  # sure now: the stop is taken, no image
+    assert episodes.acquisitions[0] == acquisitions
     assert episodes.ends.best(0)[1] >= 0.9
     assert float(unit.read()["defocus"]) == pytest.approx(_posterior_best(episodes))
     plain, slot, _ = _started(_task(stop_at_best=True))

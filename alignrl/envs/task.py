@@ -328,22 +328,17 @@ class Task:
                 f"knobs {', '.join(self.knobs)}, approach_from_below={self.approach_from_below}"
                 f" and finish_at_fit={self.finish_at_fit}"
             )
-        if not 0.0 <= self.stop_when_sure < 1.0 or (
-            self.stop_when_sure and not self.finish_at_posterior
+        for option, meaning in (
+            ("stop_when_sure", "at which it ends an episode"),
+            ("probe_until_sure", "it must give its best setting before a stop is taken"),
         ):
-            raise ValueError(
-                f"task {self.name!r}: stop_when_sure is the chance, in [0, 1), at which the "
-                f"posterior of finish_at_posterior ends an episode; got {self.stop_when_sure} "
-                f"(finish_at_posterior={self.finish_at_posterior})"
-            )
-        if not 0.0 <= self.probe_until_sure < 1.0 or (
-            self.probe_until_sure and not self.finish_at_posterior
-        ):
-            raise ValueError(
-                f"task {self.name!r}: probe_until_sure is the chance, in [0, 1), the posterior "
-                f"of finish_at_posterior must give its best setting before a stop is taken; "
-                f"got {self.probe_until_sure} (finish_at_posterior={self.finish_at_posterior})"
-            )
+            chance = getattr(self, option)
+            if not 0.0 <= chance < 1.0 or (chance and not self.finish_at_posterior):
+                raise ValueError(
+                    f"task {self.name!r}: {option} is the chance, in [0, 1), {meaning} by the "
+                    f"posterior of finish_at_posterior; got {chance} "
+                    f"(finish_at_posterior={self.finish_at_posterior})"
+                )
         if not MIN_POSTERIOR_DRAWS <= self.posterior_draws <= MAX_POSTERIOR_DRAWS or (
             self.posterior_draws != POSTERIOR_DRAWS and not self.finish_at_posterior
         ):
