@@ -6,6 +6,7 @@ code derives new values into new objects, never edits a loaded config."""
 
 from __future__ import annotations
 
+import dataclasses
 import numbers
 import re
 from collections.abc import Sequence
@@ -292,6 +293,9 @@ class TaskOptions(_Strict):
     stop_when_sure: float | None = Field(None, ge=0, lt=1, description="posterior stops at")
     probe_until_sure: float | None = Field(None, ge=0, lt=1, description="stop taken from")
     posterior_draws: int | None = Field(None, ge=16, le=4096, description="posterior's columns")
+    posterior_far_noise: float | None = Field(None, ge=0, le=1, description="posterior's far_noise")
+    posterior_walk_after: int | None = Field(None, ge=0, le=100, description="posterior walks from")
+    posterior_no_edges: bool | None = Field(None, description="posterior reads no-edge frames")
     finish_window: float | None = Field(None, gt=1, description="finish fit: within x narrowest")
     approach_from_below: bool | None = Field(None, description="every reading reached from below")
     move_floor: float | None = Field(None, ge=0, le=0.2, description="least move, of the interval")
@@ -306,19 +310,14 @@ class TaskOptions(_Strict):
 
     def apply(self, task: Any) -> Any:
         """The task with these changes (a new object; the registry's task is untouched)."""
-        import dataclasses
-
         changes = {
             name: value
             for name, value in self.model_dump().items()
             if value is not None and name not in ("success_relative", "success_absolute_px")
         }
-        for name, measure in (
-            ("directional_relative", "directional"),
-            ("wobble_amplitude_v", "wobble"),
-            ("wobble_spec_px", "wobble"),
-            ("wobble_weight", "wobble"),
-        ):
+        measured_by = {"directional_relative": "directional", "wobble_amplitude_v": "wobble",
+                       "wobble_spec_px": "wobble", "wobble_weight": "wobble"}  # fmt: skip
+        for name, measure in measured_by.items():
             if changes.get(name) is not None and measure not in task.measures:
                 raise ValueError(
                     f"task_options.{name}: task {task.name!r} takes no {measure} measure "

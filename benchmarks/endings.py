@@ -31,7 +31,7 @@ import sys
 
 from alignrl.apparatus.instruments import HELD_OUT_SET
 from alignrl.deploy.policy import load_deployable
-from alignrl.envs.task import MAX_MOVE_FLOOR, POSTERIOR_DRAWS, Task, get_task
+from alignrl.envs.task import MAX_MOVE_FLOOR, POSTERIOR_OPTIONS, Task, get_task
 from alignrl.evaluation.controllers import PolicyController
 from alignrl.evaluation.instrument_sets import run_set, set_summary, set_table
 
@@ -54,14 +54,8 @@ def floors(task: Task, values: list[float], below: bool = False) -> list[tuple[s
 
 def without_posterior(task: Task) -> Task:
     """`task` ending anywhere but at the posterior: finish_at_posterior and the options that
-    ask that posterior (stop_when_sure, probe_until_sure, posterior_draws) at their defaults."""
-    return dataclasses.replace(
-        task,
-        finish_at_posterior=False,
-        stop_when_sure=0.0,
-        probe_until_sure=0.0,
-        posterior_draws=POSTERIOR_DRAWS,
-    )
+    ask that posterior (alignrl/envs/task.py, POSTERIOR_OPTIONS) at their defaults."""
+    return dataclasses.replace(task, finish_at_posterior=False, **POSTERIOR_OPTIONS)
 
 
 def endings(task: Task, windows: list[float]) -> list[tuple[str, Task]]:

@@ -189,3 +189,80 @@ def test_probing_until_sure_needs_the_posterior_and_a_chance_below_one() -> None
         TaskOptions(stop_at_best=True, probe_until_sure=0.9).apply(get_task("focus"))
     with pytest.raises(ValueError, match="probe_until_sure"):
         _task(stop_at_best=True, probe_until_sure=1.0)
+
+
+def test_the_posterior_walks_from_the_reading_the_task_says() -> None:
+    """posterior_walk_after N: the policy's moves are taken for the first N readings (the
+    opening one counts); from then on every reading is where the posterior would probe next,
+    whatever the policy asks, and a stop still ends the episode at the posterior's best."""
+    task = _task(stop_at_best=True, posterior_walk_after=3)
+    episodes, slot, unit = _started(task)
+    low, span = float(episodes.low[0, 0]), float(episodes.span[0, 0])
+    asked = np.array([[0.9, -1.0]])  # far up, every time
+    for _ in range(2):  # readings 2 and 3: where the policy asks
+        before = float(episodes.setting[0, 0])
+        episodes.step(slot, asked)
+        assert float(episodes.setting[0, 0]) > before
+    settings = []
+    for _ in range(3):  # readings 4 to 6: where the posterior would probe
+        expected = low + episodes.ends._posterior(0).probe() * span
+        episodes.step(slot, asked)
+        settings.append(float(episodes.setting[0, 0]))
+        assert settings[-1] == pytest.approx(expected)
+    assert episodes.acquisitions[0] == 6
+    policy_walk, _, _ = _started(_task(stop_at_best=True))
+    for _ in range(5):
+        policy_walk.step(slot, asked)
+    assert float(policy_walk.setting[0, 0]) not in settings  # the policy alone went elsewhere
+    assert episodes.step(slot, np.array([[0.0, 1.0]]))[1][0]
+    assert float(unit.read()["defocus"]) == pytest.approx(_posterior_best(episodes))
+
+
+def test_frames_without_edges_reach_the_posterior_only_when_asked() -> None:
+    """posterior_no_edges: a reading without edges is news for the posterior (focus is far
+    from there): its best setting moves; without the option it is left out, as before."""
+    best = {}
+    for no_edges in (False, True):
+        episodes, slot, _ = _walked(_task(stop_at_best=True, posterior_no_edges=no_edges))
+        readings = len(episodes.ends.readings[0])
+        episodes.ends.note(
+            slot, episodes.setting[slot] * 0 + episodes.low[slot], np.array([np.nan]),
+            np.array([False]), np.array([False]), np.zeros((1, 1)),
+        )  # fmt: skip
+        assert len(episodes.ends.readings[0]) == readings  # never a measured reading
+        assert episodes.ends.taken[0] == 2 + len(WALK)
+        best[no_edges] = episodes.ends.best(0)
+    walked, _, _ = _walked(_task(stop_at_best=True))
+    assert best[False] == walked.ends.best(0)
+    assert best[True] != best[False]
+
+
+def test_far_noise_reaches_the_episodes_posterior() -> None:
+    episodes, _, _ = _walked(_task(stop_at_best=True, posterior_far_noise=0.1))
+    assert episodes.ends._posterior(0).far_noise == 0.1
+    assert episodes.ends._posterior(0).models.far_noise == 0.1
+    plain, _, _ = _walked(_task(stop_at_best=True))
+    assert plain.ends._posterior(0).far_noise == 0.0
+
+
+@pytest.mark.parametrize(
+    ("option", "bad"),
+    [("posterior_far_noise", 1.5), ("posterior_walk_after", 99), ("posterior_walk_after", -1)],
+)
+def test_the_posteriors_settings_are_refused_out_of_range(option, bad) -> None:
+    with pytest.raises(ValueError, match=option):
+        TaskOptions(finish_at_posterior=True, stop_at_best=True, approach_from_below=True,
+                    **{option: bad}).apply(get_task("focus"))  # fmt: skip
+
+
+NEEDING_THE_POSTERIOR = [
+    {"posterior_far_noise": 0.1},
+    {"posterior_walk_after": 3},
+    {"posterior_no_edges": True},
+]
+
+
+@pytest.mark.parametrize("option", NEEDING_THE_POSTERIOR)
+def test_the_posteriors_settings_need_the_posterior(option) -> None:
+    with pytest.raises(ValueError, match=next(iter(option))):
+        TaskOptions(stop_at_best=True, **option).apply(get_task("focus"))

@@ -39,6 +39,7 @@ of the last change written to each knob (from the writes themselves: `wrote`).
 from __future__ import annotations
 
 import copy
+import math
 from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
@@ -83,6 +84,7 @@ class EpisodeEnds:
         # on first use), and its final() until the next reading
         self._posteriors: list[FamilyPosterior | None] = [None] * n
         self._best: list[tuple[float, float] | None] = [None] * n
+        self.taken = np.zeros(n, int)  # readings taken this episode, measured or not
 
     def restart(self, indices: np.ndarray, found: np.ndarray | None = None) -> None:
         """New episodes on `indices`: no side known; the knobs as `found` where the episode
@@ -128,9 +130,12 @@ class EpisodeEnds:
         posterior = self.task.finish_at_posterior
         for position, index in enumerate(indices):
             if opening[position]:
-                self.readings[index] = []
+                self.readings[index], self.taken[index] = [], 0
                 if posterior:
                     self._posterior(index).begin()
+            self.taken[index] += 1
+            if posterior and self.task.posterior_no_edges and not measured[position]:
+                self._posterior(index).observe(float(positions[position, 0]), math.nan)
             if measured[position]:
                 self.readings[index].append(
                     Noted(settings[position].copy(), float(widths[position]),
@@ -175,18 +180,25 @@ class EpisodeEnds:
         """Whether episode `index`'s posterior best setting passes with Task.stop_when_sure."""
         return bool(self.readings[index]) and self.best(index)[1] >= self.task.stop_when_sure
 
-    def probes(self, indices: np.ndarray, low: np.ndarray, high: np.ndarray) -> dict[int, float]:
-        """Task.probe_until_sure: of the stopping episodes `indices`, those whose posterior
-        is not yet that sure of its best setting, each with where its posterior would read
-        next (the knob's units; `low`, `high`: every episode's interval); none without it.
-        The step takes that reading in place of the stop."""
-        sure = self.task.probe_until_sure
-        if not sure:
-            return {}
-        unsure = [i for i in indices if self.readings[i] and self.best(i)[1] < sure]
+    def probes(
+        self, indices: np.ndarray, stop: np.ndarray, low: np.ndarray, high: np.ndarray
+    ) -> dict[int, float]:
+        """Of the episodes `indices` (`stop`: whose actions stop), those whose next reading
+        the posterior places, each with where it would read next (the knob's units; `low`,
+        `high`: every episode's interval): with Task.probe_until_sure, a stopping episode
+        whose posterior is not yet that sure of its best setting (the reading is taken in
+        place of the stop); with Task.posterior_walk_after, a moving episode that has taken
+        that many readings. None without either."""
+        task = self.task
+        chosen = [
+            index for index, stopping in zip(indices, stop, strict=True)
+            if (stopping and task.probe_until_sure and self.readings[index]
+                and self.best(index)[1] < task.probe_until_sure)
+            or (not stopping and 0 < task.posterior_walk_after <= self.taken[index])
+        ]  # fmt: skip
         return {
             int(i): float(low[i, 0] + self._posteriors[i].probe() * (high[i, 0] - low[i, 0]))
-            for i in unsure
+            for i in chosen
         }
 
     def _posterior(self, index: int) -> FamilyPosterior:
@@ -206,6 +218,7 @@ class EpisodeEnds:
                     focus_box(),
                     spec_relative=self.task.success.relative,
                     draws=self.task.posterior_draws,
+                    far_noise=self.task.posterior_far_noise,
                     **SCALE_FREE,
                 )
             self._posteriors[index] = copy.copy(made)

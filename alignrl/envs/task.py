@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from alignrl.envs.fit_features import FINISH_WINDOW, FIT_FEATURES
+from alignrl.envs.success import Criterion, SuccessRule
 
 __all__ = [
     "ACTING_OPTIONS",
@@ -55,6 +56,9 @@ ACTING_OPTIONS = (
     "stop_when_sure",
     "probe_until_sure",
     "posterior_draws",
+    "posterior_far_noise",
+    "posterior_walk_after",
+    "posterior_no_edges",
     "finish_window",
     "approach_from_below",
     "final_move",
@@ -62,6 +66,16 @@ ACTING_OPTIONS = (
 )
 # The posterior of finish_at_posterior: the columns it draws (FamilyPosterior.draws)
 POSTERIOR_DRAWS, MIN_POSTERIOR_DRAWS, MAX_POSTERIOR_DRAWS = 256, 16, 4096
+MAX_FAR_NOISE = 1.0  # its posterior_far_noise: beyond it a reading far from focus says nothing
+# The options that ask that posterior, at their defaults (each needs finish_at_posterior)
+POSTERIOR_OPTIONS = {
+    "stop_when_sure": 0.0,
+    "probe_until_sure": 0.0,
+    "posterior_draws": POSTERIOR_DRAWS,
+    "posterior_far_noise": 0.0,
+    "posterior_walk_after": 0,
+    "posterior_no_edges": False,
+}
 MAX_MOVE_FLOOR = 0.2  # a share of the interval: beyond it no column could be brought to focus
 
 
@@ -80,69 +94,6 @@ def knob_change(
     if np.any(np.asarray(floor) != 0):
         change = change + np.sign(actions) * floor
     return change
-
-
-@dataclass(frozen=True)
-class SuccessRule:
-    """An alignment succeeds when the final edge width is at most the threshold.
-
-    `relative`: threshold = relative x the best edge width the apparatus can reach now
-    (needs a simulated apparatus). `absolute_px`: a fixed spec in pixels (a real instrument's
-    datasheet value); it takes precedence when set.
-    """
-
-    relative: float = 1.15
-    absolute_px: float | None = None
-
-    def __post_init__(self) -> None:
-        if not self.relative > 1.0:
-            raise ValueError(f"relative success threshold must exceed 1, got {self.relative}")
-        if self.absolute_px is not None and not self.absolute_px > 0:
-            raise ValueError(f"absolute_px must be positive, got {self.absolute_px}")
-
-    def threshold_px(self, best_px: float | None) -> float:
-        """The edge width an alignment must reach."""
-        if self.absolute_px is not None:
-            return self.absolute_px
-        if best_px is None or not math.isfinite(best_px):
-            raise ValueError(
-                "a relative success threshold needs the best achievable edge width, which only "
-                "a simulated apparatus knows: give an absolute spec (--spec-px) for this one"
-            )
-        return self.relative * best_px
-
-
-@dataclass(frozen=True)
-class Criterion:
-    """One judged measure of a batch of measurements against its spec (px): the final width,
-    the widest directional width, or the wobble shift's magnitude. `measured` False: the
-    measure could not be taken at all (`value_px` NaN); a NaN value is never `met`."""
-
-    measure: str  # one of MEASURES
-    value_px: np.ndarray  # (n,)
-    spec_px: np.ndarray  # (n,)
-    met: np.ndarray  # (n,) bool
-    measured: bool = True
-
-    def words(self, index: int = 0) -> str:
-        """Measurement `index` in words, as `alignrl align` reports it."""
-        if not self.measured:
-            return _UNMEASURED[self.measure]
-        value, spec = float(self.value_px[index]), float(self.spec_px[index])
-        relation = "<=" if self.met[index] else ">"
-        return f"{_LABELS[self.measure]} {value:.3g} px {relation} spec {spec:.3g} px"
-
-
-_LABELS = {
-    "width": "final edge width",
-    "directional": "widest directional width",
-    "wobble": "wobble shift",
-}
-_UNMEASURED = {
-    "width": "the final image had no edges",
-    "directional": "the directional widths could not be measured",
-    "wobble": "the wobble could not be measured",
-}
 
 
 @dataclass(frozen=True)
@@ -237,6 +188,16 @@ class Task:
     # again around the likely ones as readings come): more columns, a chance nearer the truth
     # where few readings are near focus, at a computing cost in proportion.
     posterior_draws: int = POSTERIOR_DRAWS
+    # With finish_at_posterior: its readings far from focus trusted less (FamilyPosterior.
+    # far_noise; posterior-robust's 0.1 for readings measured on images).
+    posterior_far_noise: float = 0.0
+    # With finish_at_posterior: from an episode's posterior_walk_after-th reading on (taken,
+    # measured or not), every move goes where the posterior would probe next, not where the
+    # policy asks (its stops stand as before); 0: the policy walks throughout.
+    posterior_walk_after: int = 0
+    # With finish_at_posterior: readings without edges tell the posterior that focus is far
+    # from there (as posterior-robust reads them); else it is fed measured readings alone.
+    posterior_no_edges: bool = False
     finish_window: float = FINISH_WINDOW  # that fit takes the readings within this x the narrowest
     # Every setting a reading is taken at is reached from below, as a microscopist approaches
     # focus from one side: a step down first goes past its target by backlash_overshoot x the
@@ -328,25 +289,26 @@ class Task:
                 f"knobs {', '.join(self.knobs)}, approach_from_below={self.approach_from_below}"
                 f" and finish_at_fit={self.finish_at_fit}"
             )
-        for option, meaning in (
-            ("stop_when_sure", "at which it ends an episode"),
-            ("probe_until_sure", "it must give its best setting before a stop is taken"),
-        ):
-            chance = getattr(self, option)
-            if not 0.0 <= chance < 1.0 or (chance and not self.finish_at_posterior):
+        for option, good, meaning in (
+            ("stop_when_sure", 0 <= self.stop_when_sure < 1, "the chance, in [0, 1), at which "
+             "it ends an episode"),
+            ("probe_until_sure", 0 <= self.probe_until_sure < 1, "the chance, in [0, 1), it "
+             "must give its best setting before a stop is taken"),
+            ("posterior_draws", MIN_POSTERIOR_DRAWS <= self.posterior_draws <= MAX_POSTERIOR_DRAWS,
+             f"how many columns it draws, {MIN_POSTERIOR_DRAWS}-{MAX_POSTERIOR_DRAWS}"),
+            ("posterior_far_noise", 0 <= self.posterior_far_noise <= MAX_FAR_NOISE,
+             f"how much less it trusts far readings, in [0, {MAX_FAR_NOISE:g}]"),
+            ("posterior_walk_after", 0 <= self.posterior_walk_after <= self.episode_steps,
+             f"the reading it walks from, in [0, episode_steps={self.episode_steps}]"),
+            ("posterior_no_edges", True, "whether it reads frames without edges"),
+        ):  # fmt: skip
+            value = getattr(self, option)
+            if not good or (value != POSTERIOR_OPTIONS[option] and not self.finish_at_posterior):
                 raise ValueError(
-                    f"task {self.name!r}: {option} is the chance, in [0, 1), {meaning} by the "
-                    f"posterior of finish_at_posterior; got {chance} "
+                    f"task {self.name!r}: {option} is {meaning}, by the posterior of "
+                    f"finish_at_posterior; got {value} "
                     f"(finish_at_posterior={self.finish_at_posterior})"
                 )
-        if not MIN_POSTERIOR_DRAWS <= self.posterior_draws <= MAX_POSTERIOR_DRAWS or (
-            self.posterior_draws != POSTERIOR_DRAWS and not self.finish_at_posterior
-        ):
-            raise ValueError(
-                f"task {self.name!r}: posterior_draws is how many columns the posterior of "
-                f"finish_at_posterior draws, {MIN_POSTERIOR_DRAWS}-{MAX_POSTERIOR_DRAWS}; got "
-                f"{self.posterior_draws} (finish_at_posterior={self.finish_at_posterior})"
-            )
         if not 0.0 < self.final_move_reach <= 1.0 or (
             self.final_move_reach != 1.0 and not self.final_move
         ):
