@@ -266,3 +266,33 @@ NEEDING_THE_POSTERIOR = [
 def test_the_posteriors_settings_need_the_posterior(option) -> None:
     with pytest.raises(ValueError, match=next(iter(option))):
         TaskOptions(stop_at_best=True, **option).apply(get_task("focus"))
+
+
+@pytest.mark.parametrize(
+    ("options", "reason"),
+    [
+        ({"probe_until_sure": 0.9}, "the policy stopped"),
+        ({"probe_until_sure": 0.9, "stop_when_sure": 0.9}, "its posterior was sure"),
+    ],
+)
+def test_align_goes_on_while_the_posterior_turns_stops_into_readings(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], options, reason
+) -> None:
+    """`alignrl align` with a policy that stops at once: an unsure stop is a reading, and the
+    alignment goes on (not left where that reading was taken) until the stop is taken, or a
+    sure posterior ends it; the report says which."""
+    import json
+
+    from alignrl.cli import main
+    from alignrl.deploy import policy as policy_module
+    from alignrl.deploy.policy import DeployablePolicy
+
+    task = _task(stop_at_best=True, **options)
+    stopper = DeployablePolicy("stopper", lambda _: np.array([0.0, 1.0]), task, 8, "a test")
+    monkeypatch.setattr(policy_module, "load_deployable", lambda spec: stopper)
+    argv = ["align", "--policy", "stopper", "--apparatus", "family:focus", "--seed", "3"]
+    assert main([*argv, "--apparatus-args", '{"analytic": true}', "--json"]) in (0, 1)
+    result = json.loads(capsys.readouterr().out)
+    assert 3 <= result["acquisitions"] <= task.episode_steps + 1  # went on past the 1st stop
+    assert result["reason"].startswith(reason)
+    assert result["success"]  # ended where the sure posterior puts focus

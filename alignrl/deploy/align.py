@@ -192,6 +192,7 @@ def _run_policy(
     slot = np.array([0])
     k = episodes.k
     episodes.adopt(slot)
+    before = -1
     while episodes.active[0]:
         action = np.asarray(policy.act(episodes.observation(0)), dtype=np.float64).reshape(-1)
         stop = bool(action[k] > 0)
@@ -200,10 +201,16 @@ def _run_policy(
             shield.log("action", action=action, decision="refused", reason=reason)
             raise _NonFiniteAction(reason)
         shield.log("action", action=action, stop=stop)
+        before = int(episodes.steps[0])
         episodes.step(slot, action[None])  # the shield's applied setting goes in the history
-        if stop:
-            return "the policy stopped"
-    return f"the policy used all {policy.task.episode_steps} steps of its task"
+    # A stop the posterior is unsure of is a reading instead (probe_until_sure), and a sure
+    # posterior ends the episode after a reading (stop_when_sure): how it ended, from the last
+    # step, whether it took a reading.
+    if episodes.steps[0] == before:
+        return "the policy stopped"
+    if episodes.steps[0] >= policy.task.episode_steps:
+        return f"the policy used all {policy.task.episode_steps} steps of its task"
+    return "its posterior was sure of the best setting"
 
 
 def align(
