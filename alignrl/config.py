@@ -296,6 +296,7 @@ class TaskOptions(_Strict):
     posterior_far_noise: float | None = Field(None, ge=0, le=1, description="posterior's far_noise")
     posterior_walk_after: int | None = Field(None, ge=0, le=100, description="posterior walks from")
     posterior_no_edges: bool | None = Field(None, description="posterior reads no-edge frames")
+    posterior_from_below: bool | None = Field(None, description="posterior: readings from below")
     finish_window: float | None = Field(None, gt=1, description="finish fit: within x narrowest")
     approach_from_below: bool | None = Field(None, description="every reading reached from below")
     move_floor: float | None = Field(None, ge=0, le=0.2, description="least move, of the interval")

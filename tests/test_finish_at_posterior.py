@@ -256,6 +256,7 @@ def test_the_posteriors_settings_are_refused_out_of_range(option, bad) -> None:
 
 
 NEEDING_THE_POSTERIOR = [
+    {"posterior_from_below": True},
     {"posterior_far_noise": 0.1},
     {"posterior_walk_after": 3},
     {"posterior_no_edges": True},
@@ -296,3 +297,19 @@ def test_align_goes_on_while_the_posterior_turns_stops_into_readings(
     assert 3 <= result["acquisitions"] <= task.episode_steps + 1  # went on past the 1st stop
     assert result["reason"].startswith(reason)
     assert result["success"]  # ended where the sure posterior puts focus
+
+
+def test_the_posterior_can_leave_out_the_column_as_found() -> None:
+    """posterior_from_below: the opening reading, where the column was found (on a branch of
+    its backlash no one knows), stays the episode's record but never reaches the posterior;
+    every reading approached from below does. Without it, the posterior reads them all."""
+    read = {}
+    for from_below in (False, True):
+        episodes, slot, _ = _started(_task(stop_at_best=True, posterior_from_below=from_below))
+        assert episodes.ends.approach[0, 0] == 0  # the column as found: no side known
+        opened = len(episodes.ends._posterior(0)._readings)
+        episodes.step(slot, np.array([[-0.5, -1.0]]))
+        assert episodes.ends.readings[0][-1].side[0] == 1  # from below (approach_from_below)
+        read[from_below] = (opened, len(episodes.ends._posterior(0)._readings))
+        assert len(episodes.ends.readings[0]) == 2  # the record keeps both
+    assert read == {False: (1, 2), True: (0, 1)}

@@ -134,18 +134,25 @@ class EpisodeEnds:
                 if posterior:
                     self._posterior(index).begin()
             self.taken[index] += 1
-            if posterior and self.task.posterior_no_edges and not measured[position]:
-                self._posterior(index).observe(float(positions[position, 0]), math.nan)
             if measured[position]:
                 self.readings[index].append(
                     Noted(settings[position].copy(), float(widths[position]),
                           self.approach[index].copy())
                 )  # fmt: skip
-                if posterior:
-                    self._posterior(index).observe(
-                        float(positions[position, 0]), float(widths[position])
-                    )
+            if posterior and self._posterior_reads(index, bool(measured[position])):
+                self._posterior(index).observe(
+                    float(positions[position, 0]),
+                    float(widths[position]) if measured[position] else math.nan,
+                )
             self._best[index] = None
+
+    def _posterior_reads(self, index: int, measured: bool) -> bool:
+        """Whether episode `index`'s posterior reads its latest reading: a measured one, or
+        with Task.posterior_no_edges one without edges; with Task.posterior_from_below only
+        one approached from below (not the column as found)."""
+        if self.task.posterior_from_below and self.approach[index, 0] <= 0:
+            return False
+        return measured or self.task.posterior_no_edges
 
     def narrowest(self, index: int) -> Noted | None:
         """Episode `index`'s narrowest reading (the first of equals); None where none was

@@ -59,6 +59,7 @@ ACTING_OPTIONS = (
     "posterior_far_noise",
     "posterior_walk_after",
     "posterior_no_edges",
+    "posterior_from_below",
     "finish_window",
     "approach_from_below",
     "final_move",
@@ -75,6 +76,7 @@ POSTERIOR_OPTIONS = {
     "posterior_far_noise": 0.0,
     "posterior_walk_after": 0,
     "posterior_no_edges": False,
+    "posterior_from_below": False,
 }
 MAX_MOVE_FLOOR = 0.2  # a share of the interval: beyond it no column could be brought to focus
 
@@ -198,6 +200,11 @@ class Task:
     # With finish_at_posterior: readings without edges tell the posterior that focus is far
     # from there (as posterior-robust reads them); else it is fed measured readings alone.
     posterior_no_edges: bool = False
+    # With finish_at_posterior: the posterior reads only the readings approached from below,
+    # as its model has them, not the opening one, taken where the column was found, on
+    # whichever branch of its backlash or hysteresis it was left (the narrowest reading may
+    # still be that one); False: every reading.
+    posterior_from_below: bool = False
     finish_window: float = FINISH_WINDOW  # that fit takes the readings within this x the narrowest
     # Every setting a reading is taken at is reached from below, as a microscopist approaches
     # focus from one side: a step down first goes past its target by backlash_overshoot x the
@@ -301,6 +308,7 @@ class Task:
             ("posterior_walk_after", 0 <= self.posterior_walk_after <= self.episode_steps,
              f"the reading it walks from, in [0, episode_steps={self.episode_steps}]"),
             ("posterior_no_edges", True, "whether it reads frames without edges"),
+            ("posterior_from_below", True, "whether it reads only readings from below"),
         ):  # fmt: skip
             value = getattr(self, option)
             if not good or (value != POSTERIOR_OPTIONS[option] and not self.finish_at_posterior):
