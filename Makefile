@@ -37,8 +37,8 @@ run: $(STAMP)
 
 # The suite, slow tests included, on two workers; a test file stays on one worker
 # (--dist loadfile), so a file's module fixtures are built once. The tests marked long
-# (minutes of one worker each: `make run` with the commands that read its league, the crash
-# windows' kills at every other write) run in `make docs-check`, `make crash-check` and
+# (minutes of one worker each: `make run` with the commands that read its league, the
+# README's held-out table of the champion, the crash windows' kills at every other write) run in `make docs-check`, `make crash-check` and
 # `make test-all` instead.
 PYTEST := $(BIN)/pytest -n 2 --dist loadfile
 test: $(STAMP)
