@@ -230,7 +230,6 @@ def test_frames_without_edges_reach_the_posterior_only_when_asked() -> None:
             np.array([False]), np.array([False]), np.zeros((1, 1)),
         )  # fmt: skip
         assert len(episodes.ends.readings[0]) == readings  # never a measured reading
-        assert episodes.ends.taken[0] == 2 + len(WALK)
         best[no_edges] = episodes.ends.best(0)
     walked, _, _ = _walked(_task(stop_at_best=True))
     assert best[False] == walked.ends.best(0)

@@ -334,7 +334,7 @@ class AlignmentEpisodes:
         if not np.all(self.active[indices]):
             raise RuntimeError("step called on an episode that has ended: reset it first")
         stop = actions[:, self.k] > 0
-        probes = self.ends.probes(indices, stop, self.low, self.high)  # the posterior reads
+        probes = self.ends.probes(indices, stop, self.steps[indices], self.low, self.high)
         stop &= ~np.isin(indices, list(probes))
         reward = np.zeros(len(indices))
         moving = indices[~stop]

@@ -17,7 +17,9 @@ With `final_move` the stopping action's own move ends the episode instead; with
 With `finish_at_posterior` the fit's place is taken by the setting that a posterior over the
 focus training box (alignrl/apparatus/family_posterior.py, one per episode, fed every
 measured reading) holds most likely to pass; with `stop_when_sure` too, an episode also ends
-once that setting passes with the chance asked (`sure`).
+once that setting passes with the chance asked (`sure`); with `probe_until_sure` a stop it
+is unsure of becomes a reading where it would probe next, and with `posterior_walk_after`
+every reading from the N-th on is placed there (`probes`).
 
 The way back arrives at every knob from the side the narrowest reading was approached from:
 where it would come from the other side it first goes past the target by
@@ -84,7 +86,6 @@ class EpisodeEnds:
         # on first use), and its final() until the next reading
         self._posteriors: list[FamilyPosterior | None] = [None] * n
         self._best: list[tuple[float, float] | None] = [None] * n
-        self.taken = np.zeros(n, int)  # readings taken this episode, measured or not
 
     def restart(self, indices: np.ndarray, found: np.ndarray | None = None) -> None:
         """New episodes on `indices`: no side known; the knobs as `found` where the episode
@@ -130,10 +131,9 @@ class EpisodeEnds:
         posterior = self.task.finish_at_posterior
         for position, index in enumerate(indices):
             if opening[position]:
-                self.readings[index], self.taken[index] = [], 0
+                self.readings[index] = []
                 if posterior:
                     self._posterior(index).begin()
-            self.taken[index] += 1
             if measured[position]:
                 self.readings[index].append(
                     Noted(settings[position].copy(), float(widths[position]),
@@ -188,20 +188,24 @@ class EpisodeEnds:
         return bool(self.readings[index]) and self.best(index)[1] >= self.task.stop_when_sure
 
     def probes(
-        self, indices: np.ndarray, stop: np.ndarray, low: np.ndarray, high: np.ndarray
-    ) -> dict[int, float]:
-        """Of the episodes `indices` (`stop`: whose actions stop), those whose next reading
-        the posterior places, each with where it would read next (the knob's units; `low`,
-        `high`: every episode's interval): with Task.probe_until_sure, a stopping episode
-        whose posterior is not yet that sure of its best setting (the reading is taken in
-        place of the stop); with Task.posterior_walk_after, a moving episode that has taken
-        that many readings. None without either."""
+        self, indices: np.ndarray, stop: np.ndarray, steps: np.ndarray, low: np.ndarray,
+        high: np.ndarray,
+    ) -> dict[int, float]:  # fmt: skip
+        """Of the episodes `indices` (`stop`: whose actions stop; `steps`: the steps each has
+        taken, so steps + 1 readings), those whose next reading the posterior places, each
+        with where it would read next (the knob's units; `low`, `high`: every episode's
+        interval): with Task.probe_until_sure, a stopping episode whose posterior is not yet
+        that sure of its best setting (the reading is taken in place of the stop); with
+        Task.posterior_walk_after, a moving episode that has taken that many readings. None
+        without either (the step of every other task asks nothing more)."""
         task = self.task
+        if not (task.probe_until_sure or task.posterior_walk_after):
+            return {}
         chosen = [
-            index for index, stopping in zip(indices, stop, strict=True)
+            index for index, stopping, step in zip(indices, stop, steps, strict=True)
             if (stopping and task.probe_until_sure and self.readings[index]
                 and self.best(index)[1] < task.probe_until_sure)
-            or (not stopping and 0 < task.posterior_walk_after <= self.taken[index])
+            or (not stopping and 0 < task.posterior_walk_after <= step + 1)
         ]  # fmt: skip
         return {
             int(i): float(low[i, 0] + self._posteriors[i].probe() * (high[i, 0] - low[i, 0]))

@@ -68,16 +68,6 @@ ACTING_OPTIONS = (
 # The posterior of finish_at_posterior: the columns it draws (FamilyPosterior.draws)
 POSTERIOR_DRAWS, MIN_POSTERIOR_DRAWS, MAX_POSTERIOR_DRAWS = 256, 16, 4096
 MAX_FAR_NOISE = 1.0  # its posterior_far_noise: beyond it a reading far from focus says nothing
-# The options that ask that posterior, at their defaults (each needs finish_at_posterior)
-POSTERIOR_OPTIONS = {
-    "stop_when_sure": 0.0,
-    "probe_until_sure": 0.0,
-    "posterior_draws": POSTERIOR_DRAWS,
-    "posterior_far_noise": 0.0,
-    "posterior_walk_after": 0,
-    "posterior_no_edges": False,
-    "posterior_from_below": False,
-}
 MAX_MOVE_FLOOR = 0.2  # a share of the interval: beyond it no column could be brought to focus
 
 
@@ -516,6 +506,13 @@ class Task:
             for k in self.knobs
         )
 
+
+# The options that ask that posterior, at their defaults (each needs finish_at_posterior)
+POSTERIOR_OPTIONS = {
+    option.name: option.default
+    for option in dataclasses.fields(Task)
+    if option.name in ("stop_when_sure", "probe_until_sure") or option.name.startswith("posterior_")
+}
 
 TASKS: dict[str, Task] = {
     "focus": Task(name="focus", knobs=("defocus",)),
