@@ -172,11 +172,9 @@ class LearnerConfig(_Strict):
     )
     gamma: float = Field(_shared_default("gamma"), gt=0, le=1, description="discount per step")
     batch_size: Count = Field(
-        _shared_default("batch_size"),
-        ge=1,
-        le=MAX_BUFFER_SIZE,
+        _shared_default("batch_size"), ge=1, le=MAX_BUFFER_SIZE,
         description="transitions per gradient step (PPO: minibatch)",
-    )
+    )  # fmt: skip
     secret_critics: bool = Field(
         _shared_default("secret_critics"), description="critics see optimum - setting"
     )
@@ -297,6 +295,7 @@ class TaskOptions(_Strict):
     posterior_walk_after: int | None = Field(None, ge=0, le=100, description="posterior walks from")
     posterior_no_edges: bool | None = Field(None, description="posterior reads no-edge frames")
     posterior_from_below: bool | None = Field(None, description="posterior: readings from below")
+    posterior_column: dict[str, float] | None = Field(None, description="calibrated column")
     finish_window: float | None = Field(None, gt=1, description="finish fit: within x narrowest")
     approach_from_below: bool | None = Field(None, description="every reading reached from below")
     move_floor: float | None = Field(None, ge=0, le=0.2, description="least move, of the interval")
@@ -311,6 +310,8 @@ class TaskOptions(_Strict):
 
     def apply(self, task: Any) -> Any:
         """The task with these changes (a new object; the registry's task is untouched)."""
+        from alignrl.apparatus.calibration import column_values
+
         changes = {
             name: value
             for name, value in self.model_dump().items()
@@ -324,6 +325,8 @@ class TaskOptions(_Strict):
                     f"task_options.{name}: task {task.name!r} takes no {measure} measure "
                     f"(it measures {', '.join(task.measures)})"
                 )
+        if self.posterior_column is not None:  # a mapping in a file, a tuple in the task
+            changes["posterior_column"] = column_values(self.posterior_column)
         success = task.success
         if self.success_relative is not None:
             success = dataclasses.replace(success, relative=self.success_relative)
@@ -372,9 +375,7 @@ class RunConfig(_Strict):
     on, the task, the history, the torch settings; experiments and leagues add their keys."""
 
     name: str = Field("experiment", min_length=1, description="run name (runs/<name>/)")
-    seed: Count = Field(
-        0, ge=0, lt=SEED_LIMIT, description="seeds everything: networks, envs, sampling"
-    )
+    seed: Count = Field(0, ge=0, lt=SEED_LIMIT, description="seeds networks, envs, sampling")
     provenance: Provenance | None = Field(
         None,
         description="how the run was started: command line, --set overrides, git commit "
@@ -449,10 +450,8 @@ class RunConfig(_Strict):
 
     def apparatus_specs(self) -> list[tuple[str, str, dict[str, Any]]]:
         """(key, spec, arguments) of every apparatus this run trains or chooses on."""
-        return [
-            ("apparatus", self.apparatus, self.apparatus_args),
-            ("eval_apparatus", self.eval_apparatus, self.eval_apparatus_args),
-        ]
+        return [("apparatus", self.apparatus, self.apparatus_args),
+                ("eval_apparatus", self.eval_apparatus, self.eval_apparatus_args)]  # fmt: skip
 
     def _refuse_held_out(self) -> None:
         """The held-out instruments judge generalization: no run trains or chooses on them

@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import pytest
 import yaml
 
 if TYPE_CHECKING:
@@ -189,3 +190,16 @@ def without_seconds(value: Any) -> Any:
     if isinstance(value, list):
         return [without_seconds(item) for item in value]
     return value
+
+
+@pytest.fixture
+def light_export(tmp_path: Path) -> Path:
+    """champion:focus-v2 exported with a posterior of 64 columns, not its 1,024 (the same
+    network and learner state): its alignments at a sixteenth of the computing."""
+    from alignrl.cli import main
+
+    out = tmp_path / "light"
+    argv = ["export", "champion:focus-v2", "--format", "safetensors", "--with-learner-state"]
+    argv += ["--set", "task_options.posterior_draws=64", "--out", str(out), "--json"]
+    assert main(argv) == 0
+    return out

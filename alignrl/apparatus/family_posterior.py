@@ -76,6 +76,9 @@ STOP_STATES = 20000  # states a stop is judged on (a systematic resample beyond)
 LIVE = 1e-12  # states below this share of the largest posterior weight are left out
 GRID_POINTS_PER_WINDOW = 3  # optimum grid points across the half-width that passes the spec
 MAX_GRID = 4000
+# Where a reading's approach is unknown, the branches of the backlash it may lie on (x the
+# lag): from below, from above, and the middle (a column left between them)
+BRANCHES = (1.0, -1.0, 0.0)
 # How far beyond the training box `family_posterior` looks (`widened`), chosen on
 # set:validation (analytic, 30 alignments per instrument, seed 3,000,000): at 0 it aligned
 # 170/180 at medians of 3-4 acquisitions, at 0.25 173/180 at medians of 4-7 (p90 up to 17).
@@ -341,13 +344,15 @@ class FamilyPosterior:
         self.models = self._initial
         self._rng = np.random.default_rng(self.seed)
         self._posterior = self._prior.copy()
-        self._readings: list[tuple[float, float]] = []
+        self._readings: list[tuple[float, float, float]] = []
         self._scale = _ScaleSums.empty(self._prior.shape) if self.scale_free else None
 
-    def observe(self, setting: float, reading: float) -> None:
+    def observe(self, setting: float, reading: float, side: float = 1.0) -> None:
         """A reading (px; NaN: no edges) taken at `setting`, a fraction of the interval,
-        approached from below."""
-        self._readings.append((float(setting), float(reading)))
+        approached from `side`: +1 from below (as PosteriorFocus writes every setting), -1
+        from above, 0 unknown (a column as it was found, anywhere within its backlash: read
+        as the mixture of both branches and their middle, BRANCHES)."""
+        self._readings.append((float(setting), float(reading), float(side)))
         posterior = self._drifted(self._posterior * self._likelihood(*self._readings[-1]))
         if self._renewable(posterior):
             posterior = self._renew(posterior, self._readings, self._rng)
@@ -371,15 +376,26 @@ class FamilyPosterior:
 
     # --- the model ------------------------------------------------------------------------
 
-    def _errors(self, setting: np.ndarray | float, grid: np.ndarray) -> np.ndarray:
-        """Focus errors of a setting approached from below, against optimum grid points."""
-        return np.asarray(setting)[..., None, None, None] - self.models.lag - grid
+    def _errors(
+        self, setting: np.ndarray | float, grid: np.ndarray, side: float = 1.0
+    ) -> np.ndarray:
+        """Focus errors of a setting approached from `side` (+1: below), against optimum grid
+        points."""
+        return np.asarray(setting)[..., None, None, None] - side * self.models.lag - grid
 
-    def _likelihood(self, setting: float, reading: float) -> np.ndarray:
-        """Per state, the chance of `reading` (px; NaN: no edges) at `setting`; scale_free,
-        given the readings before it, which it then joins."""
+    def _likelihood(self, setting: float, reading: float, side: float = 1.0) -> np.ndarray:
+        """Per state, the chance of `reading` (px; NaN: no edges) at `setting` approached
+        from `side` (0: unknown, the mean over BRANCHES); scale_free, given the readings
+        before it, which it then joins (on the middle branch where the side is unknown)."""
+        if side == 0.0 and self._scale is None:
+            chances = [self._on_branch(setting, reading, branch) for branch in BRANCHES]
+            return sum(chances) / len(BRANCHES)
+        return self._on_branch(setting, reading, side)
+
+    def _on_branch(self, setting: float, reading: float, side: float) -> np.ndarray:
+        """_likelihood on one side's branch (0: the middle)."""
         none, mean, spread = self.models.reading(
-            self._errors(setting, self._grid), self.models.specimen_rel * self._scale_nodes
+            self._errors(setting, self._grid, side), self.models.specimen_rel * self._scale_nodes
         )
         if not math.isfinite(reading):
             return none

@@ -13,6 +13,7 @@ from collections.abc import Sequence
 from alignrl import __version__
 from alignrl.apparatus.base import ApparatusError
 from alignrl.apparatus.shield import DriverFailure, ShieldStop
+from alignrl.cli.calibrate import add_calibrate_parser
 from alignrl.cli.common import (
     EXIT_DRIVER_FAILURE,
     EXIT_INTERNAL,
@@ -40,6 +41,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_training_parsers(verbs)  # train, adapt, report
     add_league_parsers(verbs)  # league run|resume|status, leaderboard
     add_deploy_parsers(verbs)  # align, export
+    add_calibrate_parser(verbs)  # calibrate
     return parser
 
 

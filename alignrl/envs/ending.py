@@ -143,6 +143,7 @@ class EpisodeEnds:
                 self._posterior(index).observe(
                     float(positions[position, 0]),
                     float(widths[position]) if measured[position] else math.nan,
+                    self._side(index),
                 )
             self._best[index] = None
 
@@ -153,6 +154,12 @@ class EpisodeEnds:
         if self.task.posterior_from_below and self.approach[index, 0] <= 0:
             return False
         return measured or self.task.posterior_no_edges
+
+    def _side(self, index: int) -> float:
+        """The side episode `index`'s latest reading came from, as its posterior reads it:
+        the calibrated one (Task.posterior_column) on its branch (0: unknown, the column as
+        found), the box's as from below (as the shipped champion was measured)."""
+        return float(self.approach[index, 0]) if self.task.posterior_column else 1.0
 
     def narrowest(self, index: int) -> Noted | None:
         """Episode `index`'s narrowest reading (the first of equals); None where none was
@@ -218,6 +225,8 @@ class EpisodeEnds:
         gives each copy its own state)."""
         if self._posteriors[index] is None:
             made = next((each for each in self._posteriors if each is not None), None)
+            if made is None and self.task.posterior_column:
+                made = self._calibrated()
             if made is None:
                 from alignrl.apparatus.family_posterior import (
                     SCALE_FREE,
@@ -234,6 +243,17 @@ class EpisodeEnds:
                 )
             self._posteriors[index] = copy.copy(made)
         return self._posteriors[index]
+
+    def _calibrated(self) -> FamilyPosterior:
+        """The posterior over the column calibrated on the microscope (Task.posterior_column,
+        alignrl/apparatus/calibration.py), in its own pixels."""
+        from alignrl.apparatus.calibration import (
+            COLUMN_FIELDS,
+            calibrated_posterior,
+        )
+
+        column = dict(zip(COLUMN_FIELDS, self.task.posterior_column, strict=True))
+        return calibrated_posterior(column, self.task.success.relative)
 
     def plan(
         self, index: int, setting: np.ndarray, low: np.ndarray, high: np.ndarray

@@ -60,6 +60,7 @@ ACTING_OPTIONS = (
     "posterior_walk_after",
     "posterior_no_edges",
     "posterior_from_below",
+    "posterior_column",
     "finish_window",
     "approach_from_below",
     "final_move",
@@ -195,6 +196,10 @@ class Task:
     # whichever branch of its backlash or hysteresis it was left (the narrowest reading may
     # still be that one); False: every reading.
     posterior_from_below: bool = False
+    # With finish_at_posterior: the posterior reads in the one column calibrated on the
+    # microscope (alignrl/apparatus/calibration.py: COLUMN_FIELDS' values in order, `alignrl
+    # calibrate`), in that column's own pixels, not in the scale-free training box; (): the box.
+    posterior_column: tuple[float, ...] = ()
     finish_window: float = FINISH_WINDOW  # that fit takes the readings within this x the narrowest
     # Every setting a reading is taken at is reached from below, as a microscopist approaches
     # focus from one side: a step down first goes past its target by backlash_overshoot x the
@@ -286,6 +291,7 @@ class Task:
                 f"knobs {', '.join(self.knobs)}, approach_from_below={self.approach_from_below}"
                 f" and finish_at_fit={self.finish_at_fit}"
             )
+        column = self._column_problem()
         for option, good, meaning in (
             ("stop_when_sure", 0 <= self.stop_when_sure < 1, "the chance, in [0, 1), at which "
              "it ends an episode"),
@@ -299,6 +305,8 @@ class Task:
              f"the reading it walks from, in [0, episode_steps={self.episode_steps}]"),
             ("posterior_no_edges", True, "whether it reads frames without edges"),
             ("posterior_from_below", True, "whether it reads only readings from below"),
+            ("posterior_column", column is None, "a column calibrated on the microscope "
+             f"(alignrl calibrate){'' if column is None else ': ' + column}"),
         ):  # fmt: skip
             value = getattr(self, option)
             if not good or (value != POSTERIOR_OPTIONS[option] and not self.finish_at_posterior):
@@ -362,6 +370,16 @@ class Task:
                     f"task {self.name!r}: judged must name measures the task takes "
                     f"({', '.join(self.measures)}), each once; got {list(self.judged)}"
                 )
+
+    def _column_problem(self) -> str | None:
+        """What is wrong with posterior_column, or None (the box, or a calibrated column)."""
+        if not self.posterior_column:
+            return None
+        from alignrl.apparatus.calibration import COLUMN_FIELDS, column_problem
+
+        if len(self.posterior_column) != len(COLUMN_FIELDS):
+            return f"{len(COLUMN_FIELDS)} values ({', '.join(COLUMN_FIELDS)})"
+        return column_problem(dict(zip(COLUMN_FIELDS, self.posterior_column, strict=True)))
 
     def knob_change(
         self, actions: np.ndarray, max_step: np.ndarray, span: np.ndarray

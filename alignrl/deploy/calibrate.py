@@ -1,0 +1,163 @@
+"""`alignrl calibrate`: a champion adapted to one microscope in a few dozen alignments, by
+calibrating the posterior that walks and ends its alignments (issue 21).
+
+The policy (a champion or any export whose task ends at the focus posterior,
+Task.finish_at_posterior, and approaches every setting from below) runs a session of
+`alignments` on the apparatus, every write through the shield as in `alignrl evaluate`; the
+readings of those alignments calibrate the column's reading model
+(alignrl/apparatus/calibration.py: no optimum needed, a driver that cannot tell its own is
+calibrated alike); the policy is then exported to `out` (safetensors, with its learner state
+where it has one) with that column as its posterior's (`task_options.posterior_column`), and
+`calibration.json` beside it says what was read and found. The network is the policy's own,
+tensor for tensor: what changes is what its posterior knows of the column.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from alignrl.apparatus.base import Apparatus
+from alignrl.apparatus.calibration import (
+    COLUMN_FIELDS,
+    POPULATION,
+    ROUNDS,
+    Calibration,
+    calibrate,
+    check_search,
+    sweeps_of,
+)
+from alignrl.checkpoints import atomic_write_text
+
+__all__ = ["CALIBRATION_FILE", "Calibrated", "calibrate_policy", "column_override"]
+
+CALIBRATION_FILE = "calibration.json"
+
+
+@dataclass(frozen=True)
+class Calibrated:
+    """What `calibrate_policy` did: the export folder, the session it ran, the calibration."""
+
+    out: Path
+    session: Any  # alignrl.evaluation.session.SessionResult
+    calibration: Calibration
+    seconds: float
+
+
+def column_override(column: dict[str, float]) -> str:
+    """The `--set` assignment that gives a policy this calibrated column (a YAML mapping)."""
+    values = ", ".join(f"{name}: {column[name]:.9g}" for name in COLUMN_FIELDS)
+    return f"task_options.posterior_column={{{values}}}"
+
+
+def _check_policy(spec: str, task: Any) -> None:
+    if len(task.knobs) != 1 or not (task.finish_at_posterior and task.approach_from_below):
+        raise ValueError(
+            f"{spec}: calibrate adapts a one-knob focus policy whose alignments end at its "
+            f"posterior and approach every setting from below (task options "
+            f"finish_at_posterior and approach_from_below, as champion:focus-v2); this one's "
+            f"task aligns {', '.join(task.knobs)} with finish_at_posterior="
+            f"{task.finish_at_posterior}, approach_from_below={task.approach_from_below}"
+        )
+
+
+def calibrate_policy(
+    spec: str,
+    apparatus: Apparatus,
+    out: str | Path,
+    alignments: int = 30,
+    seed: int = 0,
+    spec_px: float | None = None,
+    budget: int | None = None,
+    population: int = POPULATION,
+    rounds: int = ROUNDS,
+    force: bool = False,
+    command: str | None = None,
+    on_alignment: Callable[[Any], None] | None = None,
+    on_round: Callable[[int, int, float], None] | None = None,
+) -> Calibrated:
+    """Calibrate policy `spec` on `apparatus` and export it to `out` (module docstring).
+    ValueError (before any alignment) for a policy that cannot be calibrated, an `out` that
+    holds something without `force`, fewer than one alignment; whatever run_session and the
+    export refuse."""
+    from alignrl.deploy.export import _refuse_to_overwrite, export_policy, with_acting_options
+    from alignrl.deploy.policy import load_deployable
+    from alignrl.evaluation.controllers import PolicyController
+    from alignrl.evaluation.session import run_session
+    from alignrl.runs.sources import resolve_source
+
+    started = time.perf_counter()
+    if alignments < 1:
+        raise ValueError(f"a calibration runs at least one alignment, got {alignments}")
+    check_search(population, rounds)
+    policy = load_deployable(spec)
+    _check_policy(spec, policy.task)
+    out = Path(out)
+    _refuse_to_overwrite(out, force)  # before any alignment: nothing is spent on a refusal
+    controller = PolicyController(
+        name=spec, act=policy.act, task=policy.task, history=policy.history
+    )
+    session = run_session(
+        controller,
+        apparatus,
+        policy.task,
+        scenarios=alignments,
+        seed=seed,
+        spec_px=spec_px,
+        budget=budget,
+        on_scenario=on_alignment,
+    )
+    low, high = (float(value) for value in apparatus.knobs[policy.task.knobs[0]])
+    sweeps = sweeps_of(session.records, low, high)
+    calibration = calibrate(
+        sweeps,
+        population=population,
+        rounds=rounds,
+        seed=seed,
+        on_round=on_round,
+    )
+    source = resolve_source(spec)
+    source = with_acting_options(source, [column_override(calibration.column)])
+    export_policy(
+        source,
+        out,
+        "safetensors",
+        force=force,
+        command=command,
+        learner_state=source.learner_state,
+        named=spec,
+    )
+    record = {
+        "format": "alignrl-calibration-1",
+        "policy": spec,
+        "command": command,
+        "seed": seed,
+        "alignments": alignments,
+        "session": {
+            "successes": session.successes,
+            "median_acquisitions": session.median_acquisitions,
+            "threshold_px": _finite(session.median_threshold_px),
+        },
+        "readings": calibration.readings,
+        "log_evidence": calibration.log_evidence,
+        "progress": list(calibration.progress),
+        "column": calibration.column,
+        "interval": [low, high],
+        # per alignment: (setting as a fraction of the interval, width px or null: no
+        # edges, side: +1 from below, 0 unknown)
+        "sweeps": [
+            [[u, width if math.isfinite(width) else None, side] for u, width, side in sweep]
+            for sweep in sweeps
+        ],
+    }
+    atomic_write_text(out / CALIBRATION_FILE, json.dumps(record, indent=2) + "\n")
+    return Calibrated(out, session, calibration, time.perf_counter() - started)
+
+
+def _finite(value: float) -> float | None:
+    return float(value) if math.isfinite(value) else None

@@ -1,0 +1,196 @@
+"""Calibrating the focus posterior to one column (alignrl/apparatus/calibration.py) and
+`alignrl calibrate` (alignrl/deploy/calibrate.py): a champion adapted to a microscope by
+what its alignments there read."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from fake_drivers import BlindLens
+
+from alignrl.apparatus.calibration import (
+    COLUMN_FIELDS,
+    ColumnEvidence,
+    calibrate,
+    calibrated_posterior,
+    column_evidence,
+    column_family,
+    column_problem,
+    sweeps_of,
+)
+from alignrl.apparatus.family import PAIR_FIELDS
+from alignrl.apparatus.family_posterior import ColumnModels, FamilyPosterior
+from alignrl.cli import main
+from alignrl.config import ConfigError, RunConfig, TaskOptions, parse_config
+from alignrl.deploy.policy import load_deployable
+from alignrl.envs.ending import EpisodeEnds
+from alignrl.envs.task import get_task
+
+MIDDLE = np.full((1, len(PAIR_FIELDS)), 0.5)  # one row of the box (a column family: any)
+# A column inside the training box (alignrl/apparatus/families/focus.yaml)
+COLUMN = {
+    "blur_px_per_interval": 40.0,
+    "floor_sigma_px": 1.2,
+    "curve_power": 2.0,
+    "flat_fraction": 0.0,
+    "asymmetry": 1.0,
+    "reading_noise_rel": 0.02,
+    "reading_noise_px": 0.05,
+    "specimen_rel": 0.01,
+    "saturation_px": 30.0,
+    "no_edges_px": 100.0,
+    "drift_fraction": 0.0,
+    "hysteresis_fraction": 0.004,
+}
+
+
+def _sweeps(column: dict[str, float], count: int, seed: int = 0) -> list:
+    """Alignments on `column` as its reading model has them: the optimum anywhere in the
+    middle of the interval, the first reading where the column was found (its backlash's
+    middle branch), five more from below around the optimum, near and far."""
+    rng = np.random.default_rng(seed)
+    models = ColumnModels.at(column_family(column), MIDDLE, 0.0)
+    sweeps = []
+    for _ in range(count):
+        optimum = rng.uniform(0.3, 0.7)
+        settings = np.concatenate([[rng.uniform(0.1, 0.9)], optimum + rng.normal(0, 0.1, 5)])
+        sides = np.array([0.0, 1, 1, 1, 1, 1])
+        error = settings - sides * models.lag[0, 0, 0] - optimum
+        _, mean, _ = models.reading(error[:, None, None], np.zeros((1, 1, 1)))
+        mean = mean.ravel()
+        noisy = mean * (1 + column["reading_noise_rel"] * rng.standard_normal(mean.size))
+        sweeps.append(list(zip(settings.tolist(), noisy.tolist(), sides.tolist(), strict=True)))
+    return sweeps
+
+
+def test_the_evidence_prefers_the_column_the_readings_came_from() -> None:
+    sweeps = _sweeps(COLUMN, 12)
+    scores = {}
+    changes = {"true": {}, "steeper": {"blur_px_per_interval": 80.0},
+               "wider": {"floor_sigma_px": 2.0}, "flat": {"curve_power": 3.0}}  # fmt: skip
+    for label, change in changes.items():
+        family = column_family({**COLUMN, **change})
+        evidence = ColumnEvidence(family, draws=1)
+        scores[label] = float(column_evidence(evidence, MIDDLE, sweeps)[0])
+    assert all(math.isfinite(score) for score in scores.values())
+    assert scores["true"] > max(scores["steeper"], scores["wider"], scores["flat"]) + 10
+
+
+def test_calibrate_finds_the_column_and_one_beyond_the_box() -> None:
+    found = calibrate(_sweeps(COLUMN, 16), population=64, rounds=6).column
+    assert found["blur_px_per_interval"] == pytest.approx(40.0, rel=0.2)
+    assert found["floor_sigma_px"] == pytest.approx(1.2, rel=0.2)
+    # the box's gains reach 120 px per interval; the search looks half its span beyond
+    steep = {**COLUMN, "blur_px_per_interval": 200.0}
+    calibration = calibrate(_sweeps(steep, 12, seed=1), population=32, rounds=4)
+    assert calibration.column["blur_px_per_interval"] > 130.0
+    assert list(calibration.progress) == sorted(calibration.progress)  # the best is kept
+    assert calibration.alignments == 12 and calibration.readings == 72
+    assert set(calibration.column) == set(COLUMN_FIELDS)
+
+
+def test_a_calibration_without_readings_or_search_is_refused() -> None:
+    blank = [[(0.5, math.nan, 0.0), (0.6, math.inf, 1.0)]]
+    with pytest.raises(ValueError, match="needs measured readings"):
+        calibrate(blank)
+    with pytest.raises(ValueError, match="population must be at least 8"):
+        calibrate(_sweeps(COLUMN, 2), population=4)
+
+
+def test_a_reading_from_above_lies_on_the_other_branch_of_the_backlash() -> None:
+    lagged = column_family({**COLUMN, "hysteresis_fraction": 0.02})
+    finals = {}
+    for side in (1.0, -1.0):
+        posterior = FamilyPosterior(lagged)
+        posterior.begin()
+        for setting, width in ((0.40, 12.0), (0.60, 12.0), (0.50, 3.0)):
+            posterior.observe(setting, width, side)
+        finals[side] = posterior.final()[0]
+    # in focus at 0.5 from above: the optimum 2 x lag higher than read from below
+    assert finals[-1.0] - finals[1.0] == pytest.approx(0.04, abs=0.01)
+
+
+def test_the_task_reads_a_calibrated_column_and_refuses_a_wrong_one() -> None:
+    champion = load_deployable("champion:focus-v2").task
+    values = tuple(COLUMN[name] for name in COLUMN_FIELDS)
+    options = TaskOptions(posterior_column=COLUMN)
+    task = options.apply(champion)
+    assert task.posterior_column == values
+    ends = EpisodeEnds(1, 1, task)
+    ends.restart(np.array([0]))
+    ends.note(np.array([0]), np.array([[50.0]]), np.array([4.0]), np.array([True]),
+              np.array([True]), np.array([[0.5]]))  # fmt: skip
+    posterior = ends._posteriors[0]
+    assert posterior.models.count == 1 and not posterior.scale_free  # the column, in its px
+    assert posterior._readings == [(0.5, 4.0, 0.0)]  # the column as found: side unknown
+    with pytest.raises(ValueError, match=r"posterior_column.*finish_at_posterior"):
+        options.apply(get_task("focus"))
+    with pytest.raises(ValueError, match=r"missing: curve_power.*unknown: power"):
+        renamed = {**{k: v for k, v in COLUMN.items() if k != "curve_power"}, "power": 2.0}
+        TaskOptions(posterior_column=renamed).apply(champion)
+    assert "outside what a focus column may be" in column_problem({**COLUMN, "curve_power": 20})
+    with pytest.raises(ConfigError, match="posterior_column"):
+        parse_config(RunConfig, {"task_options": {"posterior_column": {"a": "b"}}}, "test.yaml")
+
+
+def test_sweeps_read_the_first_reading_on_an_unknown_side() -> None:
+    class Record:
+        trajectory = ((10.0, 20.0), (30.0, None), (50.0, 4.0))
+
+    first, blank, last = sweeps_of([Record()], 0.0, 100.0)[0]
+    assert first == (0.1, 20.0, 0.0) and last == (0.5, 4.0, 1.0)
+    assert blank[0] == 0.3 and math.isnan(blank[1]) and blank[2] == 1.0
+
+
+def test_calibrated_posterior_is_the_one_column_in_its_pixels() -> None:
+    posterior = calibrated_posterior(COLUMN, 1.15)
+    assert posterior.models.count == 1 and not posterior.scale_free
+    assert posterior.far_noise == 0.1 and posterior.model_noise == 0.01
+
+
+def test_calibrate_adapts_a_champion_on_a_driver_without_an_optimum(
+    light_export: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert BlindLens.optimum is None
+    out = tmp_path / "calibrated"
+    argv = ["calibrate", "--policy", str(light_export), "--apparatus", "fake_drivers:BlindLens"]
+    argv += ["--spec-px", "3", "--alignments", "4", "--population", "8", "--rounds", "2"]
+    argv += ["--out", str(out), "--quiet", "--json"]
+    capsys.readouterr()
+    assert main(argv) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert result["alignments"] == 4 and result["readings"] > 4
+    assert set(result["column"]) == set(COLUMN_FIELDS)
+    calibrated = load_deployable(str(out))
+    found = [result["column"][name] for name in COLUMN_FIELDS]
+    assert np.allclose(calibrated.task.posterior_column, found, rtol=1e-8)
+    record = json.loads((out / "calibration.json").read_text())
+    assert record["alignments"] == 4 and record["column"] == result["column"]
+    assert (out / "learner.safetensors").exists()  # still adaptable by alignrl adapt
+    # the same network, tensor for tensor: only what its posterior knows changed
+    assert (out / "policy.safetensors").read_bytes() == (
+        light_export / "policy.safetensors"
+    ).read_bytes()
+    argv = ["evaluate", "--policy", str(out), "--apparatus", "fake_drivers:BlindLens"]
+    assert main([*argv, "--spec-px", "3", "--scenarios", "2", "--quiet", "--json"]) == 0
+
+
+def test_calibrate_refuses_before_any_alignment(
+    light_export: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    base = ["calibrate", "--apparatus", "fake_drivers:BlindLens", "--spec-px", "3", "--quiet"]
+    assert main([*base, "--policy", "champion:focus-v1", "--out", str(tmp_path / "a")]) == 2
+    assert "finish_at_posterior" in capsys.readouterr().err
+    assert main([*base, "--policy", str(light_export), "--out", str(light_export)]) == 2
+    assert "--force" in capsys.readouterr().err
+    assert main([*base, "--policy", str(light_export), "--population", "4",
+                 "--out", str(tmp_path / "b")]) == 2  # fmt: skip
+    assert "population must be at least 8" in capsys.readouterr().err
+    with pytest.raises(SystemExit):  # argparse: --out is required
+        main([*base, "--policy", str(light_export)])
+    assert "--out" in capsys.readouterr().err
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
