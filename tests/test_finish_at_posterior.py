@@ -312,3 +312,17 @@ def test_the_posterior_can_leave_out_the_column_as_found() -> None:
         read[from_below] = (opened, len(episodes.ends._posterior(0)._readings))
         assert len(episodes.ends.readings[0]) == 2  # the record keeps both
     assert read == {False: (1, 2), True: (0, 1)}
+
+
+def test_the_posterior_from_below_reads_a_setting_at_the_lower_end_on_its_branch() -> None:
+    """A setting at the interval's lower end cannot be approached from below (nothing lies
+    below it): written from above, posterior_from_below reads it on that branch rather than
+    never (which left the walk asking for it again until the budget ran out)."""
+    episodes, slot, _ = _started(_task(stop_at_best=True, posterior_from_below=True))
+    posterior = episodes.ends._posterior(0)
+    for _ in range(4):  # down as far as the moves go: the lower end
+        episodes.step(slot, np.array([[-1.0, -1.0]]))
+    assert float(episodes.ends.written[0, 0]) == float(episodes.low[0, 0])
+    assert episodes.ends.approach[0, 0] == -1  # written from above
+    sides = [side for _, _, side in posterior._readings]
+    assert sides and sides[-1] == -1.0 and 0.0 not in sides

@@ -150,16 +150,20 @@ class EpisodeEnds:
     def _posterior_reads(self, index: int, measured: bool) -> bool:
         """Whether episode `index`'s posterior reads its latest reading: a measured one, or
         with Task.posterior_no_edges one without edges; with Task.posterior_from_below only
-        one approached from below (not the column as found)."""
-        if self.task.posterior_from_below and self.approach[index, 0] <= 0:
+        one whose side is known, not the column as found (one written from above, at the
+        interval's lower end where nothing lies below, is read on its branch: `_side`)."""
+        if self.task.posterior_from_below and self.approach[index, 0] == 0:
             return False
         return measured or self.task.posterior_no_edges
 
     def _side(self, index: int) -> float:
         """The side episode `index`'s latest reading came from, as its posterior reads it:
-        the calibrated one (Task.posterior_column) on its branch (0: unknown, the column as
-        found), the box's as from below (as the shipped champion was measured)."""
-        return float(self.approach[index, 0]) if self.task.posterior_column else 1.0
+        on its branch with a calibrated column (Task.posterior_column; 0: unknown, the column
+        as found) or posterior_from_below, else as from below (as the shipped champion was
+        measured)."""
+        if self.task.posterior_column or self.task.posterior_from_below:
+            return float(self.approach[index, 0])
+        return 1.0
 
     def narrowest(self, index: int) -> Noted | None:
         """Episode `index`'s narrowest reading (the first of equals); None where none was
