@@ -27,11 +27,10 @@ from alignrl.apparatus.calibration import POPULATION, ROUNDS
 from alignrl.apparatus.instruments import load_set
 from alignrl.apparatus.registry import make_apparatus
 from alignrl.deploy.calibrate import calibrate_policy
-from alignrl.deploy.policy import load_deployable
-from alignrl.evaluation.controllers import PolicyController
 from alignrl.evaluation.instrument_sets import instrument_spec
 from alignrl.evaluation.session import VALIDATION_SEED, run_session
 from alignrl.intervals import success_text
+from benchmarks.heldout import _controller as policy_controller
 
 JUDGED = "judged.json"
 
@@ -60,11 +59,8 @@ def _judge(args: argparse.Namespace, name: str) -> dict[str, Any]:
         force=True,
         command=f"python -m benchmarks.calibrate --policy {args.policy} (instrument {name})",
     )
-    policy = load_deployable(str(out))
-    controller = PolicyController(
-        name=str(out), act=policy.act, task=policy.task, history=policy.history
-    )
-    judged = run_session(controller, apparatus, policy.task, args.scenarios, args.seed)
+    controller = policy_controller(str(out))
+    judged = run_session(controller, apparatus, controller.task, args.scenarios, args.seed)
     result = {
         "instrument": name,
         "policy": args.policy,
