@@ -1,5 +1,5 @@
 """What a controller that knows the column's model reaches on every instrument of a set: the
-Bayesian autofocus of alignrl/evaluation/posterior.py, in three kinds (issue 21):
+Bayesian autofocus of alignrl/evaluation/posterior.py, in four kinds (issue 21):
 
 * `oracle`: on each instrument, the posterior over that instrument's own file (its every
   parameter known, the optimum anywhere in the interval). What it cannot do in a number of
@@ -8,7 +8,14 @@ Bayesian autofocus of alignrl/evaluation/posterior.py, in three kinds (issue 21)
   the same for every instrument: it knows what training knows, no more (`alignrl evaluate
   --policy posterior`); `--reach R` widens the box by R of each range at both ends;
 * `scale-free` (only where asked): the same box, its readings in an unknown pixel scale
-  (PosteriorFocus.scale_free): what a unit-free aligner could learn from it.
+  (PosteriorFocus.scale_free): what a unit-free aligner could learn from it;
+* `robust` (only where asked): `alignrl evaluate --policy posterior-robust`, scale-free with
+  more columns and far readings trusted less (posterior.ROBUST), as the champion's ending
+  posterior reads images.
+
+`--probe-rule chance` has every kind probe where the final setting's expected chance gains
+most rather than where the optimum's variance falls most (FamilyPosterior.probe_rule); its
+results are KIND-chance.
 
     python -m benchmarks.bound --set heldout --analytic --out runs/bound
 
@@ -28,12 +35,13 @@ from pathlib import Path
 
 from alignrl.apparatus.base import Apparatus
 from alignrl.apparatus.family import family_path, load_family
+from alignrl.apparatus.family_posterior import PROBE_RULES
 from alignrl.apparatus.instruments import load_set
 from alignrl.evaluation.instrument_sets import set_table
-from alignrl.evaluation.posterior import FAMILY_REACH, SCALE_FREE, PosteriorFocus, widened
+from alignrl.evaluation.posterior import FAMILY_REACH, ROBUST, SCALE_FREE, PosteriorFocus, widened
 from benchmarks.heldout import same_sessions, stored_or_run
 
-KINDS = ("oracle", "posterior", "scale-free")
+KINDS = ("oracle", "posterior", "scale-free", "robust")
 DEFAULT_KINDS = ("oracle", "posterior")
 
 
@@ -41,11 +49,10 @@ class _Oracle:
     """The posterior over each instrument's own file, switched to as its session starts
     (run_set's on_instrument)."""
 
-    name = "oracle"
-
-    def __init__(self, set_name: str) -> None:
+    def __init__(self, set_name: str, label: str, probe_rule: str) -> None:
+        self.name = label
         self.by_instrument = {
-            name: PosteriorFocus(instrument, name="oracle")
+            name: PosteriorFocus(instrument, name=label, probe_rule=probe_rule)
             for name, instrument in load_set(set_name)
         }
         self.present: PosteriorFocus | None = None
@@ -60,16 +67,15 @@ class _Oracle:
 
 def _result(kind: str, args: argparse.Namespace) -> dict:
     """Controller `kind`'s set result (module docstring), read back or run."""
-    path = args.out / f"{kind}.json" if args.out is not None else None
+    name = kind if args.probe_rule == "variance" else f"{kind}-{args.probe_rule}"
+    path = args.out / f"{name}.json" if args.out is not None else None
     if kind == "oracle":
-        oracle = _Oracle(args.set_name)
-        return stored_or_run(kind, lambda: oracle, args, path, on_instrument=oracle.switch)
+        oracle = _Oracle(args.set_name, name, args.probe_rule)
+        return stored_or_run(name, lambda: oracle, args, path, on_instrument=oracle.switch)
     box = widened(load_family(family_path(args.family)), args.reach)
-    if kind == "scale-free":
-        return stored_or_run(
-            kind, lambda: PosteriorFocus(box, draws=args.draws, name=kind, **SCALE_FREE), args, path
-        )
-    return stored_or_run(kind, lambda: PosteriorFocus(box, draws=args.draws), args, path)
+    settings = {"scale-free": SCALE_FREE, "robust": ROBUST}.get(kind, {})
+    settings = {"draws": args.draws, **settings, "probe_rule": args.probe_rule}
+    return stored_or_run(name, lambda: PosteriorFocus(box, name=name, **settings), args, path)
 
 
 def _beside(args: argparse.Namespace) -> list[dict]:
@@ -92,7 +98,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--analytic", action="store_true", help="analytic readings, no images")
     parser.add_argument("--family", default="focus", help="the box `posterior` knows")
-    parser.add_argument("--draws", type=int, default=PosteriorFocus.draws)
+    parser.add_argument(
+        "--draws", type=int, default=PosteriorFocus.draws, help="columns (robust: 1024)"
+    )
+    parser.add_argument(
+        "--probe-rule", choices=PROBE_RULES, default="variance", help="FamilyPosterior.probe_rule"
+    )
     parser.add_argument(
         "--reach",
         type=float,

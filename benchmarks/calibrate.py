@@ -10,7 +10,8 @@ columns), fits the column's reading model to what they read and exports the poli
 to OUT/INSTRUMENT; that policy is then judged on the held-out table's session (seed 0, 100
 alignments, as benchmarks/heldout.py), and the result written to OUT/INSTRUMENT/judged.json
 (read back with --reuse). The table: per instrument, the calibration's session (the champion
-as it is), the steps it took (its acquisitions), and the calibrated policy on the judging
+as it is), the steps it took (its acquisitions and the readings from above after each
+alignment, --from-above), and the calibrated policy on the judging
 session. Images unless --analytic. Not a test: about ten minutes per instrument on 2 cores.
 """
 
@@ -23,7 +24,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from alignrl.apparatus.calibration import POPULATION, ROUNDS
+from alignrl.apparatus.calibration import FROM_ABOVE, POPULATION, ROUNDS
 from alignrl.apparatus.instruments import load_set
 from alignrl.apparatus.registry import make_apparatus
 from alignrl.deploy.calibrate import calibrate_policy
@@ -41,8 +42,8 @@ def _judge(args: argparse.Namespace, name: str) -> dict[str, Any]:
     path = out / JUDGED
     if args.reuse and path.exists():
         saved = json.loads(path.read_text())
-        if (saved["scenarios"], saved["seed"], saved["analytic"]) == (
-            args.scenarios, args.seed, args.analytic,
+        if (saved["scenarios"], saved["seed"], saved["analytic"], saved.get("from_above", 0)) == (
+            args.scenarios, args.seed, args.analytic, args.from_above,
         ):  # fmt: skip
             print(f"{name}: read {path}", file=sys.stderr)
             return saved
@@ -56,6 +57,7 @@ def _judge(args: argparse.Namespace, name: str) -> dict[str, Any]:
         seed=VALIDATION_SEED,
         population=args.population,
         rounds=args.rounds,
+        from_above=args.from_above,
         force=True,
         command=f"python -m benchmarks.calibrate --policy {args.policy} (instrument {name})",
     )
@@ -65,7 +67,8 @@ def _judge(args: argparse.Namespace, name: str) -> dict[str, Any]:
         "instrument": name,
         "policy": args.policy,
         "alignments": args.alignments,
-        "steps": int(calibrated.session.acquisitions().sum()),
+        "from_above": args.from_above,
+        "steps": int(calibrated.session.acquisitions().sum()) + calibrated.from_above,
         "calibration_successes": calibrated.session.successes,
         "calibration_median": calibrated.session.median_acquisitions,
         "column": calibrated.calibration.column,
@@ -95,6 +98,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--alignments", type=int, default=30, help="to calibrate on")
     parser.add_argument("--population", type=int, default=POPULATION, help="of the search")
     parser.add_argument("--rounds", type=int, default=ROUNDS, help="of the search")
+    parser.add_argument(
+        "--from-above", type=int, default=FROM_ABOVE, help="readings from above per alignment"
+    )
     parser.add_argument("--scenarios", type=int, default=100, help="judged on")
     parser.add_argument("--seed", type=int, default=0, help="of the judging session")
     parser.add_argument("--analytic", action="store_true", help="analytic readings, no images")

@@ -8,6 +8,8 @@ from pathlib import Path
 
 import pytest
 
+import benchmarks.bound as bound
+from alignrl.evaluation.posterior import ROBUST
 from benchmarks.bound import main
 
 
@@ -47,3 +49,28 @@ def test_oracle_rows_are_written_read_back_and_shown_beside(
     again = _rows(captured.out)
     assert again["instrument"] == ["other", "oracle"]
     assert again["**total**"][0] == again["**total**"][1] == first["**total**"][0]
+
+
+def test_a_probe_rule_names_its_result_and_reaches_the_posterior(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """--probe-rule chance: each kind's posterior probes by it, and its result is
+    KIND-chance; the robust kind reads as posterior-robust does."""
+    made = []
+
+    class Recording(bound.PosteriorFocus):
+        def __post_init__(self) -> None:
+            made.append(self)
+            super().__post_init__()
+
+    monkeypatch.setattr(bound, "PosteriorFocus", Recording)
+    argv = ["--set", "validation", "--analytic", "--scenarios", "1", "--out", str(tmp_path)]
+    assert main([*argv, "--kind", "oracle", "--kind", "robust", "--probe-rule", "chance"]) == 0
+    assert sorted(path.name for path in tmp_path.glob("*.json")) == [
+        "oracle-chance.json",
+        "robust-chance.json",
+    ]
+    assert {posterior.probe_rule for posterior in made} == {"chance"}
+    (robust,) = [posterior for posterior in made if posterior.name == "robust-chance"]
+    assert {key: getattr(robust, key) for key in ROBUST} == ROBUST
+    assert "robust-chance" in capsys.readouterr().out

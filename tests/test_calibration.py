@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from fake_drivers import BlindLens
+from fake_drivers import TEN_NINETY, BlindLens, ParabolicLens
 from safetensors.torch import load_file
 
 from alignrl.apparatus.calibration import (
@@ -28,6 +28,7 @@ from alignrl.apparatus.family import PAIR_FIELDS
 from alignrl.apparatus.family_posterior import ColumnModels, FamilyPosterior
 from alignrl.cli import main
 from alignrl.config import ConfigError, RunConfig, TaskOptions, parse_config
+from alignrl.deploy.calibrate import read_from_above
 from alignrl.deploy.policy import load_deployable
 from alignrl.envs.ending import EpisodeEnds
 from alignrl.envs.task import get_task
@@ -50,17 +51,21 @@ COLUMN = {
 }
 
 
-def _sweeps(column: dict[str, float], count: int, seed: int = 0) -> list:
+def _sweeps(column: dict[str, float], count: int, seed: int = 0, above: int = 0) -> list:
     """Alignments on `column` as its reading model has them: the optimum anywhere in the
     middle of the interval, the first reading where the column was found (its backlash's
-    middle branch), five more from below around the optimum, near and far."""
+    middle branch), five more from below around the optimum, near and far, and `above` from
+    above on its flanks."""
     rng = np.random.default_rng(seed)
     models = ColumnModels.at(column_family(column), MIDDLE, 0.0)
     sweeps = []
     for _ in range(count):
         optimum = rng.uniform(0.3, 0.7)
-        settings = np.concatenate([[rng.uniform(0.1, 0.9)], optimum + rng.normal(0, 0.1, 5)])
-        sides = np.array([0.0, 1, 1, 1, 1, 1])
+        flanks = optimum + rng.choice([-1.0, 1.0], above) * rng.uniform(0.03, 0.06, above)
+        settings = np.concatenate(
+            [[rng.uniform(0.1, 0.9)], optimum + rng.normal(0, 0.1, 5), flanks]
+        )
+        sides = np.array([0.0, 1, 1, 1, 1, 1] + [-1.0] * above)
         error = settings - sides * models.lag[0, 0, 0] - optimum
         _, mean, _ = models.reading(error[:, None, None], np.zeros((1, 1, 1)))
         mean = mean.ravel()
@@ -114,6 +119,47 @@ def test_a_reading_from_above_lies_on_the_other_branch_of_the_backlash() -> None
         finals[side] = posterior.final()[0]
     # in focus at 0.5 from above: the optimum 2 x lag higher than read from below
     assert finals[-1.0] - finals[1.0] == pytest.approx(0.04, abs=0.01)
+
+
+def test_readings_from_above_tell_a_backlash_beyond_the_box() -> None:
+    """A column with 1.5 % backlash (the box's reaches 0.6 %, the widened search 0.9 %):
+    with two readings from above per alignment the search finds it; from below alone it
+    cannot tell it (the readings say the same for every backlash) and stays in the box."""
+    lagged = {**COLUMN, "hysteresis_fraction": 0.015}
+    both = calibrate(_sweeps(lagged, 16, seed=2, above=2), population=64, rounds=6)
+    assert both.column["hysteresis_fraction"] == pytest.approx(0.015, rel=0.25)
+    below = calibrate(_sweeps(lagged, 16, seed=2), population=64, rounds=6)
+    assert below.column["hysteresis_fraction"] < 0.0095
+
+
+def test_read_from_above_comes_down_onto_the_flank_settings() -> None:
+    """After an alignment, the settings it read from below whose widths lie nearest twice
+    its narrowest are each written from `overshoot` above, then read; the opening reading,
+    a frame without edges and a setting at the interval's top are never chosen."""
+    lens = ParabolicLens(gain_px_per_v=0.2, sigma0_px=1.0)
+    lens.reset(0)
+    optimum = lens.optimum_v
+    trajectory = [
+        (optimum + 10.0, 2.2),  # the opening reading: never read again
+        (optimum - 20.0, 4.1),
+        (optimum - 5.0, 1.4),
+        (optimum + 15.0, 3.2),
+        (optimum + 40.0, None),  # no edges
+        (100.0, 2.0),  # the interval's top: nothing to come down from
+        (optimum, 1.0),
+    ]
+    lens.writes.clear()
+    readings = read_from_above(lens, "defocus", trajectory, 2, 0.02)
+    chosen = [optimum - 5.0, optimum + 15.0]  # widths 1.4 and 3.2: nearest 2 x 1.0
+    assert [setting for setting, _, _ in readings] == chosen
+    assert [side for _, _, side in readings] == [-1.0, -1.0]
+    assert lens.writes == [
+        {"defocus": chosen[0] + 2.0}, {"defocus": chosen[0]},
+        {"defocus": chosen[1] + 2.0}, {"defocus": chosen[1]},
+    ]  # fmt: skip
+    assert readings[1][1] == pytest.approx(TEN_NINETY * math.hypot(1.0, 0.2 * 15.0))
+    assert read_from_above(lens, "defocus", trajectory, 0, 0.02) == []
+    assert read_from_above(lens, "defocus", trajectory[:1], 2, 0.02) == []
 
 
 def test_the_task_reads_a_calibrated_column_and_refuses_a_wrong_one() -> None:
@@ -172,6 +218,9 @@ def test_calibrate_adapts_a_champion_on_a_driver_without_an_optimum(
     assert np.allclose(calibrated.task.posterior_column, found, rtol=1e-8)
     record = json.loads((out / "calibration.json").read_text())
     assert record["alignments"] == 4 and record["column"] == result["column"]
+    # each alignment ends with two readings from above (its backlash), after those from below
+    assert record["from_above"] == 2
+    assert all([side for _, _, side in sweep][-2:] == [-1, -1] for sweep in record["sweeps"])
     assert (out / "learner.safetensors").exists()  # still adaptable by alignrl adapt
     # the same network, tensor for tensor: only what its posterior knows changed
     calibrated_weights = load_file(out / "policy.safetensors")

@@ -51,8 +51,10 @@ from alignrl.apparatus.family_posterior import (
 )
 
 __all__ = [
+    "BACKLASH_SEARCHED",
     "CALIBRATED",
     "COLUMN_FIELDS",
+    "FROM_ABOVE",
     "Calibration",
     "ColumnEvidence",
     "calibrate",
@@ -77,6 +79,10 @@ CALIBRATED = {"far_noise": 0.1, "model_noise": 0.01}
 # 256 x 10 short of the best column it found at 0.5 (docs/benchmarks.md).
 CALIBRATION_REACH = 0.5
 POPULATION, ROUNDS, ELITE = 256, 8, 0.1
+# Readings approached from above after each alignment (alignrl/deploy/calibrate.py), and the
+# backlash the search then reaches, a share of the interval: beyond the box's, since readings
+# from both sides tell it.
+FROM_ABOVE, BACKLASH_SEARCHED = 2, 0.03
 MIN_SPREAD = 0.005  # the least spread of the search's normal, a share of the widened box
 
 # One alignment's readings: (setting as a fraction of the knob's interval, width in px (NaN
@@ -167,7 +173,8 @@ def calibrate(
     on_round: Callable[[int, int, float], None] | None = None,
 ) -> Calibration:
     """The column of `family` (default: the focus training box) widened by `reach` whose
-    reading model makes `sweeps` most likely (module docstring). `on_round(done, rounds,
+    reading model makes `sweeps` most likely (module docstring); where some reading was
+    approached from above, backlash up to BACKLASH_SEARCHED at least. `on_round(done, rounds,
     best log evidence)` after each round. ValueError for no reading in focus's sense (fewer
     than two measured widths in all), a population below 8, rounds below 1 or an elite share
     outside (0, 1)."""
@@ -178,6 +185,10 @@ def calibrate(
         )
     check_search(population, rounds, elite)
     box = widened(family if family is not None else focus_box(0.0), reach)
+    if any(side < 0 for sweep in sweeps for _, _, side in sweep):  # backlash tells
+        lowest, highest = box.hysteresis_fraction
+        reach_to = {"hysteresis_fraction": (lowest, max(highest, BACKLASH_SEARCHED))}
+        box = FocusFamily.model_validate({**box.model_dump(), **reach_to})
     evidence = ColumnEvidence(box, draws=population, seed=seed, **CALIBRATED)
     rng = np.random.default_rng(seed)
     # only the reading model's parameters are searched; the rest (interval, optimum, dose)

@@ -18,10 +18,11 @@ model's chance of one; a width: the model's mean, with a spread of the model's n
 the optimum. Where the readings have left few of the columns likely, it draws the columns
 again around the likely ones and weighs every reading on them (a resample-move step), so
 that a box of a dozen parameters is searched where the readings point. Each probe goes
-where the expected posterior variance of the optimum is least, over a grid of settings and
-settings around the posterior's quantiles; it is done once the setting most likely to pass
-the session's verification (`spec_relative` x the best width) passes with probability
-`confidence`, and ends there.
+where the expected posterior variance of the optimum is least (or, `probe_rule` "chance",
+where the final setting's expected chance of passing is greatest one reading ahead), over a
+grid of settings and settings around the posterior's quantiles; it is done once the setting
+most likely to pass the session's verification (`spec_relative` x the best width) passes
+with probability `confidence`, and ends there.
 
 With `scale_free` the readings' pixel scale is unknown too: every reading is the model's
 times a factor of the episode, flat on a log scale, marginalised per state in closed form
@@ -76,6 +77,8 @@ STOP_STATES = 20000  # states a stop is judged on (a systematic resample beyond)
 LIVE = 1e-12  # states below this share of the largest posterior weight are left out
 GRID_POINTS_PER_WINDOW = 3  # optimum grid points across the half-width that passes the spec
 MAX_GRID = 4000
+PROBE_RULES = ("variance", "chance")
+FINAL_SETTINGS = 41  # final settings a "chance" probe is scored against
 # Where a reading's approach is unknown, the branches of the backlash it may lie on (x the
 # lag): from below, from above, and the middle (a column left between them)
 BRANCHES = (1.0, -1.0, 0.0)
@@ -304,6 +307,10 @@ class FamilyPosterior:
     # posterior then learns only from ratios of readings and the curve's shape, as a unit-free
     # policy must (alignrl/imitation.py), and aligns a column imaged at any magnification.
     scale_free: bool = False
+    # where the next reading goes: "variance", where it leaves the least expected variance of
+    # the optimum; "chance", where it leaves the final setting the greatest expected chance
+    # of passing the verification (one reading ahead: the stop's own question)
+    probe_rule: str = "variance"
     models: ColumnModels = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -317,6 +324,8 @@ class FamilyPosterior:
             raise ValueError(f"optimum_prior must be box or interval, got {self.optimum_prior!r}")
         if not (math.isfinite(self.far_noise) and self.far_noise >= 0.0):
             raise ValueError(f"far_noise must be a finite share >= 0, got {self.far_noise}")
+        if self.probe_rule not in PROBE_RULES:
+            raise ValueError(f"probe_rule must be one of {PROBE_RULES}, got {self.probe_rule!r}")
         self.models = ColumnModels.of(
             self.family, self.draws, self.seed, self.model_noise, self.far_noise
         )
@@ -367,7 +376,7 @@ class FamilyPosterior:
         return self.probe(), False
 
     def probe(self) -> float:
-        """Where the next reading leaves the least expected variance of the optimum."""
+        """Where the next reading goes (`probe_rule`)."""
         return self._next_probe(self._posterior)
 
     def final(self) -> tuple[float, float]:
@@ -492,7 +501,8 @@ class FamilyPosterior:
         return np.unique(np.clip(np.concatenate([np.linspace(0.0, 1.0, 17), around]), 0, 1))
 
     def _next_probe(self, posterior: np.ndarray) -> float:
-        """The setting whose reading leaves the least expected variance of the optimum."""
+        """The next reading's setting: the least expected variance of the optimum, or the
+        greatest expected chance of the final setting (`probe_rule`)."""
         k, z, n, weight = self._scored(posterior, SCORED_STATES)
         u = self._grid[n]
         lag = float(np.sum(weight * self.models.lag[k, 0, 0]))
@@ -503,6 +513,7 @@ class FamilyPosterior:
             shift = self._scale.estimate(k, z, n)[0]
             top, bottom = top * math.exp(shift.max()), bottom * math.exp(shift.min())
         edges = np.geomspace(bottom, top, self.reading_bins - 1)
+        passes = self._passes(k, z, n, weight) if self.probe_rule == "chance" else None
         best, best_value = float(settings[0]), math.inf
         for chunk in np.array_split(settings, max(1, settings.size // 16)):
             none, mean, spread = self._state_reading(chunk, k, z, n, scaled=True)
@@ -511,14 +522,28 @@ class FamilyPosterior:
             bins = bins * (1.0 - none)[..., None]
             outcomes = np.concatenate([bins, none[..., None]], axis=-1)  # (M, S, B + 1)
             joint = outcomes * weight[None, :, None]
-            mass = joint.sum(axis=1)
-            first = np.einsum("msb,s->mb", joint, u)
-            second = np.einsum("msb,s->mb", joint, u * u)
-            variance = (second - first**2 / np.maximum(mass, 1e-300)).sum(axis=1)
-            index = int(np.argmin(variance))
-            if variance[index] < best_value:
-                best, best_value = float(chunk[index]), float(variance[index])
+            if passes is not None:  # minus the expected chance of the best final setting
+                value = -np.einsum("msb,fs->mbf", joint, passes).max(axis=2).sum(axis=1)
+            else:
+                mass = joint.sum(axis=1)
+                first = np.einsum("msb,s->mb", joint, u)
+                second = np.einsum("msb,s->mb", joint, u * u)
+                value = (second - first**2 / np.maximum(mass, 1e-300)).sum(axis=1)
+            index = int(np.argmin(value))
+            if value[index] < best_value:
+                best, best_value = float(chunk[index]), float(value[index])
         return best
+
+    def _passes(self, k: np.ndarray, z: np.ndarray, n: np.ndarray, weight: np.ndarray):
+        """Whether each state passes the verification at each of FINAL_SETTINGS final
+        settings across the optimum's posterior (approached from below): an array (F, S)."""
+        u = self._grid[n]
+        lag = float(np.sum(weight * self.models.lag[k, 0, 0]))
+        span = _quantiles(u, weight, [0.005, 0.995])
+        settings = np.linspace(span[0], span[1], FINAL_SETTINGS) + lag
+        none, mean, spread = self._state_reading(settings, k, z, n)
+        spec = self.spec_relative * self.models.best_px()[k, 0, 0]
+        return (1.0 - none) * ndtr((spec[None, :] - mean) / spread)
 
     def _final(self, posterior: np.ndarray) -> tuple[float, float]:
         """The setting most likely to pass the verification, and that chance."""

@@ -12,6 +12,7 @@ from alignrl.cli.common import (
     _add_apparatus_options,
     _add_shield_options,
     _at_least_one,
+    _at_least_zero,
     _emit,
     _json_object,
     _seed,
@@ -80,6 +81,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
             rounds=args.rounds,
             force=args.force,
             command=command,
+            from_above=args.from_above,
             on_alignment=alignment,
             on_round=calibrated_round,
         )
@@ -102,7 +104,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     lines = [
         f"calibrated {args.policy} on {args.apparatus} from {session.scenarios} alignments "
         f"({session.successes}/{session.scenarios} aligned at a median of "
-        f"{session.median_acquisitions:g} acquisitions; {calibration.readings} readings)",
+        f"{session.median_acquisitions:g} acquisitions; {calibration.readings} readings, "
+        f"{args.from_above} per alignment from above)",
         *column_lines(calibration.column),
         f"  log evidence {calibration.log_evidence:.1f} ({calibration.per_reading():.2f} per "
         f"reading) after {len(calibration.progress)} rounds, {result.seconds:.0f} s",
@@ -152,6 +155,14 @@ def add_calibrate_parser(verbs: argparse._SubParsersAction[argparse.ArgumentPars
     )
     calibrate.add_argument(
         "--rounds", type=_at_least_one, default=8, help="rounds of the search (default: 8)"
+    )
+    calibrate.add_argument(
+        "--from-above",
+        type=_at_least_zero,
+        default=2,
+        metavar="N",
+        help="readings approached from above after each alignment, which tell the backlash "
+        "(default: 2; 0: none)",
     )
     calibrate.add_argument(
         "--out", required=True, metavar="DIR", help="folder the calibrated policy goes to"

@@ -69,6 +69,14 @@ def _at_least_one(text: str) -> int:
     return value
 
 
+def _at_least_zero(text: str) -> int:
+    """A count that may be none: an integer of at least 0."""
+    value = _parsed(text, int)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"{value} must be at least 0")
+    return value
+
+
 def _updates_per_step(text: str) -> float:
     """--updates-per-step: gradient updates per acquisition, in (0, MAX_UPDATES_PER_STEP]."""
     from alignrl.config import MAX_UPDATES_PER_STEP

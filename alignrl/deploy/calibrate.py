@@ -10,6 +10,12 @@ calibrated alike); the policy is then exported to `out` (safetensors, with its l
 where it has one) with that column as its posterior's (`task_options.posterior_column`), and
 `calibration.json` beside it says what was read and found. The network is the policy's own,
 tensor for tensor: what changes is what its posterior knows of the column.
+
+Every reading of an alignment but its first is approached from below, so those readings
+cannot tell the column's backlash. After each alignment `from_above` more readings (default
+FROM_ABOVE) are taken approached from above, at settings the alignment read from below on
+the curve's flank (the widths nearest twice the alignment's narrowest): the same settings
+on the other branch, whose shift says the backlash.
 """
 
 from __future__ import annotations
@@ -25,6 +31,7 @@ from typing import Any
 from alignrl.apparatus.base import Apparatus
 from alignrl.apparatus.calibration import (
     COLUMN_FIELDS,
+    FROM_ABOVE,
     POPULATION,
     ROUNDS,
     Calibration,
@@ -34,19 +41,27 @@ from alignrl.apparatus.calibration import (
 )
 from alignrl.checkpoints import atomic_write_text
 
-__all__ = ["CALIBRATION_FILE", "Calibrated", "calibrate_policy", "column_override"]
+__all__ = [
+    "CALIBRATION_FILE",
+    "Calibrated",
+    "calibrate_policy",
+    "column_override",
+    "read_from_above",
+]
 
 CALIBRATION_FILE = "calibration.json"
 
 
 @dataclass(frozen=True)
 class Calibrated:
-    """What `calibrate_policy` did: the export folder, the session it ran, the calibration."""
+    """What `calibrate_policy` did: the export folder, the session it ran, the calibration,
+    and how many readings from above it took besides the session's."""
 
     out: Path
     session: Any  # alignrl.evaluation.session.SessionResult
     calibration: Calibration
     seconds: float
+    from_above: int = 0
 
 
 def column_override(column: dict[str, float]) -> str:
@@ -78,13 +93,14 @@ def calibrate_policy(
     rounds: int = ROUNDS,
     force: bool = False,
     command: str | None = None,
+    from_above: int = FROM_ABOVE,
     on_alignment: Callable[[Any], None] | None = None,
     on_round: Callable[[int, int, float], None] | None = None,
 ) -> Calibrated:
     """Calibrate policy `spec` on `apparatus` and export it to `out` (module docstring).
     ValueError (before any alignment) for a policy that cannot be calibrated, an `out` that
-    holds something without `force`, fewer than one alignment; whatever run_session and the
-    export refuse."""
+    holds something without `force`, fewer than one alignment, a negative `from_above`;
+    whatever run_session, the apparatus and the export refuse."""
     from alignrl.deploy.export import _refuse_to_overwrite, export_policy, with_acting_options
     from alignrl.deploy.policy import load_deployable
     from alignrl.evaluation.controllers import PolicyController
@@ -94,6 +110,8 @@ def calibrate_policy(
     started = time.perf_counter()
     if alignments < 1:
         raise ValueError(f"a calibration runs at least one alignment, got {alignments}")
+    if from_above < 0:
+        raise ValueError(f"from_above counts readings per alignment, got {from_above}")
     check_search(population, rounds)
     policy = load_deployable(spec)
     _check_policy(spec, policy.task)
@@ -102,6 +120,15 @@ def calibrate_policy(
     controller = PolicyController(
         name=spec, act=policy.act, task=policy.task, history=policy.history
     )
+    knob = policy.task.knobs[0]
+    overshoot = policy.task.backlash_overshoot
+    above: list[list[tuple[float, float, float]]] = []
+
+    def after(record: Any) -> None:
+        above.append(read_from_above(apparatus, knob, record.trajectory, from_above, overshoot))
+        if on_alignment is not None:
+            on_alignment(record)
+
     session = run_session(
         controller,
         apparatus,
@@ -110,10 +137,13 @@ def calibrate_policy(
         seed=seed,
         spec_px=spec_px,
         budget=budget,
-        on_scenario=on_alignment,
+        on_scenario=after,
     )
-    low, high = (float(value) for value in apparatus.knobs[policy.task.knobs[0]])
-    sweeps = sweeps_of(session.records, low, high)
+    low, high = (float(value) for value in apparatus.knobs[knob])
+    sweeps = [
+        [*sweep, *(((v - low) / (high - low), width, side) for v, width, side in extra)]
+        for sweep, extra in zip(sweeps_of(session.records, low, high), above, strict=True)
+    ]
     calibration = calibrate(
         sweeps,
         population=population,
@@ -138,6 +168,7 @@ def calibrate_policy(
         "command": command,
         "seed": seed,
         "alignments": alignments,
+        "from_above": from_above,
         "session": {
             "successes": session.successes,
             "median_acquisitions": session.median_acquisitions,
@@ -149,14 +180,48 @@ def calibrate_policy(
         "column": calibration.column,
         "interval": [low, high],
         # per alignment: (setting as a fraction of the interval, width px or null: no
-        # edges, side: +1 from below, 0 unknown)
+        # edges, side: +1 from below, -1 from above, 0 unknown)
         "sweeps": [
             [[u, width if math.isfinite(width) else None, side] for u, width, side in sweep]
             for sweep in sweeps
         ],
     }
     atomic_write_text(out / CALIBRATION_FILE, json.dumps(record, indent=2) + "\n")
-    return Calibrated(out, session, calibration, time.perf_counter() - started)
+    took = sum(len(readings) for readings in above)
+    return Calibrated(out, session, calibration, time.perf_counter() - started, took)
+
+
+def read_from_above(
+    apparatus: Apparatus,
+    knob: str,
+    trajectory: Any,
+    count: int,
+    overshoot: float,
+) -> list[tuple[float, float, float]]:
+    """`count` readings (setting in the knob's units, width px, -1) approached from above
+    after an alignment whose `trajectory` ((setting, width or None), ...) was read from
+    below but for its first: at its measured settings whose widths lie nearest twice its
+    narrowest (on the flank, where a shift of the setting shows), each written `overshoot`
+    x the interval above first, then the setting (within the interval: no higher than its
+    top, and a setting at the top is left out)."""
+    from alignrl.evaluation.controllers import measure_width
+
+    low, high = (float(value) for value in apparatus.knobs[knob])
+    measured = {
+        float(setting): float(width)
+        for setting, width in list(trajectory)[1:]
+        if width is not None and math.isfinite(width) and float(setting) < high
+    }
+    if not measured or count == 0:
+        return []
+    narrowest = min(measured.values())
+    flank = sorted(measured, key=lambda setting: abs(math.log(measured[setting] / narrowest / 2)))
+    readings = []
+    for setting in flank[:count]:
+        apparatus.write({knob: min(high, setting + overshoot * (high - low))})
+        apparatus.write({knob: setting})
+        readings.append((setting, measure_width(apparatus), -1.0))
+    return readings
 
 
 def _finite(value: float) -> float | None:
