@@ -207,6 +207,7 @@ def test_calibrate_adapts_a_champion_on_a_driver_without_an_optimum(
     out = tmp_path / "calibrated"
     argv = ["calibrate", "--policy", str(light_export), "--apparatus", "fake_drivers:BlindLens"]
     argv += ["--spec-px", "3", "--alignments", "4", "--population", "8", "--rounds", "2"]
+    argv += ["--from-above", "2"]
     argv += ["--out", str(out), "--quiet", "--json"]
     capsys.readouterr()
     assert main(argv) == 0
@@ -245,4 +246,8 @@ def test_calibrate_refuses_before_any_alignment(
     with pytest.raises(SystemExit):  # argparse: --out is required
         main([*base, "--policy", str(light_export)])
     assert "--out" in capsys.readouterr().err
-    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+    with pytest.raises(SystemExit):  # argparse: a count of images
+        main([*base, "--policy", str(light_export), "--out", str(tmp_path / "c"),
+              "--from-above", "-1"])  # fmt: skip
+    assert "-1 must be at least 0" in capsys.readouterr().err
+    assert not any((tmp_path / name).exists() for name in "abc")

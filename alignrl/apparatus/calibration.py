@@ -81,8 +81,10 @@ CALIBRATION_REACH = 0.5
 POPULATION, ROUNDS, ELITE = 256, 8, 0.1
 # Readings approached from above after each alignment (alignrl/deploy/calibrate.py), and the
 # backlash the search then reaches, a share of the interval: beyond the box's, since readings
-# from both sides tell it.
-FROM_ABOVE, BACKLASH_SEARCHED = 2, 0.03
+# from both sides tell it. None by default: on the validation instruments two per alignment
+# told the backlash but aligned no more columns, one acquisition later on val-steep, for 60
+# images more (docs/benchmarks.md, seventeenth session).
+FROM_ABOVE, BACKLASH_SEARCHED = 0, 0.03
 MIN_SPREAD = 0.005  # the least spread of the search's normal, a share of the widened box
 
 # One alignment's readings: (setting as a fraction of the knob's interval, width in px (NaN
