@@ -73,8 +73,8 @@ def _result(kind: str, args: argparse.Namespace) -> dict:
         oracle = _Oracle(args.set_name, name, args.probe_rule)
         return stored_or_run(name, lambda: oracle, args, path, on_instrument=oracle.switch)
     box = widened(load_family(family_path(args.family)), args.reach)
-    settings = {"scale-free": SCALE_FREE, "robust": ROBUST}.get(kind, {})
-    settings = {"draws": args.draws, **settings, "probe_rule": args.probe_rule}
+    reads = {"scale-free": SCALE_FREE, "robust": ROBUST}.get(kind, {})  # robust: its draws
+    settings = {"draws": args.draws, **reads, "probe_rule": args.probe_rule}
     return stored_or_run(name, lambda: PosteriorFocus(box, name=name, **settings), args, path)
 
 

@@ -123,8 +123,8 @@ def test_a_reading_from_above_lies_on_the_other_branch_of_the_backlash() -> None
 
 def test_readings_from_above_tell_a_backlash_beyond_the_box() -> None:
     """A column with 1.5 % backlash (the box's reaches 0.6 %, the widened search 0.9 %):
-    with two readings from above per alignment the search finds it; from below alone it
-    cannot tell it (the readings say the same for every backlash) and stays in the box."""
+    with two readings from above per alignment the search reaches further and finds it;
+    from below alone (readings that say little of backlash) it keeps to the widened box."""
     lagged = {**COLUMN, "hysteresis_fraction": 0.015}
     both = calibrate(_sweeps(lagged, 16, seed=2, above=2), population=64, rounds=6)
     assert both.column["hysteresis_fraction"] == pytest.approx(0.015, rel=0.25)

@@ -82,8 +82,8 @@ POPULATION, ROUNDS, ELITE = 256, 8, 0.1
 # Readings approached from above after each alignment (alignrl/deploy/calibrate.py), and the
 # backlash the search then reaches, a share of the interval: beyond the box's, since readings
 # from both sides tell it. None by default: on the validation instruments two per alignment
-# told the backlash but aligned no more columns, one acquisition later on val-steep, for 60
-# images more (docs/benchmarks.md, seventeenth session).
+# told the backlash but aligned one column more in 600, one acquisition later on val-steep,
+# for 60 images more (docs/benchmarks.md, seventeenth session).
 FROM_ABOVE, BACKLASH_SEARCHED = 0, 0.03
 MIN_SPREAD = 0.005  # the least spread of the search's normal, a share of the widened box
 

@@ -513,7 +513,9 @@ class FamilyPosterior:
             shift = self._scale.estimate(k, z, n)[0]
             top, bottom = top * math.exp(shift.max()), bottom * math.exp(shift.min())
         edges = np.geomspace(bottom, top, self.reading_bins - 1)
-        passes = self._passes(k, z, n, weight) if self.probe_rule == "chance" else None
+        passes = None
+        if self.probe_rule == "chance":  # the final settings after the reading, per state
+            passes = self._passes(self._final_settings(k, n, weight, FINAL_SETTINGS), k, z, n)
         best, best_value = float(settings[0]), math.inf
         for chunk in np.array_split(settings, max(1, settings.size // 16)):
             none, mean, spread = self._state_reading(chunk, k, z, n, scaled=True)
@@ -534,13 +536,16 @@ class FamilyPosterior:
                 best, best_value = float(chunk[index]), float(value[index])
         return best
 
-    def _passes(self, k: np.ndarray, z: np.ndarray, n: np.ndarray, weight: np.ndarray):
-        """Whether each state passes the verification at each of FINAL_SETTINGS final
-        settings across the optimum's posterior (approached from below): an array (F, S)."""
+    def _final_settings(self, k: np.ndarray, n: np.ndarray, weight: np.ndarray, count: int):
+        """`count` final settings across the optimum's posterior (states k, n weighted by
+        `weight`), as approached from below."""
         u = self._grid[n]
         lag = float(np.sum(weight * self.models.lag[k, 0, 0]))
         span = _quantiles(u, weight, [0.005, 0.995])
-        settings = np.linspace(span[0], span[1], FINAL_SETTINGS) + lag
+        return np.linspace(span[0], span[1], count) + lag
+
+    def _passes(self, settings: np.ndarray, k: np.ndarray, z: np.ndarray, n: np.ndarray):
+        """Each state's chance of passing the verification at each of `settings`: (M, S)."""
         none, mean, spread = self._state_reading(settings, k, z, n)
         spec = self.spec_relative * self.models.best_px()[k, 0, 0]
         return (1.0 - none) * ndtr((spec[None, :] - mean) / spread)
@@ -548,16 +553,10 @@ class FamilyPosterior:
     def _final(self, posterior: np.ndarray) -> tuple[float, float]:
         """The setting most likely to pass the verification, and that chance."""
         k, z, n, weight = self._scored(posterior, STOP_STATES)
-        u = self._grid[n]
-        lag = float(np.sum(weight * self.models.lag[k, 0, 0]))
-        span = _quantiles(u, weight, [0.005, 0.995])
-        settings = np.linspace(span[0], span[1], 81) + lag
+        settings = self._final_settings(k, n, weight, 81)
         chances = np.zeros(settings.size)
-        spec = self.spec_relative * self.models.best_px()[k, 0, 0]
         for chunk in np.array_split(np.arange(settings.size), 9):
-            none, mean, spread = self._state_reading(settings[chunk], k, z, n)
-            passes = (1.0 - none) * ndtr((spec[None, :] - mean) / spread)
-            chances[chunk] = passes @ weight
+            chances[chunk] = self._passes(settings[chunk], k, z, n) @ weight
         index = int(np.argmax(chances))
         return float(settings[index]), float(chances[index])
 

@@ -104,8 +104,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     lines = [
         f"calibrated {args.policy} on {args.apparatus} from {session.scenarios} alignments "
         f"({session.successes}/{session.scenarios} aligned at a median of "
-        f"{session.median_acquisitions:g} acquisitions; {calibration.readings} readings, "
-        f"{args.from_above} per alignment from above)",
+        f"{session.median_acquisitions:g} acquisitions; {calibration.readings} readings"
+        f"{f', {args.from_above} per alignment from above' if args.from_above else ''})",
         *column_lines(calibration.column),
         f"  log evidence {calibration.log_evidence:.1f} ({calibration.per_reading():.2f} per "
         f"reading) after {len(calibration.progress)} rounds, {result.seconds:.0f} s",

@@ -13,9 +13,9 @@ tensor for tensor: what changes is what its posterior knows of the column.
 
 Every reading of an alignment but its first is approached from below, so those readings
 cannot tell the column's backlash. After each alignment `from_above` more readings (default
-FROM_ABOVE: none) may be taken approached from above, at settings the alignment read from below on
-the curve's flank (the widths nearest twice the alignment's narrowest): the same settings
-on the other branch, whose shift says the backlash.
+FROM_ABOVE: none) may be taken approached from above, at settings the alignment read from
+below on the curve's flank (the widths nearest twice the alignment's narrowest): the same
+settings on the other branch, whose shift says the backlash.
 """
 
 from __future__ import annotations
@@ -206,13 +206,15 @@ def read_from_above(
     top, and a setting at the top is left out)."""
     from alignrl.evaluation.controllers import measure_width
 
+    if count == 0:
+        return []
     low, high = (float(value) for value in apparatus.knobs[knob])
     measured = {
         float(setting): float(width)
         for setting, width in list(trajectory)[1:]
         if width is not None and math.isfinite(width) and float(setting) < high
     }
-    if not measured or count == 0:
+    if not measured:
         return []
     narrowest = min(measured.values())
     flank = sorted(measured, key=lambda setting: abs(math.log(measured[setting] / narrowest / 2)))
