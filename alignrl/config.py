@@ -21,13 +21,16 @@ from pydantic import (
     Field,
     ValidationError,
     ValidationInfo,
+    create_model,
     field_validator,
     model_validator,
 )
 
 from alignrl.agents.learners import LEARNERS, learner_defaults, learner_title
 from alignrl.apparatus.shield import DEFAULT_CALL_TIMEOUT_S
+from alignrl.devices import DEVICE, check_device_available
 from alignrl.envs.hindsight import HINDSIGHT_OPTIMA, HindsightOptimum  # noqa: F401 (re-exported)
+from alignrl.envs.task import ACTING_OPTIONS
 from alignrl.overlays import Layers, OverlayError, apply_overrides
 from alignrl.overlays import resolve as resolve_overlays
 from alignrl.yaml_io import YAMLInputError, read_yaml_file
@@ -88,28 +91,6 @@ def check_file_name(value: str, what: str) -> str:
             "starting with a letter or digit (no '/', no '..')"
         )
     return value
-
-
-DEVICE = re.compile(r"cpu|mps|cuda(:[0-9]{1,3})?")
-
-
-def check_device_available(device: str) -> None:
-    """A ValueError unless torch can use `device` on this machine (CUDA present, its index in
-    range). Called for configs about to run, not for a run's config read back elsewhere."""
-    if device == "cpu":
-        return
-    import torch
-
-    if device == "mps":
-        if not torch.backends.mps.is_available():
-            raise ValueError("this machine has no Apple GPU torch can use (mps); use cpu")
-        return
-    if not torch.cuda.is_available():
-        raise ValueError("CUDA is not available on this machine; use cpu")
-    index = int(device.partition(":")[2] or 0)
-    count = torch.cuda.device_count()
-    if index >= count:
-        raise ValueError(f"this machine has {count} CUDA device(s), cuda:0 to cuda:{count - 1}")
 
 
 # The learners' names, settings and defaults come from their registry
@@ -335,6 +316,12 @@ class TaskOptions(_Strict):
         return dataclasses.replace(task, success=success, **changes)
 
 
+# What a trained policy may act with beyond its training's options (never what it observes).
+_ACTING = {name: (TaskOptions.model_fields[name].annotation, TaskOptions.model_fields[name])
+           for name in ACTING_OPTIONS}  # fmt: skip
+ActingOptions = create_model("ActingOptions", __base__=_Strict, **_ACTING)  # type: ignore[call-overload]
+
+
 class CurriculumConfig(_Strict):
     enabled: bool = Field(False, description="raise the complexity as the aligner succeeds")
     level: float = Field(0.1, gt=0, le=1, description="starting complexity level")
@@ -395,6 +382,11 @@ class RunConfig(_Strict):
     task_options: TaskOptions = Field(
         default_factory=lambda: TaskOptions(), description="changes to the named task"
     )
+    acting_options: ActingOptions | None = Field(
+        None,
+        description="how the trained policy acts once loaded (export, evaluate, align, adapt),"
+        " laid over task_options; training and its validation sessions act without them",
+    )
     history: Count = Field(8, ge=1, le=64, description="history rows the aligner sees")
     envs: Count = Field(8, ge=1, le=1024, description="apparatus instances stepped together")
     complexity: float = Field(
@@ -435,9 +427,18 @@ class RunConfig(_Strict):
         if self.curriculum.lower_at >= self.curriculum.raise_at:
             raise ValueError("curriculum.lower_at must be below curriculum.raise_at")
         self.resolved_task()  # an unknown task, or options it cannot take
+        self.acting().resolved_task()
         if getattr(self, "adaptation", None) is None:  # adapting on a user's column is no choice
             self._refuse_held_out()
         return self
+
+    def acting(self) -> Any:
+        """This config as its trained policy acts: `acting_options` over `task_options`."""
+        if self.acting_options is None:
+            return self
+        changes = self.acting_options.model_dump(exclude_none=True)
+        options = TaskOptions(**{**self.task_options.model_dump(exclude_none=True), **changes})
+        return self.model_copy(update={"task_options": options, "acting_options": None})
 
     def misaligner_shape(self) -> tuple[tuple[int, int], int]:
         """(input shape, action size) of this run's misaligners: one row [1, aligned settings

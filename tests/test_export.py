@@ -555,3 +555,45 @@ def test_a_safetensors_file_that_does_not_fit_its_card_is_a_clear_error(tmp_path
     card_file.write_text(json.dumps(card))
     with pytest.raises(ExportError, match=r"card\.json is incomplete .*'observation_shape'"):
         load_exported(tmp_path / "out")
+
+
+def test_a_run_acts_with_its_acting_options_once_trained(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # The experiment file says how its policy acts once trained (acting_options): training
+    # and its validation sessions act without them, every load and export with them.
+    settings = {
+        "name": "acting",
+        "envs": 2,
+        "learner": {"algorithm": "ppo", "hidden": [16], "rollout_steps": 8, "batch_size": 16,
+                    "epochs": 1},
+        "task_options": {"max_step_fraction": 0.1, "stop_at_best": True},
+        "acting_options": {"stop_at_best": False, "move_floor": 0.02},
+        "budget": {"env_steps": 16, "eval_every": 16, "eval_scenarios": 2, "checkpoint_every": 16},
+    }  # fmt: skip
+    (tmp_path / "acting.yaml").write_text(yaml.safe_dump(settings))
+    runs = tmp_path / "runs"
+    assert main(["train", str(tmp_path / "acting.yaml"), "--runs-dir", str(runs), "--quiet"]) == 0
+    from alignrl.runs.training_runs import load_policy
+
+    _, trained = load_policy(runs / "acting")
+    assert trained.resolved_task().stop_at_best and trained.resolved_task().move_floor == 0
+    source = resolve_source(runs / "acting")
+    assert not source.task.stop_at_best and source.task.move_floor == 0.02
+    assert source.task.max_step_fraction == 0.1  # the training's options stay
+    out = tmp_path / "exported"
+    command = ["export", str(runs / "acting"), "--format", "safetensors", "--out", str(out)]
+    assert main([*command, "--set", "task_options.move_floor=0.05"]) == 0  # --set wins
+    capsys.readouterr()
+    options = json.loads((out / "card.json").read_text())["task"]["options"]
+    assert options["stop_at_best"] is False and options["move_floor"] == 0.05
+    note = json.loads((out / "card.json").read_text())["evaluations"]["note"]
+    assert 'acting_options {"move_floor": 0.02, "stop_at_best": false}' in note
+    # Only the options that never change what the policy observes may be acting options.
+    settings["acting_options"] = {"quality_reference": "first"}
+    (tmp_path / "acting.yaml").write_text(yaml.safe_dump(settings))
+    assert main(["train", str(tmp_path / "acting.yaml"), "--runs-dir", str(runs), "--quiet"]) == 2
+    assert (
+        "acting_options.quality_reference: Extra inputs are not permitted"
+        in capsys.readouterr().err
+    )

@@ -225,12 +225,17 @@ def _evaluations(source: PolicySource) -> dict[str, Any]:
         for name, value in config.task_options.model_dump(exclude_none=True).items()
         if name in SESSION_TASK_OPTIONS
     }
-    note = (
+    notes = [
         f"the run's task options {json.dumps(options, sort_keys=True)} change an evaluation "
         "session but are not options of alignrl evaluate: the command runs the task's defaults"
-        if options
-        else None
-    )
+    ] * bool(options)
+    if source.acting_options:  # RunConfig.acting_options: the sessions acted without them
+        notes.append(
+            "the run's sessions acted with its training's task options, the policy acts with "
+            f"its acting_options {json.dumps(source.acting_options, sort_keys=True)} laid over "
+            "them (as the command runs it)"
+        )
+    note = "; ".join(notes) or None
     chosen_on = _chosen_on(
         rows,
         source.kind,

@@ -138,6 +138,8 @@ class PolicySource:
     knobs: list[dict[str, Any]] | None = None
     # export, champion: the learner.safetensors loaded into the agent, where it ships one
     learner_file: Path | None = None
+    # the run's acting_options laid over its task options (its own sessions acted without)
+    acting_options: dict[str, Any] | None = None
 
     @property
     def task(self) -> Task:
@@ -257,7 +259,8 @@ def resolve_source(spec: str | Path | Location, member: str | None = None) -> Po
     """The aligner `spec` names: a league run's champion (first of best/best.json) or its
     `member` (best/<id>.pt, else the newest checkpoint's file); a training run's
     checkpoints/best.pt; a member/checkpoint .pt file; the member of a safetensors export or
-    of a shipped champion (champion:NAME), its acting network loaded."""
+    of a shipped champion (champion:NAME), its acting network loaded; it acts with its run's
+    `acting_options` (alignrl/config.py)."""
     location = spec if isinstance(spec, Location) else locate_source(spec, member)
     path = location.path
     if location.kind == "league":
@@ -276,7 +279,11 @@ def resolve_source(spec: str | Path | Location, member: str | None = None) -> Po
             knobs = recorded_knobs(source.run_dir, source.task) if source.run_dir else None
     except ValueError as error:  # a damaged knobs.json or card: named, never a traceback
         raise ExportError(str(error)) from None
-    return dataclasses.replace(source, knobs=knobs)
+    # The policy acts as its run says it does once trained (RunConfig.acting_options).
+    laid = getattr(source.config, "acting_options", None)
+    acting = laid.model_dump(exclude_none=True) if laid is not None else None
+    config = source.config.acting()
+    return dataclasses.replace(source, config=config, knobs=knobs, acting_options=acting)
 
 
 # --- league and training runs -------------------------------------------------------------
