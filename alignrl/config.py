@@ -426,8 +426,8 @@ class RunConfig(_Strict):
     def _check(self) -> RunConfig:
         if self.curriculum.lower_at >= self.curriculum.raise_at:
             raise ValueError("curriculum.lower_at must be below curriculum.raise_at")
-        self.resolved_task()  # an unknown task, or options it cannot take
-        self.acting().resolved_task()
+        for config in (self, self.acting()) if self.acting_options else (self,):
+            config.resolved_task()  # an unknown task, or options it (as trained) cannot take
         if getattr(self, "adaptation", None) is None:  # adapting on a user's column is no choice
             self._refuse_held_out()
         return self

@@ -27,6 +27,7 @@ from typing import Any
 from alignrl.apparatus.calibration import FROM_ABOVE, POPULATION, ROUNDS
 from alignrl.apparatus.instruments import load_set
 from alignrl.apparatus.registry import make_apparatus
+from alignrl.cli.common import _at_least_zero
 from alignrl.deploy.calibrate import calibrate_policy
 from alignrl.evaluation.instrument_sets import instrument_spec
 from alignrl.evaluation.session import VALIDATION_SEED, run_session
@@ -99,7 +100,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--population", type=int, default=POPULATION, help="of the search")
     parser.add_argument("--rounds", type=int, default=ROUNDS, help="of the search")
     parser.add_argument(
-        "--from-above", type=int, default=FROM_ABOVE, help="readings from above per alignment"
+        "--from-above",
+        type=_at_least_zero,
+        default=FROM_ABOVE,
+        help="readings from above per alignment",
     )
     parser.add_argument("--scenarios", type=int, default=100, help="judged on")
     parser.add_argument("--seed", type=int, default=0, help="of the judging session")

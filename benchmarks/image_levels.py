@@ -22,13 +22,8 @@ import numpy as np
 from alignrl.apparatus.base import NoEdgesError
 from alignrl.apparatus.edge_profiles import TEN_NINETY_PER_SIGMA
 from alignrl.apparatus.family import NO_EDGES_SPREAD, FamilyColumn, load_family
-from alignrl.apparatus.instruments import (
-    HELD_OUT_SET,
-    INSTRUMENT_DIR,
-    VALIDATION_SET,
-    instrument_names,
-)
-from alignrl.apparatus.probe import logistic
+from alignrl.apparatus.instruments import HELD_OUT_SET, VALIDATION_SET, instrument_names
+from alignrl.apparatus.probe import levelled_px, logistic
 from alignrl.apparatus.quality import edge_width
 
 BLURS_PX = (3, 5, 8, 12, 16, 20, 25, 30, 40, 50, 60, 80, 100, 140)
@@ -48,8 +43,7 @@ def image_levels(
     instrument: str, frames: int = 6, seed: int = 0, blurs: tuple[float, ...] = BLURS_PX
 ) -> tuple[FamilyColumn, list[Level]]:
     """The validation instrument's column at `seed` and its levels, blur by blur."""
-    family = load_family(INSTRUMENT_DIR / VALIDATION_SET / f"{instrument}.yaml")
-    column = FamilyColumn(family, seed=seed)
+    column = FamilyColumn(load_family(instrument_names(VALIDATION_SET)[instrument]), seed=seed)
     column.reset(seed=seed)
     draw = column.draw
     rng = np.random.default_rng([seed, 1])
@@ -64,7 +58,14 @@ def image_levels(
         chance = logistic(blur, draw.no_edges_px, NO_EDGES_SPREAD * draw.no_edges_px)
         median = float(np.median(widths)) if widths else None
         levels.append(
-            Level(blur, column._levelled(blur), chance, median, frames - len(widths), frames)
+            Level(
+                blur,
+                float(levelled_px(blur, draw.saturation_px)),
+                chance,
+                median,
+                frames - len(widths),
+                frames,
+            )
         )
     return column, levels
 

@@ -79,6 +79,7 @@ GRID_POINTS_PER_WINDOW = 3  # optimum grid points across the half-width that pas
 MAX_GRID = 4000
 PROBE_RULES = ("variance", "chance")
 FINAL_SETTINGS = 41  # final settings a "chance" probe is scored against
+STOP_SETTINGS = 81  # final settings a stop chooses among
 # Where a reading's approach is unknown, the branches of the backlash it may lie on (x the
 # lag): from below, from above, and the middle (a column left between them)
 BRANCHES = (1.0, -1.0, 0.0)
@@ -553,7 +554,7 @@ class FamilyPosterior:
     def _final(self, posterior: np.ndarray) -> tuple[float, float]:
         """The setting most likely to pass the verification, and that chance."""
         k, z, n, weight = self._scored(posterior, STOP_STATES)
-        settings = self._final_settings(k, n, weight, 81)
+        settings = self._final_settings(k, n, weight, STOP_SETTINGS)
         chances = np.zeros(settings.size)
         for chunk in np.array_split(np.arange(settings.size), 9):
             chances[chunk] = self._passes(settings[chunk], k, z, n) @ weight

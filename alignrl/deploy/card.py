@@ -225,10 +225,13 @@ def _evaluations(source: PolicySource) -> dict[str, Any]:
         for name, value in config.task_options.model_dump(exclude_none=True).items()
         if name in SESSION_TASK_OPTIONS
     }
-    notes = [
-        f"the run's task options {json.dumps(options, sort_keys=True)} change an evaluation "
-        "session but are not options of alignrl evaluate: the command runs the task's defaults"
-    ] * bool(options)
+    notes = []
+    if options:
+        notes.append(
+            f"the run's task options {json.dumps(options, sort_keys=True)} change an evaluation "
+            "session but are not options of alignrl evaluate: the command runs the task's "
+            "defaults"
+        )
     if source.acting_options:  # RunConfig.acting_options: the sessions acted without them
         notes.append(
             "the run's sessions acted with its training's task options, the policy acts with "

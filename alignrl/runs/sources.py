@@ -280,7 +280,7 @@ def resolve_source(spec: str | Path | Location, member: str | None = None) -> Po
     except ValueError as error:  # a damaged knobs.json or card: named, never a traceback
         raise ExportError(str(error)) from None
     # The policy acts as its run says it does once trained (RunConfig.acting_options).
-    laid = getattr(source.config, "acting_options", None)
+    laid = source.config.acting_options
     acting = laid.model_dump(exclude_none=True) if laid is not None else None
     config = source.config.acting()
     return dataclasses.replace(source, config=config, knobs=knobs, acting_options=acting)
