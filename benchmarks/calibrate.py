@@ -10,9 +10,10 @@ columns), fits the column's reading model to what they read and exports the poli
 to OUT/INSTRUMENT; that policy is then judged on the held-out table's session (seed 0, 100
 alignments, as benchmarks/heldout.py), and the result written to OUT/INSTRUMENT/judged.json
 (read back with --reuse). The table: per instrument, the calibration's session (the champion
-as it is), the steps it took (its acquisitions and the readings from above after each
-alignment, --from-above), and the calibrated policy on the judging
-session. Images unless --analytic. Not a test: about ten minutes per instrument on 2 cores.
+as it is), the steps it took (every image: its acquisitions, the verification after each
+alignment, which the calibration reads too, and the readings from above, --from-above),
+and the calibrated policy on the judging session. Images unless --analytic. Not a test:
+about ten minutes per instrument on 2 cores.
 """
 
 from __future__ import annotations
@@ -69,7 +70,11 @@ def _judge(args: argparse.Namespace, name: str) -> dict[str, Any]:
         "policy": args.policy,
         "alignments": args.alignments,
         "from_above": args.from_above,
-        "steps": int(calibrated.session.acquisitions().sum()) + calibrated.from_above,
+        # every image the calibration took: the alignments' acquisitions, their
+        # verifications (the calibration reads them too) and the readings from above
+        "steps": int(calibrated.session.acquisitions().sum())
+        + calibrated.session.scenarios
+        + calibrated.from_above,
         "calibration_successes": calibrated.session.successes,
         "calibration_median": calibrated.session.median_acquisitions,
         "column": calibrated.calibration.column,

@@ -20,8 +20,14 @@ def test_the_benchmark_calibrates_judges_and_reuses(
     table = capsys.readouterr().out
     assert "| narrow-interval |" in table and "/3 (" in table
     judged = json.loads((tmp_path / "cal" / "narrow-interval" / "judged.json").read_text())
-    assert judged["alignments"] == 3 and judged["scenarios"] == 3 and judged["steps"] >= 3
-    assert (tmp_path / "cal" / "narrow-interval" / "calibration.json").exists()
+    assert judged["alignments"] == 3 and judged["scenarios"] == 3
+    # every image the calibration took is a step and a reading it weighed: the alignments'
+    # acquisitions and their verifications
+    calibration = json.loads(
+        (tmp_path / "cal" / "narrow-interval" / "calibration.json").read_text()
+    )
+    assert judged["steps"] == calibration["readings"] == sum(map(len, calibration["sweeps"]))
+    assert all(sweep[-1][2] in (0.0, 1.0) for sweep in calibration["sweeps"])
     # --reuse reads the judged session back instead of calibrating again
     (tmp_path / "cal" / "narrow-interval" / "calibration.json").unlink()
     assert main([*argv, "--reuse"]) == 0

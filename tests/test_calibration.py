@@ -185,13 +185,23 @@ def test_the_task_reads_a_calibrated_column_and_refuses_a_wrong_one() -> None:
         parse_config(RunConfig, {"task_options": {"posterior_column": {"a": "b"}}}, "test.yaml")
 
 
-def test_sweeps_read_the_first_reading_on_an_unknown_side() -> None:
+def test_sweeps_read_the_first_reading_on_an_unknown_side_and_end_at_the_verification() -> None:
     class Record:
         trajectory = ((10.0, 20.0), (30.0, None), (50.0, 4.0))
+        final_setting, final_width_px = 42.0, 3.0
 
-    first, blank, last = sweeps_of([Record()], 0.0, 100.0)[0]
+    first, blank, last, verified = sweeps_of([Record()], 0.0, 100.0)[0]
     assert first == (0.1, 20.0, 0.0) and last == (0.5, 4.0, 1.0)
     assert blank[0] == 0.3 and math.isnan(blank[1]) and blank[2] == 1.0
+    assert verified == (0.42, 3.0, 1.0)  # written from below as the policy ends
+
+    class Stayed:  # ended at its opening reading, without a write: its side stays unknown
+        trajectory = ((10.0, 20.0),)
+        final_setting, final_width_px = 10.0, None
+
+    opening, unmeasured = sweeps_of([Stayed()], 0.0, 100.0)[0]
+    assert opening == (0.1, 20.0, 0.0)
+    assert unmeasured[0] == 0.1 and math.isnan(unmeasured[1]) and unmeasured[2] == 0.0
 
 
 def test_calibrated_posterior_is_the_one_column_in_its_pixels() -> None:

@@ -29,7 +29,11 @@ Every reading but an alignment's first must have been approached from below
 (Task.approach_from_below, PosteriorFocus), so that backlash shifts them all alike; the first
 (an aligner's opening reading: the column as it was found, on whichever branch of its
 backlash) is read on every branch (FamilyPosterior.observe, side 0), and the offset between
-it and the rest is what tells the backlash (`sweeps_of`).
+it and the rest is what tells the backlash (`sweeps_of`). Each alignment's verification image,
+taken where the policy ended it, is read last: near focus as no other reading is, it tells
+the column's in-focus width, the width the success rule is measured against (on val-backlash
+without it: a floor of 1.23 px and a flat bottom of 0.8 % of the interval, where the file has
+1.2 px and 0.1 %; with it 1.21 px and 0.3 %: docs/benchmarks.md, nineteenth session).
 """
 
 from __future__ import annotations
@@ -270,15 +274,22 @@ def calibrated_posterior(column: Mapping[str, float], spec_relative: float) -> F
 
 def sweeps_of(records: Sequence, low: float, high: float) -> list[list[tuple[float, ...]]]:
     """The sweeps (Sweep) of a one-knob session's alignments (ScenarioResult records: their
-    trajectory), settings as fractions of [low, high]: each one's first reading on an unknown
-    side (the column as it was found), the rest from below."""
+    trajectory and verification), settings as fractions of [low, high]: each one's first
+    reading on an unknown side (the column as it was found), the rest from below, and last
+    the session's verification image where the alignment ended (from below, as the policy
+    ends; on its last reading's side where it ended there without a write): the image
+    nearest focus, which tells the column's in-focus width as no other reading does."""
     width = high - low
-    return [
-        [
-            ((setting - low) / width, math.nan if reading is None else float(reading), side)
-            for (setting, reading), side in zip(
-                record.trajectory, [0.0] + [1.0] * (len(record.trajectory) - 1), strict=True
-            )
+    sweeps = []
+    for record in records:
+        sides = [0.0] + [1.0] * (len(record.trajectory) - 1)
+        readings = [
+            (setting, math.nan if reading is None else float(reading), side)
+            for (setting, reading), side in zip(record.trajectory, sides, strict=True)
         ]
-        for record in records
-    ]
+        final = float(record.final_setting)
+        stayed = bool(readings) and final == float(readings[-1][0])
+        verified = math.nan if record.final_width_px is None else float(record.final_width_px)
+        readings.append((final, verified, readings[-1][2] if stayed else 1.0))
+        sweeps.append([((setting - low) / width, read, side) for setting, read, side in readings])
+    return sweeps
