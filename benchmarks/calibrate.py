@@ -70,11 +70,9 @@ def _judge(args: argparse.Namespace, name: str) -> dict[str, Any]:
         "policy": args.policy,
         "alignments": args.alignments,
         "from_above": args.from_above,
-        # every image the calibration took: the alignments' acquisitions, their
-        # verifications (the calibration reads them too) and the readings from above
-        "steps": int(calibrated.session.acquisitions().sum())
-        + calibrated.session.scenarios
-        + calibrated.from_above,
+        # every image the calibration took and read: the alignments' acquisitions, their
+        # verifications and the readings from above
+        "steps": calibrated.calibration.readings,
         "calibration_successes": calibrated.session.successes,
         "calibration_median": calibrated.session.median_acquisitions,
         "column": calibrated.calibration.column,

@@ -22,7 +22,7 @@ import numpy as np
 from alignrl.apparatus.base import NoEdgesError
 from alignrl.apparatus.edge_profiles import TEN_NINETY_PER_SIGMA
 from alignrl.apparatus.family import NO_EDGES_SPREAD, FamilyColumn, load_family
-from alignrl.apparatus.instruments import HELD_OUT_SET, VALIDATION_SET, instrument_names
+from alignrl.apparatus.instruments import VALIDATION_SET, diagnosis_problem, instrument_names
 from alignrl.apparatus.probe import levelled_px, logistic
 from alignrl.apparatus.quality import edge_width
 
@@ -97,13 +97,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frames", type=int, default=6, help="rendered per blur width")
     parser.add_argument("--seed", type=int, default=0, help="the column's draw")
     args = parser.parse_args(argv)
-    known = instrument_names(VALIDATION_SET)
     for name in args.instrument:
-        if name in instrument_names(HELD_OUT_SET):
-            print(f"{name} is held out: image levels are for diagnosis", file=sys.stderr)
-            return 2
-        if name not in known:
-            print(f"{name}: no such validation instrument ({', '.join(known)})", file=sys.stderr)
+        problem = diagnosis_problem(name, "image levels")
+        if problem is not None:
+            print(problem, file=sys.stderr)
             return 2
     if args.frames < 1:
         print("--frames must be at least 1", file=sys.stderr)

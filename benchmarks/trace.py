@@ -23,7 +23,7 @@ import sys
 
 import numpy as np
 
-from alignrl.apparatus.instruments import HELD_OUT_SET, instrument_names
+from alignrl.apparatus.instruments import diagnosis_problem
 from alignrl.apparatus.registry import make_apparatus
 from alignrl.deploy.policy import load_deployable
 from alignrl.envs.core import AlignmentEpisodes, feature_layout
@@ -87,8 +87,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=100)
     parser.add_argument("--images", action="store_true", help="rendered frames, not analytic")
     args = parser.parse_args(argv)
-    if args.instrument in instrument_names(HELD_OUT_SET):
-        print(f"{args.instrument} is held out: traces are for diagnosis", file=sys.stderr)
+    problem = diagnosis_problem(args.instrument, "traces")
+    if problem is not None:
+        print(problem, file=sys.stderr)
         return 2
     print("\n".join(trace(args.policy, args.instrument, args.episodes, args.seed, args.images)))
     return 0

@@ -279,17 +279,19 @@ def sweeps_of(records: Sequence, low: float, high: float) -> list[list[tuple[flo
     the session's verification image where the alignment ended (from below, as the policy
     ends; on its last reading's side where it ended there without a write): the image
     nearest focus, which tells the column's in-focus width as no other reading does."""
-    width = high - low
+
+    def width(reading: float | None) -> float:
+        return math.nan if reading is None else float(reading)
+
     sweeps = []
     for record in records:
         sides = [0.0] + [1.0] * (len(record.trajectory) - 1)
         readings = [
-            (setting, math.nan if reading is None else float(reading), side)
+            (float(setting), width(reading), side)
             for (setting, reading), side in zip(record.trajectory, sides, strict=True)
         ]
         final = float(record.final_setting)
-        stayed = bool(readings) and final == float(readings[-1][0])
-        verified = math.nan if record.final_width_px is None else float(record.final_width_px)
-        readings.append((final, verified, readings[-1][2] if stayed else 1.0))
-        sweeps.append([((setting - low) / width, read, side) for setting, read, side in readings])
+        stayed = bool(readings) and final == readings[-1][0]
+        readings.append((final, width(record.final_width_px), readings[-1][2] if stayed else 1.0))
+        sweeps.append([((setting - low) / (high - low), *rest) for setting, *rest in readings])
     return sweeps

@@ -38,6 +38,7 @@ __all__ = [
     "INSTRUMENT_DIR",
     "VALIDATION_SET",
     "InstrumentSet",
+    "diagnosis_problem",
     "find_instrument",
     "held_out_reason",
     "instrument_names",
@@ -67,6 +68,18 @@ def instrument_names(set_name: str | None = None) -> dict[str, Path]:
     """Instrument name -> its file, of one set or of all of them."""
     sets = set_names() if set_name is None else [set_name]
     return {path.stem: path for name in sets for path in _set_paths(name)}
+
+
+def diagnosis_problem(name: str, purpose: str) -> str | None:
+    """Why instrument `name` may not be looked into for `purpose` (a diagnosis, which informs
+    choices, so it sees the validation set only): held out, or no validation instrument; None
+    where it may."""
+    if name in instrument_names(HELD_OUT_SET):
+        return f"{name} is held out: {purpose} are for diagnosis, on validation instruments"
+    known = instrument_names(VALIDATION_SET)
+    if name not in known:
+        return f"{name}: no such validation instrument ({', '.join(known)})"
+    return None
 
 
 def find_instrument(name: str) -> Path:
