@@ -18,9 +18,11 @@ def test_a_trace_walks_each_episode_to_its_end() -> None:
     assert steps and all("-> move" in line and " fit " not in line for line in steps)
 
 
-def test_a_held_out_instrument_is_refused(capsys: pytest.CaptureFixture[str]) -> None:
+def test_a_held_out_or_unknown_instrument_is_refused(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["--policy", "champion:focus-v2", "--instrument", "near-bound"]) == 2
     assert "held out" in capsys.readouterr().err
+    assert main(["--policy", "champion:focus-v2", "--instrument", "val-nowhere"]) == 2
+    assert "no such validation instrument" in capsys.readouterr().err
 
 
 def test_images_measure_rendered_frames_instead_of_the_analytic_reading() -> None:
