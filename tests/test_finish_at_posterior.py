@@ -326,3 +326,25 @@ def test_the_posterior_from_below_reads_a_setting_at_the_lower_end_on_its_branch
     assert episodes.ends.approach[0, 0] == -1  # written from above
     sides = [side for _, _, side in posterior._readings]
     assert sides and sides[-1] == -1.0 and 0.0 not in sides
+
+
+def test_the_way_back_to_the_posteriors_setting_arrives_from_below() -> None:
+    """The posterior places its best setting as approached from below (FamilyPosterior.final).
+    Where the narrowest reading is the column as found (no side known) and the way back goes
+    down, it still arrives from below: past the setting by the overshoot, then up; before,
+    it came straight down, on the other branch of a backlash, focused elsewhere."""
+    task = _task(stop_at_best=True)
+    unit = make_apparatus("instrument:val-backlash", {"analytic": True}, seed=0)
+    episodes = AlignmentEpisodes([unit], task, history=8)
+    slot = np.array([0])
+    episodes.begin(slot, [1])
+    episodes.misalign(slot, np.array([0.0]))  # found in focus (3.1 px): the narrowest reading
+    episodes.step(slot, np.array([[0.6, -1.0]]))  # up, out of focus
+    assert episodes.ends.narrowest(0).side[0] == 0
+    above = float(unit.read()["defocus"])
+    expected = _posterior_best(episodes)
+    assert expected < above  # the way back goes down
+    episodes.step(slot, np.array([[0.0, 1.0]]))
+    assert episodes.info[0].ended_at_fit
+    assert float(unit.read()["defocus"]) == pytest.approx(expected)
+    assert episodes.ends.approach[0, 0] == 1.0  # the last change was up: from below

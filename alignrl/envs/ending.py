@@ -21,7 +21,8 @@ once that setting passes with the chance asked (`sure`); with `probe_until_sure`
 is unsure of becomes a reading where it would probe next, and with `posterior_walk_after`
 every reading from the N-th on is placed there (`probes`).
 
-The way back arrives at every knob from the side the narrowest reading was approached from:
+The way back arrives at every knob from the side the narrowest reading was approached from
+(at the posterior's setting, from below: the side that setting is placed for):
 where it would come from the other side it first goes past the target by
 `backlash_overshoot` x the interval (kept inside it), so that backlash and lens hysteresis,
 which put the focus elsewhere for the other side, leave it as that reading had it (the
@@ -273,8 +274,14 @@ class EpisodeEnds:
             target, fitted = np.clip(optimum, low, high), True
         if np.array_equal(target, setting):
             return None
-        # Every knob arrives from the side the narrowest reading came from.
-        writes = self._arrive(target, setting, narrowest.side, low, high)
+        # Every knob arrives from the side the narrowest reading came from; at the
+        # posterior's setting, from below, the side the posterior places it for
+        # (FamilyPosterior.final), whichever side the narrowest reading came from (the
+        # column as found, say: on an unknown branch of its backlash).
+        side = narrowest.side
+        if fitted and self.task.finish_at_posterior:
+            side = np.ones_like(side)
+        writes = self._arrive(target, setting, side, low, high)
         return EndPlan(writes, fitted, narrowest.width)
 
     def _arrive(
