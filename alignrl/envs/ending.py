@@ -274,13 +274,10 @@ class EpisodeEnds:
             target, fitted = np.clip(optimum, low, high), True
         if np.array_equal(target, setting):
             return None
-        # Every knob arrives from the side the narrowest reading came from; at the
-        # posterior's setting, from below, the side the posterior places it for
-        # (FamilyPosterior.final), whichever side the narrowest reading came from (the
-        # column as found, say: on an unknown branch of its backlash).
-        side = narrowest.side
-        if fitted and self.task.finish_at_posterior:
-            side = np.ones_like(side)
+        # From the narrowest reading's side; the posterior's setting is placed for an
+        # approach from below (FamilyPosterior.final), whatever side that reading came from.
+        from_below = fitted and self.task.finish_at_posterior
+        side = np.ones_like(narrowest.side) if from_below else narrowest.side
         writes = self._arrive(target, setting, side, low, high)
         return EndPlan(writes, fitted, narrowest.width)
 
