@@ -9,7 +9,8 @@ scale or its noise. It keeps a posterior over
 * where the optimum lies: a grid over the knob's interval (or the box's `optimum_fraction`
   range), as fractions of the interval, padded so that drift can carry it out;
 * which column it is on: `draws` columns drawn from the box where the box has ranges (one
-  where it is a single instrument, as the files of alignrl/apparatus/instruments are);
+  where it is a single instrument, as the files of alignrl/apparatus/instruments are), the
+  width of a flat bottom weighed on a log scale (FLAT_DECADES);
 * the specimen's per-episode scale: a Gauss-Hermite grid over its normal draw;
 
 and after every reading multiplies in that reading's likelihood (a frame without edges: the
@@ -70,7 +71,15 @@ from alignrl.apparatus.family import (
 from alignrl.apparatus.probe import focus_sigma_px, levelled_px
 from alignrl.apparatus.quality import TEN_NINETY_PER_SIGMA
 
-__all__ = ["FAMILY_REACH", "SCALE_FREE", "ColumnModels", "FamilyPosterior", "focus_box", "widened"]
+__all__ = [
+    "FAMILY_REACH",
+    "FLAT_DECADES",
+    "SCALE_FREE",
+    "ColumnModels",
+    "FamilyPosterior",
+    "focus_box",
+    "widened",
+]
 
 SCORED_STATES = 2000  # states the probe choice is scored on (a systematic resample beyond)
 STOP_STATES = 20000  # states a stop is judged on (a systematic resample beyond)
@@ -87,6 +96,15 @@ BRANCHES = (1.0, -1.0, 0.0)
 # set:validation (analytic, 30 alignments per instrument, seed 3,000,000): at 0 it aligned
 # 170/180 at medians of 3-4 acquisitions, at 0.25 173/180 at medians of 4-7 (p90 up to 17).
 FAMILY_REACH = 0.0
+# How the posterior weighs a column's flat bottom (`flat_fraction`, the box's 0-1 % of the
+# interval either side of the optimum): log-uniformly over FLAT_DECADES decades below the
+# box's widest (`ColumnModels.at`), where the box draws it uniformly. A plateau's width is a
+# scale, known to its order of magnitude at best; drawn uniformly, half the columns have one
+# wider than 0.5 % of the interval, more than the whole passing window of a steep column
+# (0.3-0.5 %), and on a steep column without one, readings that never showed focus leave
+# the posterior sure of a wide window no reading has seen (docs/benchmarks.md,
+# twenty-first session). Chosen on set:validation.
+FLAT_DECADES = 2.0
 
 
 def _narrowest_spec(family: FocusFamily, relative: float) -> float:
@@ -166,30 +184,39 @@ class ColumnModels:
     no_edges: np.ndarray
     drift: np.ndarray
     lag: np.ndarray
-    rows: np.ndarray  # (K, len(PAIR_FIELDS)): where in the box each column lies
+    rows: np.ndarray  # (K, len(PAIR_FIELDS)): where each column was drawn (`at`)
     model_noise: float = 0.01
     far_noise: float = 0.0
 
     @classmethod
     def of(
-        cls, family: FocusFamily, draws: int, seed: int, model_noise: float, far_noise: float = 0.0
-    ) -> ColumnModels:
+        cls, family: FocusFamily, draws: int, seed: int, model_noise: float, far_noise: float = 0.0,
+        flat_decades: float = 0.0,
+    ) -> ColumnModels:  # fmt: skip
         """One model where `family` is a single column in every parameter the readings
         depend on; else `draws` columns drawn from it: a scrambled Sobol' sequence over the
         box's fractions (generator `seed`), which spreads them over every parameter's range
-        more evenly than independent draws."""
+        more evenly than independent draws (`flat_decades`: as `at` places them)."""
         single = all(
             getattr(family, name)[0] == getattr(family, name)[1] for name in _FAMILY_NAMES.values()
         )
         rows = qmc.Sobol(len(PAIR_FIELDS), scramble=True, seed=seed).random(1 if single else draws)
-        return cls.at(family, rows, model_noise, far_noise)
+        return cls.at(family, rows, model_noise, far_noise, flat_decades)
 
     @classmethod
     def at(
-        cls, family: FocusFamily, rows: np.ndarray, model_noise: float, far_noise: float = 0.0
-    ) -> ColumnModels:
-        """The columns at `rows` (K, len(PAIR_FIELDS)) of fractions of the box (column_at)."""
-        columns = [column_at(family, dict(zip(PAIR_FIELDS, row, strict=True)), 0) for row in rows]
+        cls, family: FocusFamily, rows: np.ndarray, model_noise: float, far_noise: float = 0.0,
+        flat_decades: float = 0.0,
+    ) -> ColumnModels:  # fmt: skip
+        """The columns at `rows` (K, len(PAIR_FIELDS)) of fractions of the box (column_at);
+        with `flat_decades`, a row's flat-bottom fraction u places it at 10^(-flat_decades
+        (1 - u)) of the box's range (log-uniform over those decades, FLAT_DECADES) rather
+        than at u."""
+        placed = np.array(rows, float)
+        if flat_decades:
+            flat = PAIR_FIELDS.index("flat_fraction")
+            placed[:, flat] = 10.0 ** (-flat_decades * (1.0 - placed[:, flat]))
+        columns = [column_at(family, dict(zip(PAIR_FIELDS, row, strict=True)), 0) for row in placed]
         values = {
             name: np.array([getattr(draw, attribute) for draw in columns], float)[:, None, None]
             for name, attribute in _FAMILY_NAMES.items()
@@ -303,6 +330,8 @@ class FamilyPosterior:
     # ranges) and every reading so far is weighed again on them
     renew_below: float = 0.5
     jitter: float = 0.05
+    # the flat bottom weighed log-uniformly over this many decades (0: as the box draws it)
+    flat_decades: float = FLAT_DECADES
     # Readings in any pixel scale: every reading is the model's times an unknown factor of
     # the episode, flat on a log scale, marginalised per state (module docstring): the
     # posterior then learns only from ratios of readings and the curve's shape, as a unit-free
@@ -327,9 +356,12 @@ class FamilyPosterior:
             raise ValueError(f"far_noise must be a finite share >= 0, got {self.far_noise}")
         if self.probe_rule not in PROBE_RULES:
             raise ValueError(f"probe_rule must be one of {PROBE_RULES}, got {self.probe_rule!r}")
+        if not (math.isfinite(self.flat_decades) and self.flat_decades >= 0.0):
+            raise ValueError(f"flat_decades must be finite and >= 0, got {self.flat_decades}")
         self.models = ColumnModels.of(
-            self.family, self.draws, self.seed, self.model_noise, self.far_noise
-        )
+            self.family, self.draws, self.seed, self.model_noise, self.far_noise,
+            self.flat_decades,
+        )  # fmt: skip
         self._initial = self.models
         low, high = self.family.optimum_fraction if self.optimum_prior == "box" else (0.0, 1.0)
         spacing = float(min(self.models.spec_half_width(self.spec_relative).min(),
@@ -453,8 +485,9 @@ class FamilyPosterior:
             self.models.rows[picks].shape
         )
         self.models = ColumnModels.at(
-            self.family, np.clip(rows, 0.0, 1.0), self.model_noise, self.far_noise
-        )
+            self.family, np.clip(rows, 0.0, 1.0), self.model_noise, self.far_noise,
+            self.flat_decades,
+        )  # fmt: skip
         posterior = self._prior.copy()
         if self._scale is not None:
             self._scale = _ScaleSums.empty(self._prior.shape)
