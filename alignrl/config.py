@@ -130,6 +130,7 @@ def _own_setting(name: str, meaning: str, **bounds: Any) -> Any:
 
 # The learners alignrl ships; one registered later (a plugin, a test) is accepted by name too.
 LearnerName = Literal[tuple(LEARNERS)]  # type: ignore[valid-type]
+ProbeRule = Literal["variance", "chance", "entropy"]  # where a posterior walk probes (task.py)
 
 
 class LearnerConfig(_Strict):
@@ -276,6 +277,8 @@ class TaskOptions(_Strict):
     posterior_walk_after: int | None = Field(None, ge=0, le=100, description="posterior walks from")
     posterior_no_edges: bool | None = Field(None, description="posterior reads no-edge frames")
     posterior_from_below: bool | None = Field(None, description="posterior: readings from below")
+    posterior_on_sides: bool | None = Field(None, description="posterior: readings on their sides")
+    posterior_probe_rule: ProbeRule | None = Field(None, description="where its walk probes")
     posterior_column: dict[str, float] | None = Field(None, description="calibrated column")
     finish_window: float | None = Field(None, gt=1, description="finish fit: within x narrowest")
     approach_from_below: bool | None = Field(None, description="every reading reached from below")
@@ -293,19 +296,15 @@ class TaskOptions(_Strict):
         """The task with these changes (a new object; the registry's task is untouched)."""
         from alignrl.apparatus.calibration import column_values
 
-        changes = {
-            name: value
-            for name, value in self.model_dump().items()
-            if value is not None and name not in ("success_relative", "success_absolute_px")
-        }
+        success_keys = ("success_relative", "success_absolute_px")
+        changes = {name: value for name, value in self.model_dump().items()
+                   if value is not None and name not in success_keys}  # fmt: skip
         measured_by = {"directional_relative": "directional", "wobble_amplitude_v": "wobble",
                        "wobble_spec_px": "wobble", "wobble_weight": "wobble"}  # fmt: skip
         for name, measure in measured_by.items():
             if changes.get(name) is not None and measure not in task.measures:
-                raise ValueError(
-                    f"task_options.{name}: task {task.name!r} takes no {measure} measure "
-                    f"(it measures {', '.join(task.measures)})"
-                )
+                raise ValueError(f"task_options.{name}: task {task.name!r} takes no {measure} "
+                                 f"measure (it measures {', '.join(task.measures)})")  # fmt: skip
         if self.posterior_column is not None:  # a mapping in a file, a tuple in the task
             changes["posterior_column"] = column_values(self.posterior_column)
         success = task.success

@@ -27,7 +27,10 @@ def test_the_benchmark_calibrates_judges_and_reuses(
         (tmp_path / "cal" / "narrow-interval" / "calibration.json").read_text()
     )
     assert judged["steps"] == calibration["readings"] == sum(map(len, calibration["sweeps"]))
-    assert all(sweep[-1][2] in (0.0, 1.0) for sweep in calibration["sweeps"])
+    # each alignment's verification (on its side), then the default two from above
+    sides = [[side for _, _, side in sweep] for sweep in calibration["sweeps"]]
+    assert calibration["from_above"] == 2 and all(each[-2:] == [-1, -1] for each in sides)
+    assert all(each[-3] in (0.0, 1.0) for each in sides)
     # --reuse reads the judged session back instead of calibrating again
     (tmp_path / "cal" / "narrow-interval" / "calibration.json").unlink()
     assert main([*argv, "--reuse"]) == 0

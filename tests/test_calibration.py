@@ -16,6 +16,7 @@ from safetensors.torch import load_file
 
 from alignrl.apparatus.calibration import (
     COLUMN_FIELDS,
+    FROM_ABOVE,
     ColumnEvidence,
     calibrate,
     calibrated_posterior,
@@ -217,8 +218,7 @@ def test_calibrate_adapts_a_champion_on_a_driver_without_an_optimum(
     out = tmp_path / "calibrated"
     argv = ["calibrate", "--policy", str(light_export), "--apparatus", "fake_drivers:BlindLens"]
     argv += ["--spec-px", "3", "--alignments", "4", "--population", "8", "--rounds", "2"]
-    argv += ["--from-above", "2"]
-    argv += ["--out", str(out), "--quiet", "--json"]
+    argv += ["--out", str(out), "--quiet", "--json"]  # and the default --from-above
     capsys.readouterr()
     assert main(argv) == 0
     result = json.loads(capsys.readouterr().out)
@@ -229,8 +229,9 @@ def test_calibrate_adapts_a_champion_on_a_driver_without_an_optimum(
     assert np.allclose(calibrated.task.posterior_column, found, rtol=1e-8)
     record = json.loads((out / "calibration.json").read_text())
     assert record["alignments"] == 4 and record["column"] == result["column"]
-    # each alignment ends with two readings from above (its backlash), after those from below
-    assert record["from_above"] == 2
+    # each alignment ends with two readings from above (its backlash), after those from below:
+    # the CLI's default is the library's
+    assert record["from_above"] == FROM_ABOVE == 2
     assert all([side for _, _, side in sweep][-2:] == [-1, -1] for sweep in record["sweeps"])
     assert (out / "learner.safetensors").exists()  # still adaptable by alignrl adapt
     # the same network, tensor for tensor: only what its posterior knows changed

@@ -246,7 +246,12 @@ def test_far_noise_reaches_the_episodes_posterior() -> None:
 
 @pytest.mark.parametrize(
     ("option", "bad"),
-    [("posterior_far_noise", 1.5), ("posterior_walk_after", 99), ("posterior_walk_after", -1)],
+    [
+        ("posterior_far_noise", 1.5),
+        ("posterior_walk_after", 99),
+        ("posterior_walk_after", -1),
+        ("posterior_probe_rule", "information"),
+    ],
 )
 def test_the_posteriors_settings_are_refused_out_of_range(option, bad) -> None:
     with pytest.raises(ValueError, match=option):
@@ -256,6 +261,8 @@ def test_the_posteriors_settings_are_refused_out_of_range(option, bad) -> None:
 
 NEEDING_THE_POSTERIOR = [
     {"posterior_from_below": True},
+    {"posterior_on_sides": True},
+    {"posterior_probe_rule": "entropy"},
     {"posterior_far_noise": 0.1},
     {"posterior_walk_after": 3},
     {"posterior_no_edges": True},
@@ -312,6 +319,19 @@ def test_the_posterior_can_leave_out_the_column_as_found() -> None:
         read[from_below] = (opened, len(episodes.ends._posterior(0)._readings))
         assert len(episodes.ends.readings[0]) == 2  # the record keeps both
     assert read == {False: (1, 2), True: (0, 1)}
+
+
+def test_the_posterior_on_sides_reads_the_column_as_found_on_an_unknown_side() -> None:
+    """posterior_on_sides: the opening reading (the column as found) reaches the posterior on
+    an unknown side (0) and every reading approached from below as from below; without it,
+    every reading as from below."""
+    sides = {}
+    for on_sides in (False, True):
+        episodes, slot, _ = _started(_task(stop_at_best=True, posterior_on_sides=on_sides))
+        episodes.step(slot, np.array([[0.5, -1.0]]))
+        posterior = episodes.ends._posterior(0)
+        sides[on_sides] = [side for _, _, side in posterior._readings]
+    assert sides == {False: [1.0, 1.0], True: [0.0, 1.0]}
 
 
 def test_the_posterior_from_below_reads_a_setting_at_the_lower_end_on_its_branch() -> None:

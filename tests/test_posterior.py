@@ -107,7 +107,7 @@ def test_knowing_the_instrument_it_aligns_in_few_acquisitions():
 def test_knowing_only_a_box_it_still_aligns(rule):
     """Over a box around the column (its gain, floor, curve power and backlash unknown
     within ranges; 32 columns drawn from the box, drawn again as readings come), on a column
-    inside the box, by either probe rule: nearly every column of a session in a few
+    inside the box, by each probe rule: nearly every column of a session in a few
     acquisitions (a setting written at random passes in about one in twenty; the "chance"
     rule with its score's sign turned, probing where the final setting gains least, aligned
     4 of 12 at 20)."""
@@ -243,7 +243,7 @@ def test_a_setting_at_the_top_of_an_interval_that_rounds_is_written_inside_it():
         ("spec_relative", 1.0),
         ("draws", 0),
         ("optimum_prior", "anywhere"),
-        ("probe_rule", "entropy"),
+        ("probe_rule", "information"),
     ],
 )
 def test_bad_settings_are_refused(field, value):
@@ -357,3 +357,76 @@ def test_a_steep_column_without_a_flat_bottom_does_not_make_the_box_posterior_su
         chances[decades] = posterior.final()
     assert chances[0.0][1] >= 0.99 and chances[0.0][0] < 0.571 - 0.006
     assert chances[FLAT_DECADES][1] < 0.99
+
+
+def test_a_scale_free_posterior_reads_the_column_as_found_on_either_branch():
+    """val-backlash (1.2 % of the interval against the approach), focus at 0.5 from below:
+    the column found at 0.48 as if left from above, then a reading far above and one at 0.52,
+    both from below (the model's readings, noise-free). Read as approached from below, the
+    opening reading puts focus 1.3 % of the interval low and the scale-free oracle is sure of
+    it; read on an unknown side (side 0: the mixture of the branches), it is nearly on
+    focus."""
+    family = _instrument("val-backlash")
+    oracle = FamilyPosterior(family, draws=1)
+    lag = float(oracle.models.lag.ravel()[0])
+    half = float(oracle.models.spec_half_width(1.15).ravel()[0])
+
+    def reading(error: float) -> float:
+        _, mean, _ = oracle.models.reading(np.full((1, 1, 1, 1), error), np.zeros((1, 1, 1)))
+        return float(mean.ravel()[0])
+
+    trace = [(0.48, reading(0.48 + lag - 0.5))]
+    trace += [(u, reading(u - lag - 0.5)) for u in (0.9, 0.52)]
+    finals = {}
+    for side in (1.0, 0.0):
+        posterior = FamilyPosterior(family, draws=1, far_noise=0.1, **SCALE_FREE)
+        posterior.begin()
+        for index, (setting, width) in enumerate(trace):
+            posterior.observe(setting, width, side if index == 0 else 1.0)
+        setting, chance = posterior.final()
+        finals[side] = (setting - lag - 0.5, chance)
+    assert finals[1.0][1] > 0.99 and abs(finals[1.0][0]) > 0.5 * half
+    assert abs(finals[0.0][0]) < 0.2 * half
+    assert finals[0.0][1] < finals[1.0][1]
+
+
+def test_a_reading_on_either_branch_joins_the_scale_sums_with_the_branches_spread():
+    """ScaleSums.add_either: alike branches are one reading (the same sums and predictive as
+    `add`); branches apart join with their mean residual and their spread added to the
+    variance, and weigh each branch's predictive by its chance of a measured reading."""
+    from alignrl.apparatus.scale_sums import ScaleSums
+
+    one, either = ScaleSums.empty((2,)), ScaleSums.empty((2,))
+    for sums in (one, either):
+        sums.add(np.array([0.1, 0.2]), np.array([0.01, 0.01]))
+    residual, variance = np.array([0.3, -0.1]), np.array([0.02, 0.02])
+    expected = one.predictive(residual, variance)
+    one.add(residual, variance)
+    density = either.add_either([residual] * 3, [variance] * 3, [np.ones(2)] * 3)
+    assert np.allclose(density, expected) and np.allclose(either.sum0, one.sum0)
+    assert np.allclose(either.sum1, one.sum1)
+    apart = ScaleSums.empty((1,))
+    apart.add(np.zeros(1), np.full(1, 0.01))
+    chances = [np.ones(1), np.zeros(1)]
+    density = apart.add_either([np.full(1, 0.2), np.full(1, -0.2)], [np.full(1, 0.01)] * 2, chances)
+    assert np.isclose(apart.sum1[0], 0.0 / 0.01) and np.isclose(apart.sum0[0], 100 + 1 / 0.05)
+    lone = ScaleSums.empty((1,))
+    lone.add(np.zeros(1), np.full(1, 0.01))
+    assert np.allclose(density, 0.5 * lone.predictive(np.full(1, 0.2), np.full(1, 0.01)))
+
+
+def test_the_entropy_rule_reads_near_the_likely_focus_before_ruling_out_a_far_one():
+    """Two readings on val-low-bound (focus at 0.075 of the interval) that grow upward: focus
+    most likely lies below the first, less likely far above the second. The variance rule
+    reads far above (two far modes weigh most in a variance); the entropy rule reads below,
+    where one reading either finds focus or leaves the far mode."""
+    probes = {}
+    for rule in ("variance", "entropy"):
+        posterior = FamilyPosterior(
+            focus_box(), draws=1024, far_noise=0.1, probe_rule=rule, **SCALE_FREE
+        )
+        posterior.begin()
+        for setting, reading in [(0.2688, 26.77), (0.4727, 36.61)]:
+            posterior.observe(setting, reading)
+        probes[rule] = posterior.probe()
+    assert probes["variance"] > 0.6 and probes["entropy"] < 0.2688

@@ -85,10 +85,11 @@ CALIBRATION_REACH = 0.5
 POPULATION, ROUNDS, ELITE = 256, 8, 0.1
 # Readings approached from above after each alignment (alignrl/deploy/calibrate.py), and the
 # backlash the search then reaches, a share of the interval: beyond the box's, since readings
-# from both sides tell it. None by default: on the validation instruments two per alignment
-# told the backlash but aligned one column more in 600, one acquisition later on val-steep,
-# for 60 images more (docs/benchmarks.md, seventeenth session).
-FROM_ABOVE, BACKLASH_SEARCHED = 0, 0.03
+# from both sides tell it. Two by default: with the champion of 2026-12-06 on the validation
+# instruments they aligned all 600 columns against 596 without (val-backlash 100 against 96),
+# one acquisition later on val-steep, for 60 images more per calibration (docs/benchmarks.md,
+# twenty-second session; with the seventeenth session's champion they aligned one more).
+FROM_ABOVE, BACKLASH_SEARCHED = 2, 0.03
 MIN_SPREAD = 0.005  # the least spread of the search's normal, a share of the widened box
 
 # One alignment's readings: (setting as a fraction of the knob's interval, width in px (NaN

@@ -19,20 +19,22 @@ model's chance of one; a width: the model's mean, with a spread of the model's n
 the optimum. Where the readings have left few of the columns likely, it draws the columns
 again around the likely ones and weighs every reading on them (a resample-move step), so
 that a box of a dozen parameters is searched where the readings point. Each probe goes
-where the expected posterior variance of the optimum is least (or, `probe_rule` "chance",
-where the final setting's expected chance of passing is greatest one reading ahead), over a
+where the expected posterior variance of the optimum is least (or, `probe_rule` "entropy",
+where its expected entropy over the optimum's grid is least; "chance", where the final
+setting's expected chance of passing is greatest one reading ahead), over a
 grid of settings and settings around the posterior's quantiles; it is done once the setting
 most likely to pass the session's verification (`spec_relative` x the best width) passes
 with probability `confidence`, and ends there.
 
 With `scale_free` the readings' pixel scale is unknown too: every reading is the model's
 times a factor of the episode, flat on a log scale, marginalised per state in closed form
-(`_ScaleSums`: the precision-weighted sums of log residuals; each reading is weighed by its
+(`ScaleSums`: the precision-weighted sums of log residuals; each reading is weighed by its
 predictive given the earlier ones, so the first one's pixels say nothing). The posterior then
 decides on ratios of readings and the curve's shape alone, alike at any magnification.
 
 Every setting is approached from below (the same lag on every reading, as the hyperbola fit
-does), so the model's backlash shifts the optimum by a known amount.
+does), so the model's backlash shifts the optimum by a known amount; a reading on an unknown
+side (the column as it was found: `observe`, side 0) is the mixture of the backlash's branches.
 
 Given a single instrument's own file it is an oracle: it knows that instrument exactly, and
 what it reaches shows what the readings allow when the column's model is known (a greedy
@@ -70,6 +72,7 @@ from alignrl.apparatus.family import (
 )
 from alignrl.apparatus.probe import focus_sigma_px, levelled_px
 from alignrl.apparatus.quality import TEN_NINETY_PER_SIGMA
+from alignrl.apparatus.scale_sums import ScaleSums
 
 __all__ = [
     "FAMILY_REACH",
@@ -86,7 +89,7 @@ STOP_STATES = 20000  # states a stop is judged on (a systematic resample beyond)
 LIVE = 1e-12  # states below this share of the largest posterior weight are left out
 GRID_POINTS_PER_WINDOW = 3  # optimum grid points across the half-width that passes the spec
 MAX_GRID = 4000
-PROBE_RULES = ("variance", "chance")
+PROBE_RULES = ("variance", "chance", "entropy")
 FINAL_SETTINGS = 41  # final settings a "chance" probe is scored against
 STOP_SETTINGS = 81  # final settings a stop chooses among
 # Where a reading's approach is unknown, the branches of the backlash it may lie on (x the
@@ -268,43 +271,6 @@ class ColumnModels:
 
 
 @dataclass
-class _ScaleSums:
-    """Per state, the precision-weighted sums of log residuals that marginalise an unknown
-    log scale with a flat prior (FamilyPosterior.scale_free): the scale's estimate is
-    sum1 / sum0 with variance 1 / sum0, and a new residual's predictive is normal around it."""
-
-    sum0: np.ndarray  # sum of 1 / variance
-    sum1: np.ndarray  # sum of residual / variance
-    readings: int = 0  # every measured reading adds to every state
-
-    UNKNOWN = 1.0  # the log scale's spread before any reading (for probe choices only)
-
-    @classmethod
-    def empty(cls, shape: tuple[int, ...]) -> _ScaleSums:
-        return cls(np.zeros(shape), np.zeros(shape))
-
-    def add(self, residual: np.ndarray, variance: np.ndarray) -> None:
-        self.sum0 = self.sum0 + 1.0 / variance
-        self.sum1 = self.sum1 + residual / variance
-        self.readings += 1
-
-    def predictive(self, residual: np.ndarray, variance: np.ndarray) -> np.ndarray:
-        """The density of a new log residual given the earlier ones (a constant before any:
-        the first reading's pixels say nothing of the column)."""
-        if not self.readings:
-            return np.ones_like(residual)
-        total = variance + 1.0 / self.sum0
-        return np.exp(-0.5 * (residual - self.sum1 / self.sum0) ** 2 / total) / np.sqrt(total)
-
-    def estimate(self, k: np.ndarray, z: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, ...]:
-        """(log scale, its variance) of states (S,)."""
-        if not self.readings:
-            return np.zeros(k.shape), np.full(k.shape, self.UNKNOWN**2)
-        sum0 = self.sum0[k, z, n]
-        return self.sum1[k, z, n] / sum0, 1.0 / sum0
-
-
-@dataclass
 class FamilyPosterior:
     """The posterior of the module docstring, for columns of `family`: `begin`, then
     `observe` every reading, `decide` where the next goes or whether to stop, `final`: where
@@ -339,8 +305,10 @@ class FamilyPosterior:
     # policy must (alignrl/imitation.py), and aligns a column imaged at any magnification.
     scale_free: bool = False
     # where the next reading goes: "variance", where it leaves the least expected variance of
-    # the optimum; "chance", where it leaves the final setting the greatest expected chance
-    # of passing the verification (one reading ahead: the stop's own question)
+    # the optimum; "entropy", the least expected entropy of it over the grid (the most
+    # information: no reading spent telling two far modes apart where one near focus tells
+    # both); "chance", where it leaves the final setting the greatest expected chance of
+    # passing the verification (one reading ahead: the stop's own question)
     probe_rule: str = "variance"
     models: ColumnModels = field(init=False, repr=False)
 
@@ -378,7 +346,7 @@ class FamilyPosterior:
         prior = (weights / weights.sum())[None, :, None] * prior_u[None, None, :]
         self._prior = np.broadcast_to(prior, (self.models.count, *prior.shape[1:])).copy()
         self._prior /= self._prior.sum()
-        self._scale: _ScaleSums | None = None
+        self._scale: ScaleSums | None = None
 
     # --- one reading at a time -------------------------------------------------------------
 
@@ -388,7 +356,7 @@ class FamilyPosterior:
         self._rng = np.random.default_rng(self.seed)
         self._posterior = self._prior.copy()
         self._readings: list[tuple[float, float, float]] = []
-        self._scale = _ScaleSums.empty(self._prior.shape) if self.scale_free else None
+        self._scale = ScaleSums.empty(self._prior.shape) if self.scale_free else None
 
     def observe(self, setting: float, reading: float, side: float = 1.0) -> None:
         """A reading (px; NaN: no edges) taken at `setting`, a fraction of the interval,
@@ -429,11 +397,27 @@ class FamilyPosterior:
     def _likelihood(self, setting: float, reading: float, side: float = 1.0) -> np.ndarray:
         """Per state, the chance of `reading` (px; NaN: no edges) at `setting` approached
         from `side` (0: unknown, the mean over BRANCHES); scale_free, given the readings
-        before it, which it then joins (on the middle branch where the side is unknown)."""
+        before it, which it then joins (_on_branches where the side is unknown)."""
         if side == 0.0 and self._scale is None:
             chances = [self._on_branch(setting, reading, branch) for branch in BRANCHES]
             return sum(chances) / len(BRANCHES)
+        if side == 0.0:
+            return self._on_branches(setting, reading)
         return self._on_branch(setting, reading, side)
+
+    def _on_branches(self, setting: float, reading: float) -> np.ndarray:
+        """scale_free _likelihood of a reading on an unknown side: the mean over BRANCHES of
+        each one's predictive (ScaleSums.add_either)."""
+        scales = self.models.specimen_rel * self._scale_nodes
+        branches = [self.models.reading(self._errors(setting, self._grid, branch), scales)
+                    for branch in BRANCHES]  # fmt: skip
+        if not math.isfinite(reading):
+            return sum(none for none, _, _ in branches) / len(BRANCHES)
+        return self._scale.add_either(
+            [math.log(reading) - np.log(mean) for _, mean, _ in branches],
+            [(spread / mean) ** 2 for _, mean, spread in branches],
+            [1.0 - none for none, _, _ in branches],
+        )
 
     def _on_branch(self, setting: float, reading: float, side: float) -> np.ndarray:
         """_likelihood on one side's branch (0: the middle)."""
@@ -491,7 +475,7 @@ class FamilyPosterior:
         )  # fmt: skip
         posterior = self._prior.copy()
         if self._scale is not None:
-            self._scale = _ScaleSums.empty(self._prior.shape)
+            self._scale = ScaleSums.empty(self._prior.shape)
         for reading in readings:
             posterior = self._drifted(posterior * self._likelihood(*reading))
         return posterior
@@ -549,6 +533,11 @@ class FamilyPosterior:
             top, bottom = top * math.exp(shift.max()), bottom * math.exp(shift.min())
         edges = np.geomspace(bottom, top, self.reading_bins - 1)
         passes = None
+        cells = None
+        if self.probe_rule == "entropy":  # the states by their optimum's grid point
+            order = np.argsort(n, kind="stable")
+            k, z, n, weight, u = k[order], z[order], n[order], weight[order], u[order]
+            cells = np.flatnonzero(np.diff(n, prepend=-1))
         if self.probe_rule == "chance":  # the final settings after the reading, per state
             passes = self._passes(self._final_settings(k, n, weight, FINAL_SETTINGS), k, z, n)
         best, best_value = float(settings[0]), math.inf
@@ -561,6 +550,12 @@ class FamilyPosterior:
             joint = outcomes * weight[None, :, None]
             if passes is not None:  # minus the expected chance of the best final setting
                 value = -np.einsum("msb,fs->mbf", joint, passes).max(axis=2).sum(axis=1)
+            elif cells is not None:  # the optimum's expected entropy over its grid points
+                mass = np.add.reduceat(joint, cells, axis=1)  # (M, C, B + 1)
+                outcome = mass.sum(axis=1)
+                value = np.sum(outcome * np.log(np.maximum(outcome, 1e-300)), axis=1) - np.sum(
+                    mass * np.log(np.maximum(mass, 1e-300)), axis=(1, 2)
+                )
             else:
                 mass = joint.sum(axis=1)
                 first = np.einsum("msb,s->mb", joint, u)

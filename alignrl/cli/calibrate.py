@@ -159,10 +159,10 @@ def add_calibrate_parser(verbs: argparse._SubParsersAction[argparse.ArgumentPars
     calibrate.add_argument(
         "--from-above",
         type=_at_least_zero,
-        default=0,
+        default=2,  # alignrl.apparatus.calibration.FROM_ABOVE, left unimported (scipy)
         metavar="N",
         help="images approached from above after each alignment, which tell the column's "
-        "backlash (default: 0, none; 2 tells it)",
+        "backlash (default: 2; 0: none)",
     )
     calibrate.add_argument(
         "--out", required=True, metavar="DIR", help="folder the calibrated policy goes to"

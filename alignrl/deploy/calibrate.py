@@ -13,7 +13,7 @@ tensor for tensor: what changes is what its posterior knows of the column.
 
 Every reading of an alignment but its first is approached from below, so those readings
 cannot tell the column's backlash. After each alignment `from_above` more readings (default
-FROM_ABOVE: none) may be taken approached from above, at settings the alignment read from
+FROM_ABOVE: two) are taken approached from above, at settings the alignment read from
 below on the curve's flank (the widths nearest twice the alignment's narrowest): the same
 settings on the other branch, whose shift says the backlash.
 """

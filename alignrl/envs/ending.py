@@ -160,9 +160,9 @@ class EpisodeEnds:
     def _side(self, index: int) -> float:
         """The side episode `index`'s latest reading came from, as its posterior reads it:
         on its branch with a calibrated column (Task.posterior_column; 0: unknown, the column
-        as found) or posterior_from_below, else as from below (as the shipped champion was
-        measured)."""
-        if self.task.posterior_column or self.task.posterior_from_below:
+        as found), posterior_from_below or posterior_on_sides, else as from below."""
+        task = self.task
+        if task.posterior_column or task.posterior_from_below or task.posterior_on_sides:
             return float(self.approach[index, 0])
         return 1.0
 
@@ -244,6 +244,7 @@ class EpisodeEnds:
                     spec_relative=self.task.success.relative,
                     draws=self.task.posterior_draws,
                     far_noise=self.task.posterior_far_noise,
+                    probe_rule=self.task.posterior_probe_rule,
                     **SCALE_FREE,
                 )
             self._posteriors[index] = copy.copy(made)

@@ -60,6 +60,8 @@ ACTING_OPTIONS = (
     "posterior_walk_after",
     "posterior_no_edges",
     "posterior_from_below",
+    "posterior_on_sides",
+    "posterior_probe_rule",
     "posterior_column",
     "finish_window",
     "approach_from_below",
@@ -68,6 +70,8 @@ ACTING_OPTIONS = (
 )
 # The posterior of finish_at_posterior: the columns it draws (FamilyPosterior.draws)
 POSTERIOR_DRAWS, MIN_POSTERIOR_DRAWS, MAX_POSTERIOR_DRAWS = 256, 16, 4096
+# Where its walk probes: FamilyPosterior's PROBE_RULES (alignrl/apparatus/family_posterior.py)
+POSTERIOR_PROBE_RULES = ("variance", "chance", "entropy")
 MAX_FAR_NOISE = 1.0  # its posterior_far_noise: beyond it a reading far from focus says nothing
 MAX_MOVE_FLOOR = 0.2  # a share of the interval: beyond it no column could be brought to focus
 
@@ -196,6 +200,15 @@ class Task:
     # whichever branch of its backlash or hysteresis it was left (the narrowest reading may
     # still be that one); False: every reading.
     posterior_from_below: bool = False
+    # With finish_at_posterior: the posterior reads each reading on the side it was
+    # approached from, the opening one (the column as found) on an unknown side: the mixture
+    # of the backlash's branches (FamilyPosterior.observe, side 0); False: every reading as
+    # approached from below.
+    posterior_on_sides: bool = False
+    # With finish_at_posterior: where its walk probes (FamilyPosterior.probe_rule): "variance",
+    # the least expected variance of the optimum; "entropy", the least expected entropy of
+    # it (the most expected information); "chance", the final setting's greatest chance.
+    posterior_probe_rule: str = "variance"
     # With finish_at_posterior: the posterior reads in the one column calibrated on the
     # microscope (alignrl/apparatus/calibration.py: COLUMN_FIELDS' values in order, `alignrl
     # calibrate`), in that column's own pixels, not in the scale-free training box; (): the box.
@@ -305,6 +318,9 @@ class Task:
              f"the reading it walks from, in [0, episode_steps={self.episode_steps}]"),
             ("posterior_no_edges", True, "whether it reads frames without edges"),
             ("posterior_from_below", True, "whether it reads only readings from below"),
+            ("posterior_on_sides", True, "whether it reads readings on their sides"),
+            ("posterior_probe_rule", self.posterior_probe_rule in POSTERIOR_PROBE_RULES,
+             f"where its walk probes, one of {', '.join(POSTERIOR_PROBE_RULES)}"),
             ("posterior_column", column is None, "a column calibrated on the microscope "
              f"(alignrl calibrate){'' if column is None else ': ' + column}"),
         ):  # fmt: skip
