@@ -30,7 +30,7 @@ from alignrl.agents.learners import LEARNERS, learner_defaults, learner_title
 from alignrl.apparatus.shield import DEFAULT_CALL_TIMEOUT_S
 from alignrl.devices import DEVICE, check_device_available
 from alignrl.envs.hindsight import HINDSIGHT_OPTIMA, HindsightOptimum  # noqa: F401 (re-exported)
-from alignrl.envs.task import ACTING_OPTIONS
+from alignrl.envs.task import ACTING_OPTIONS, POSTERIOR_PROBE_RULES
 from alignrl.overlays import Layers, OverlayError, apply_overrides
 from alignrl.overlays import resolve as resolve_overlays
 from alignrl.yaml_io import YAMLInputError, read_yaml_file
@@ -130,7 +130,7 @@ def _own_setting(name: str, meaning: str, **bounds: Any) -> Any:
 
 # The learners alignrl ships; one registered later (a plugin, a test) is accepted by name too.
 LearnerName = Literal[tuple(LEARNERS)]  # type: ignore[valid-type]
-ProbeRule = Literal["variance", "chance", "entropy"]  # where a posterior walk probes (task.py)
+ProbeRule = Literal[POSTERIOR_PROBE_RULES]  # type: ignore[valid-type]
 
 
 class LearnerConfig(_Strict):

@@ -8,11 +8,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from alignrl.apparatus.family_posterior import SCALE_FREE, FamilyPosterior, focus_box
+from alignrl.apparatus.family_posterior import PROBE_RULES, SCALE_FREE, FamilyPosterior, focus_box
 from alignrl.apparatus.registry import make_apparatus
 from alignrl.config import TaskOptions
 from alignrl.envs.core import AlignmentEpisodes
-from alignrl.envs.task import get_task
+from alignrl.envs.task import POSTERIOR_PROBE_RULES, get_task
 
 WALK = [0.9, -0.6, 0.4, -0.3]  # probes on both sides of focus, from the episode's start
 
@@ -254,6 +254,7 @@ def test_far_noise_reaches_the_episodes_posterior() -> None:
     ],
 )
 def test_the_posteriors_settings_are_refused_out_of_range(option, bad) -> None:
+    assert POSTERIOR_PROBE_RULES == PROBE_RULES  # every rule the posterior has, and no other
     with pytest.raises(ValueError, match=option):
         TaskOptions(finish_at_posterior=True, stop_at_best=True, approach_from_below=True,
                     **{option: bad}).apply(get_task("focus"))  # fmt: skip

@@ -409,7 +409,7 @@ def test_a_reading_on_either_branch_joins_the_scale_sums_with_the_branches_sprea
     apart.add(np.zeros(1), np.full(1, 0.01))
     chances = [np.ones(1), np.zeros(1)]
     density = apart.add_either([np.full(1, 0.2), np.full(1, -0.2)], [np.full(1, 0.01)] * 2, chances)
-    assert np.isclose(apart.sum1[0], 0.0 / 0.01) and np.isclose(apart.sum0[0], 100 + 1 / 0.05)
+    assert np.isclose(apart.sum1[0], 0.0) and np.isclose(apart.sum0[0], 100 + 1 / 0.05)
     lone = ScaleSums.empty((1,))
     lone.add(np.zeros(1), np.full(1, 0.01))
     assert np.allclose(density, 0.5 * lone.predictive(np.full(1, 0.2), np.full(1, 0.01)))

@@ -396,18 +396,19 @@ class FamilyPosterior:
 
     def _likelihood(self, setting: float, reading: float, side: float = 1.0) -> np.ndarray:
         """Per state, the chance of `reading` (px; NaN: no edges) at `setting` approached
-        from `side` (0: unknown, the mean over BRANCHES); scale_free, given the readings
-        before it, which it then joins (_on_branches where the side is unknown)."""
-        if side == 0.0 and self._scale is None:
-            chances = [self._on_branch(setting, reading, branch) for branch in BRANCHES]
-            return sum(chances) / len(BRANCHES)
+        from `side` (0: unknown, _on_branches); scale_free, given the readings before it,
+        which it then joins."""
         if side == 0.0:
             return self._on_branches(setting, reading)
         return self._on_branch(setting, reading, side)
 
     def _on_branches(self, setting: float, reading: float) -> np.ndarray:
-        """scale_free _likelihood of a reading on an unknown side: the mean over BRANCHES of
-        each one's predictive (ScaleSums.add_either)."""
+        """_likelihood of a reading on an unknown side: the mean over BRANCHES; scale_free,
+        of each one's predictive, the reading joining the scale's sums once
+        (ScaleSums.add_either)."""
+        if self._scale is None:
+            chances = [self._on_branch(setting, reading, branch) for branch in BRANCHES]
+            return sum(chances) / len(BRANCHES)
         scales = self.models.specimen_rel * self._scale_nodes
         branches = [self.models.reading(self._errors(setting, self._grid, branch), scales)
                     for branch in BRANCHES]  # fmt: skip

@@ -70,7 +70,8 @@ ACTING_OPTIONS = (
 )
 # The posterior of finish_at_posterior: the columns it draws (FamilyPosterior.draws)
 POSTERIOR_DRAWS, MIN_POSTERIOR_DRAWS, MAX_POSTERIOR_DRAWS = 256, 16, 4096
-# Where its walk probes: FamilyPosterior's PROBE_RULES (alignrl/apparatus/family_posterior.py)
+# Where its walk probes: FamilyPosterior's PROBE_RULES (alignrl/apparatus/family_posterior.py,
+# left unimported here for its scipy; tests/test_finish_at_posterior.py holds them equal)
 POSTERIOR_PROBE_RULES = ("variance", "chance", "entropy")
 MAX_FAR_NOISE = 1.0  # its posterior_far_noise: beyond it a reading far from focus says nothing
 MAX_MOVE_FLOOR = 0.2  # a share of the interval: beyond it no column could be brought to focus
