@@ -244,6 +244,16 @@ def test_far_noise_reaches_the_episodes_posterior() -> None:
     assert plain.ends._posterior(0).far_noise == 0.0
 
 
+def test_the_episodes_posterior_levels_its_readings_off_where_the_task_says() -> None:
+    episodes, _, _ = _walked(_task(stop_at_best=True, posterior_saturation_px=[10, 80]))
+    assert episodes.ends.task.posterior_saturation_px == (10.0, 80.0)
+    saturation = episodes.ends._posterior(0).models.saturation
+    assert 10.0 - 1e-9 <= saturation.min() < 0.9 * focus_box().saturation_px[0]
+    assert saturation.max() <= 80.0 + 1e-9
+    plain, _, _ = _walked(_task(stop_at_best=True))
+    assert plain.ends._posterior(0).models.saturation.min() >= focus_box().saturation_px[0] - 1e-9
+
+
 @pytest.mark.parametrize(
     ("option", "bad"),
     [
@@ -251,6 +261,9 @@ def test_far_noise_reaches_the_episodes_posterior() -> None:
         ("posterior_walk_after", 99),
         ("posterior_walk_after", -1),
         ("posterior_probe_rule", "information"),
+        ("posterior_saturation_px", (80.0, 10.0)),
+        ("posterior_saturation_px", (0.0, 80.0)),
+        ("posterior_saturation_px", (10.0, float("inf"))),
     ],
 )
 def test_the_posteriors_settings_are_refused_out_of_range(option, bad) -> None:
@@ -264,6 +277,7 @@ NEEDING_THE_POSTERIOR = [
     {"posterior_from_below": True},
     {"posterior_on_sides": True},
     {"posterior_probe_rule": "entropy"},
+    {"posterior_saturation_px": (10.0, 80.0)},
     {"posterior_far_noise": 0.1},
     {"posterior_walk_after": 3},
     {"posterior_no_edges": True},

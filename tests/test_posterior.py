@@ -430,3 +430,28 @@ def test_the_entropy_rule_reads_near_the_likely_focus_before_ruling_out_a_far_on
             posterior.observe(setting, reading)
         probes[rule] = posterior.probe()
     assert probes["variance"] > 0.6 and probes["entropy"] < 0.2688
+
+
+def test_readings_levelling_off_as_a_grids_keep_steep_columns_in_the_posterior():
+    """val-steep on images (100 px of blur per interval, a grid, whose edge widths level off
+    at about 15 px): the champion's first readings of one alignment, none near focus. The box,
+    whose readings level off from 18 px, all but rules out steep columns and is 98 % sure of a
+    setting outside the column's window (+-0.5 % of the interval); levelling off from 10 px
+    (Task.posterior_saturation_px, as images do) it keeps them and is not sure."""
+    optimum = 0.183
+    readings = [(-0.1352, 16.38), (0.1176, 15.02), (0.7225, math.nan), (-0.0377, 11.30),
+                (0.0540, 11.47)]  # fmt: skip
+    steep, sure = {}, {}
+    for saturation in (None, (10.0, 80.0)):
+        posterior = FamilyPosterior(focus_box(saturation_px=saturation), draws=1024,
+                                    far_noise=0.1, probe_rule="entropy", **SCALE_FREE)  # fmt: skip
+        posterior.begin()
+        for error, reading in readings:
+            posterior.observe(optimum + error, reading)
+        weights = posterior._posterior.sum(axis=(1, 2))
+        steep[saturation] = float(weights[posterior.models.gain[:, 0, 0] >= 60.0].sum())
+        setting, sure[saturation] = posterior.final()
+        if saturation is None:
+            assert abs(setting - optimum) > 0.005 and sure[saturation] > 0.98
+    assert steep[(10.0, 80.0)] > 2.0 * steep[None]
+    assert sure[(10.0, 80.0)] < 0.98

@@ -597,6 +597,13 @@ class FamilyPosterior:
 SCALE_FREE = {"scale_free": True, "specimen_points": 1}
 
 
-def focus_box(reach: float = FAMILY_REACH) -> FocusFamily:
-    """The focus training box (alignrl/apparatus/families/focus.yaml), widened by `reach`."""
-    return widened(load_family(family_path("focus")), reach)
+def focus_box(
+    reach: float = FAMILY_REACH, saturation_px: tuple[float, float] | None = None
+) -> FocusFamily:
+    """The focus training box (alignrl/apparatus/families/focus.yaml), widened by `reach`;
+    with `saturation_px`, its readings levelling off within that range of px instead
+    (Task.posterior_saturation_px: where edge widths measured on images level off)."""
+    box = widened(load_family(family_path("focus")), reach)
+    if saturation_px is None:
+        return box
+    return FocusFamily.model_validate({**box.model_dump(), "saturation_px": saturation_px})

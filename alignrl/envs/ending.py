@@ -240,7 +240,7 @@ class EpisodeEnds:
                 )
 
                 made = FamilyPosterior(
-                    focus_box(),
+                    focus_box(saturation_px=self.task.posterior_saturation_px or None),
                     spec_relative=self.task.success.relative,
                     draws=self.task.posterior_draws,
                     far_noise=self.task.posterior_far_noise,

@@ -48,26 +48,12 @@ MAX_ACTION_POWER = 4.0  # above it the smallest useful changes need actions with
 # The task options that change how a trained policy's moves reach the column and how its
 # episode ends, never what it observes: an export may set them (alignrl export --set).
 ACTING_OPTIONS = (
-    "move_floor",
-    "stop_at_best",
-    "backlash_overshoot",
-    "finish_at_fit",
-    "finish_at_posterior",
-    "stop_when_sure",
-    "probe_until_sure",
-    "posterior_draws",
-    "posterior_far_noise",
-    "posterior_walk_after",
-    "posterior_no_edges",
-    "posterior_from_below",
-    "posterior_on_sides",
-    "posterior_probe_rule",
-    "posterior_column",
-    "finish_window",
-    "approach_from_below",
-    "final_move",
-    "final_move_reach",
-)
+    "move_floor", "stop_at_best", "backlash_overshoot", "finish_at_fit", "finish_at_posterior",
+    "stop_when_sure", "probe_until_sure", "posterior_draws", "posterior_far_noise",
+    "posterior_walk_after", "posterior_no_edges", "posterior_from_below", "posterior_on_sides",
+    "posterior_probe_rule", "posterior_saturation_px", "posterior_column", "finish_window",
+    "approach_from_below", "final_move", "final_move_reach",
+)  # fmt: skip
 # The posterior of finish_at_posterior: the columns it draws (FamilyPosterior.draws)
 POSTERIOR_DRAWS, MIN_POSTERIOR_DRAWS, MAX_POSTERIOR_DRAWS = 256, 16, 4096
 # Where its walk probes: FamilyPosterior's PROBE_RULES (alignrl/apparatus/family_posterior.py,
@@ -197,9 +183,8 @@ class Task:
     # from there (as posterior-robust reads them); else it is fed measured readings alone.
     posterior_no_edges: bool = False
     # With finish_at_posterior: the posterior reads only the readings approached from below,
-    # as its model has them, not the opening one, taken where the column was found, on
-    # whichever branch of its backlash or hysteresis it was left (the narrowest reading may
-    # still be that one); False: every reading.
+    # not the opening one, taken on whichever branch of its backlash or hysteresis the column
+    # was found (the narrowest reading may still be that one); False: every reading.
     posterior_from_below: bool = False
     # With finish_at_posterior: the posterior reads each reading on the side it was
     # approached from, the opening one (the column as found) on an unknown side: the mixture
@@ -210,6 +195,10 @@ class Task:
     # the least expected variance of the optimum; "entropy", the least expected entropy of
     # it (the most expected information); "chance", the final setting's greatest chance.
     posterior_probe_rule: str = "variance"
+    # With finish_at_posterior: where its columns' readings level off (px, low and high, drawn
+    # log-uniformly) in place of the box's saturation_px, which its analytic readings follow:
+    # edge widths measured on images level off from 15 px (grids, bars); (): the box's.
+    posterior_saturation_px: tuple[float, ...] = ()
     # With finish_at_posterior: the posterior reads in the one column calibrated on the
     # microscope (alignrl/apparatus/calibration.py: COLUMN_FIELDS' values in order, `alignrl
     # calibrate`), in that column's own pixels, not in the scale-free training box; (): the box.
@@ -322,6 +311,9 @@ class Task:
             ("posterior_on_sides", True, "whether it reads readings on their sides"),
             ("posterior_probe_rule", self.posterior_probe_rule in POSTERIOR_PROBE_RULES,
              f"where its walk probes, one of {', '.join(POSTERIOR_PROBE_RULES)}"),
+            ("posterior_saturation_px", not (saturation := self.posterior_saturation_px) or (
+                len(saturation) == 2 and 0 < saturation[0] <= saturation[1] < math.inf),
+             "where its columns' readings level off, (low, high) px with 0 < low <= high"),
             ("posterior_column", column is None, "a column calibrated on the microscope "
              f"(alignrl calibrate){'' if column is None else ': ' + column}"),
         ):  # fmt: skip
