@@ -279,7 +279,7 @@ class TaskOptions(_Strict):
     posterior_from_below: bool | None = Field(None, description="posterior: readings from below")
     posterior_on_sides: bool | None = Field(None, description="posterior: readings on their sides")
     posterior_probe_rule: ProbeRule | None = Field(None, description="where its walk probes")
-    posterior_saturation_px: tuple[float, float] | None = Field(None, description="levels off")
+    posterior_saturation_px: tuple[float, float] | None = Field(None, description="level off, px")
     posterior_column: dict[str, float] | None = Field(None, description="calibrated column")
     finish_window: float | None = Field(None, gt=1, description="finish fit: within x narrowest")
     approach_from_below: bool | None = Field(None, description="every reading reached from below")
