@@ -42,6 +42,19 @@ def test_the_champion_ships_its_learner_state_and_sees_no_units() -> None:
     assert card["task"]["options"]["quality_reference"] == "first"
 
 
+def test_the_shipped_champion_acts_as_its_experiment_file_says() -> None:
+    """The card in the package carries experiments/focus-v2.yaml's acting_options (the file
+    the champion is trained and exported from), so a change to either shows here."""
+    from alignrl.config import load_experiment
+
+    acting = load_experiment("experiments/focus-v2.yaml").acting_options.model_dump()
+    task = resolve_source(CHAMPION).task
+    chosen = {name: value for name, value in acting.items() if value is not None}
+    assert chosen["posterior_probe_rule"] == "entropy"
+    for name, value in chosen.items():
+        assert getattr(task, name) == value, name
+
+
 def test_adapt_from_the_champion_on_a_driver_without_an_optimum(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
