@@ -1,5 +1,5 @@
 """What a controller that knows the column's model reaches on every instrument of a set: the
-Bayesian autofocus of alignrl/evaluation/posterior.py, in four kinds (issue 21):
+Bayesian autofocus of alignrl/evaluation/posterior.py, in five kinds (issue 21):
 
 * `oracle`: on each instrument, the posterior over that instrument's own file (its every
   parameter known, the optimum anywhere in the interval). What it cannot do in a number of
@@ -7,6 +7,10 @@ Bayesian autofocus of alignrl/evaluation/posterior.py, in four kinds (issue 21):
 * `posterior`: the posterior over the training box (alignrl/apparatus/families/focus.yaml),
   the same for every instrument: it knows what training knows, no more (`alignrl evaluate
   --policy posterior`); `--reach R` widens the box by R of each range at both ends;
+* `oracle-scale-free` (only where asked): the oracle with its readings in an unknown pixel
+  scale (PosteriorFocus.scale_free): every parameter of the column known but its pixels, as a
+  unit-free aligner must read them. What it cannot do in a number of acquisitions, no
+  unit-free controller does reliably there;
 * `scale-free` (only where asked): the same box, its readings in an unknown pixel scale
   (PosteriorFocus.scale_free): what a unit-free aligner could learn from it;
 * `robust` (only where asked): `alignrl evaluate --policy posterior-robust`, scale-free with
@@ -41,7 +45,7 @@ from alignrl.evaluation.instrument_sets import set_table
 from alignrl.evaluation.posterior import FAMILY_REACH, ROBUST, SCALE_FREE, PosteriorFocus, widened
 from benchmarks.heldout import same_sessions, stored_or_run
 
-KINDS = ("oracle", "posterior", "scale-free", "robust")
+KINDS = ("oracle", "oracle-scale-free", "posterior", "scale-free", "robust")
 DEFAULT_KINDS = ("oracle", "posterior")
 
 
@@ -49,10 +53,10 @@ class _Oracle:
     """The posterior over each instrument's own file, switched to as its session starts
     (run_set's on_instrument)."""
 
-    def __init__(self, set_name: str, label: str, probe_rule: str) -> None:
+    def __init__(self, set_name: str, label: str, probe_rule: str, reads: dict) -> None:
         self.name = label
         self.by_instrument = {
-            name: PosteriorFocus(instrument, name=label, probe_rule=probe_rule)
+            name: PosteriorFocus(instrument, name=label, probe_rule=probe_rule, **reads)
             for name, instrument in load_set(set_name)
         }
         self.present: PosteriorFocus | None = None
@@ -69,11 +73,13 @@ def _result(kind: str, args: argparse.Namespace) -> dict:
     """Controller `kind`'s set result (module docstring), read back or run."""
     name = kind if args.probe_rule == "variance" else f"{kind}-{args.probe_rule}"
     path = args.out / f"{name}.json" if args.out is not None else None
-    if kind == "oracle":
-        oracle = _Oracle(args.set_name, name, args.probe_rule)
+    reads = {"scale-free": SCALE_FREE, "oracle-scale-free": SCALE_FREE, "robust": ROBUST}.get(
+        kind, {}
+    )  # robust: its draws
+    if kind.startswith("oracle"):
+        oracle = _Oracle(args.set_name, name, args.probe_rule, reads)
         return stored_or_run(name, lambda: oracle, args, path, on_instrument=oracle.switch)
     box = widened(load_family(family_path(args.family)), args.reach)
-    reads = {"scale-free": SCALE_FREE, "robust": ROBUST}.get(kind, {})  # robust: its draws
     settings = {"draws": args.draws, **reads, "probe_rule": args.probe_rule}
     return stored_or_run(name, lambda: PosteriorFocus(box, name=name, **settings), args, path)
 

@@ -74,3 +74,33 @@ def test_a_probe_rule_names_its_result_and_reaches_the_posterior(
     (robust,) = [posterior for posterior in made if posterior.name == "robust-chance"]
     assert {key: getattr(robust, key) for key in ROBUST} == ROBUST
     assert "robust-chance" in capsys.readouterr().out
+
+
+def test_the_scale_free_oracle_reads_each_file_in_an_unknown_pixel_scale(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """--kind oracle-scale-free: one posterior per instrument over that instrument's own file,
+    scale_free, beside the oracle's, which knows its pixels."""
+    made = []
+
+    class Recording(bound.PosteriorFocus):
+        def __post_init__(self) -> None:
+            made.append(self)
+            super().__post_init__()
+
+    monkeypatch.setattr(bound, "PosteriorFocus", Recording)
+    argv = ["--set", "validation", "--analytic", "--scenarios", "1", "--out", str(tmp_path)]
+    assert main([*argv, "--kind", "oracle", "--kind", "oracle-scale-free"]) == 0
+    assert sorted(path.name for path in tmp_path.glob("*.json")) == [
+        "oracle-scale-free.json",
+        "oracle.json",
+    ]
+    free = [posterior for posterior in made if posterior.name == "oracle-scale-free"]
+    known = [posterior for posterior in made if posterior.name == "oracle"]
+    assert len(free) == len(known) == 6
+    assert all(posterior.scale_free and posterior.specimen_points == 1 for posterior in free)
+    assert not any(posterior.scale_free for posterior in known)
+    assert [posterior.family.name for posterior in free] == [
+        posterior.family.name for posterior in known
+    ]
+    assert "oracle-scale-free" in capsys.readouterr().out
