@@ -63,9 +63,9 @@ def test_adapt_from_the_champion_on_a_driver_without_an_optimum(
     argv = ["adapt", "--from", CHAMPION, "--apparatus", "fake_drivers:BlindLens"]
     argv += ["--spec-px", "3", "--steps", "300", "--envs", "4", "--eval-scenarios", "3"]
     argv += ["--name", "adapted", "--runs-dir", str(tmp_path), "--quiet", "--json"]
-    # The champion's own task options but a posterior of 256 columns, not its 1,024: the
-    # same adaptation, a quarter of the computing (its posterior is asked at every reading).
-    argv += ["--set", "task_options.posterior_draws=256"]
+    # The champion's own task options but a posterior of 64 columns, not its 1,024: the
+    # same adaptation in less computing (its posterior is asked at every reading).
+    argv += ["--set", "task_options.posterior_draws=64"]
     assert main(argv) == 0
     result = json.loads(capsys.readouterr().out)
     assert result["env_steps"] >= 300
