@@ -104,9 +104,7 @@ def _shared_default(name: str) -> Any:
     found = {learner: learner_defaults(learner)[name] for learner in LEARNERS
              if name in learner_defaults(learner)}  # fmt: skip
     if not found or len(set(map(repr, found.values()))) > 1:
-        raise TypeError(
-            f"learner key {name}: the learners' defaults disagree or are missing: {found}"
-        )
+        raise TypeError(f"learner key {name}: the learners' defaults disagree or miss: {found}")
     return next(iter(found.values()))
 
 
@@ -275,6 +273,7 @@ class TaskOptions(_Strict):
     posterior_draws: int | None = Field(None, ge=16, le=4096, description="posterior's columns")
     posterior_far_noise: float | None = Field(None, ge=0, le=1, description="posterior's far_noise")
     posterior_walk_after: int | None = Field(None, ge=0, le=100, description="posterior walks from")
+    posterior_walk_unmeasured: bool | None = Field(None, description="and while none measured")
     posterior_no_edges: bool | None = Field(None, description="posterior reads no-edge frames")
     posterior_from_below: bool | None = Field(None, description="posterior: readings from below")
     posterior_on_sides: bool | None = Field(None, description="posterior: readings on their sides")

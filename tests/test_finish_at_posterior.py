@@ -218,6 +218,33 @@ def test_the_posterior_walks_from_the_reading_the_task_says() -> None:
     assert float(unit.read()["defocus"]) == pytest.approx(_posterior_best(episodes))
 
 
+def test_the_posterior_walks_while_nothing_is_measured_when_asked() -> None:
+    """posterior_walk_unmeasured: while no reading of the episode has been measured (every
+    frame so far without edges), the move goes where the posterior would probe next; once
+    one is measured the policy moves again. Without the option the policy moves throughout."""
+    asked = np.array([[0.9, -1.0]])  # far up, every time
+    moved = {}
+    for unmeasured in (False, True):
+        task = _task(stop_at_best=True, posterior_no_edges=True,
+                     posterior_walk_unmeasured=unmeasured)  # fmt: skip
+        episodes, slot, _ = _started(task)
+        low, span = float(episodes.low[0, 0]), float(episodes.span[0, 0])
+        episodes.ends.readings[0] = []  # as though the opening frame had shown no edges
+        probe = low + episodes.ends._posterior(0).probe() * span
+        before = float(episodes.setting[0, 0])
+        episodes.step(slot, asked)
+        moved[unmeasured] = float(episodes.setting[0, 0])
+        assert len(episodes.ends.readings[0]) == 1  # this one was measured
+        if not unmeasured:
+            assert moved[unmeasured] > before  # the policy's move, up
+        else:
+            assert moved[unmeasured] == pytest.approx(probe) and probe < before
+            before = moved[unmeasured]
+            episodes.step(slot, asked)  # a reading measured: the policy's move again
+            assert float(episodes.setting[0, 0]) > before
+    assert moved[False] != pytest.approx(moved[True])
+
+
 def test_frames_without_edges_reach_the_posterior_only_when_asked() -> None:
     """posterior_no_edges: a reading without edges is news for the posterior (focus is far
     from there): its best setting moves; without the option it is left out, as before."""
@@ -280,6 +307,7 @@ NEEDING_THE_POSTERIOR = [
     {"posterior_saturation_px": (10.0, 80.0)},
     {"posterior_far_noise": 0.1},
     {"posterior_walk_after": 3},
+    {"posterior_walk_unmeasured": True},
     {"posterior_no_edges": True},
 ]
 

@@ -19,7 +19,8 @@ focus training box (alignrl/apparatus/family_posterior.py, one per episode, fed 
 measured reading) holds most likely to pass; with `stop_when_sure` too, an episode also ends
 once that setting passes with the chance asked (`sure`); with `probe_until_sure` a stop it
 is unsure of becomes a reading where it would probe next, and with `posterior_walk_after`
-every reading from the N-th on is placed there (`probes`).
+every reading from the N-th on is placed there (`probes`), with `posterior_walk_unmeasured`
+every reading while none has been measured.
 
 The way back arrives at every knob from the side the narrowest reading was approached from
 (at the posterior's setting, from below: the side that setting is placed for):
@@ -208,16 +209,19 @@ class EpisodeEnds:
         with where it would read next (the knob's units; `low`, `high`: every episode's
         interval): with Task.probe_until_sure, a stopping episode whose posterior is not yet
         that sure of its best setting (the reading is taken in place of the stop); with
-        Task.posterior_walk_after, a moving episode that has taken that many readings. None
-        without either (the step of every other task asks nothing more)."""
+        Task.posterior_walk_after, a moving episode that has taken that many readings; with
+        Task.posterior_walk_unmeasured, a moving episode none of whose readings was measured.
+        None without any (the step of every other task asks nothing more)."""
         task = self.task
-        if not (task.probe_until_sure or task.posterior_walk_after):
+        unmeasured = task.posterior_walk_unmeasured
+        if not (task.probe_until_sure or task.posterior_walk_after or unmeasured):
             return {}
         chosen = [
             index for index, stopping, step in zip(indices, stop, steps, strict=True)
             if (stopping and task.probe_until_sure and self.readings[index]
                 and self.best(index)[1] < task.probe_until_sure)
             or (not stopping and 0 < task.posterior_walk_after <= step + 1)
+            or (not stopping and unmeasured and not self.readings[index])
         ]  # fmt: skip
         return {
             int(i): float(low[i, 0] + self._posteriors[i].probe() * (high[i, 0] - low[i, 0]))

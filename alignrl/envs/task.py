@@ -50,7 +50,8 @@ MAX_ACTION_POWER = 4.0  # above it the smallest useful changes need actions with
 ACTING_OPTIONS = (
     "move_floor", "stop_at_best", "backlash_overshoot", "finish_at_fit", "finish_at_posterior",
     "stop_when_sure", "probe_until_sure", "posterior_draws", "posterior_far_noise",
-    "posterior_walk_after", "posterior_no_edges", "posterior_from_below", "posterior_on_sides",
+    "posterior_walk_after", "posterior_walk_unmeasured", "posterior_no_edges",
+    "posterior_from_below", "posterior_on_sides",
     "posterior_probe_rule", "posterior_saturation_px", "posterior_column", "finish_window",
     "approach_from_below", "final_move", "final_move_reach",
 )  # fmt: skip
@@ -179,6 +180,10 @@ class Task:
     # measured or not), every move goes where the posterior would probe next, not where the
     # policy asks (its stops stand as before); 0: the policy walks throughout.
     posterior_walk_after: int = 0
+    # With finish_at_posterior: while no reading of the episode has been measured (every
+    # frame so far without edges), every move goes where the posterior would probe next too:
+    # the policy has no reading to act on, the posterior knows focus lies away from there.
+    posterior_walk_unmeasured: bool = False
     # With finish_at_posterior: readings without edges tell the posterior that focus is far
     # from there (as posterior-robust reads them); else it is fed measured readings alone.
     posterior_no_edges: bool = False
@@ -306,6 +311,7 @@ class Task:
              f"how much less it trusts far readings, in [0, {MAX_FAR_NOISE:g}]"),
             ("posterior_walk_after", 0 <= self.posterior_walk_after <= self.episode_steps,
              f"the reading it walks from, in [0, episode_steps={self.episode_steps}]"),
+            ("posterior_walk_unmeasured", True, "whether it walks while nothing is measured"),
             ("posterior_no_edges", True, "whether it reads frames without edges"),
             ("posterior_from_below", True, "whether it reads only readings from below"),
             ("posterior_on_sides", True, "whether it reads readings on their sides"),
