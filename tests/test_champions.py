@@ -71,6 +71,20 @@ def test_the_champions_are_package_data() -> None:
     assert not stale, f"modules naming the champions' old folder: {stale}"
 
 
+def test_a_card_names_no_machines_folders(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A card records a source under the working directory relative to it (a card shipped in
+    the package names no one's folders), one elsewhere as it is."""
+    from alignrl.deploy.card import _shown
+
+    monkeypatch.chdir(tmp_path)
+    assert _shown(tmp_path / "runs" / "a" / "best.pt") == str(Path("runs", "a", "best.pt"))
+    assert _shown("/elsewhere/best.pt") == "/elsewhere/best.pt"
+    for folder in CHAMPION_FOLDERS:
+        source = json.loads((folder / "card.json").read_text())["source"]
+        for key in ("run", "member_file", "config_file"):
+            assert not Path(source.get(key) or "").is_absolute(), (folder.name, key)
+
+
 @pytest.mark.parametrize("folder", CHAMPION_FOLDERS, ids=lambda path: path.name)
 def test_a_shipped_champion_aligns_held_out_scenarios(
     folder: Path, capsys: pytest.CaptureFixture[str]

@@ -119,6 +119,15 @@ def _memory(graph: PolicyGraph) -> dict[str, Any]:
     }
 
 
+def _shown(path: Path | str) -> str:
+    """A source's path as a card records it: relative to the working directory where it lies
+    under it (a card shipped in the package names no machine's folders), else as it is."""
+    try:
+        return str(Path(path).relative_to(Path.cwd()))
+    except ValueError:
+        return str(path)
+
+
 def _recorded(source: PolicySource, key: str) -> dict[str, Any] | None:
     """The part `key` of the card an exported source came with (None for runs and files)."""
     if source.card is None or not isinstance(source.card.get(key), dict):
@@ -279,7 +288,7 @@ def _training(source: PolicySource) -> dict[str, Any]:
     """Where and how long the policy trained (an export's card says it for an export)."""
     config, recorded = source.config, _recorded(source, "training") or {}
     if source.card is not None:
-        settings = f"the card of the export it came from ({source.config_file})"
+        settings = f"the card of the export it came from ({_shown(source.config_file)})"
     elif source.config_file:
         settings = "run config"
     else:
@@ -332,9 +341,9 @@ def build_card(
         "source": {
             "kind": source.kind,
             "chosen_as": source.chosen_as,
-            "run": str(source.run_dir) if source.run_dir else None,
-            "member_file": str(source.member_file),
-            "config_file": str(source.config_file) if source.config_file else None,
+            "run": _shown(source.run_dir) if source.run_dir else None,
+            "member_file": _shown(source.member_file),
+            "config_file": _shown(source.config_file) if source.config_file else None,
         },
         "task": {
             "name": task.name,
