@@ -47,6 +47,8 @@ from benchmarks.heldout import same_sessions, stored_or_run
 
 KINDS = ("oracle", "oracle-scale-free", "posterior", "scale-free", "robust")
 DEFAULT_KINDS = ("oracle", "posterior")
+# How each kind reads beyond the posterior's defaults (robust: its draws too)
+READS = {"oracle-scale-free": SCALE_FREE, "scale-free": SCALE_FREE, "robust": ROBUST}
 
 
 class _Oracle:
@@ -73,9 +75,7 @@ def _result(kind: str, args: argparse.Namespace) -> dict:
     """Controller `kind`'s set result (module docstring), read back or run."""
     name = kind if args.probe_rule == "variance" else f"{kind}-{args.probe_rule}"
     path = args.out / f"{name}.json" if args.out is not None else None
-    reads = {"scale-free": SCALE_FREE, "oracle-scale-free": SCALE_FREE, "robust": ROBUST}.get(
-        kind, {}
-    )  # robust: its draws
+    reads = READS.get(kind, {})
     if kind.startswith("oracle"):
         oracle = _Oracle(args.set_name, name, args.probe_rule, reads)
         return stored_or_run(name, lambda: oracle, args, path, on_instrument=oracle.switch)

@@ -51,11 +51,9 @@ def test_oracle_rows_are_written_read_back_and_shown_beside(
     assert again["**total**"][0] == again["**total**"][1] == first["**total**"][0]
 
 
-def test_a_probe_rule_names_its_result_and_reaches_the_posterior(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
-) -> None:
-    """--probe-rule chance: each kind's posterior probes by it, and its result is
-    KIND-chance; the robust kind reads as posterior-robust does."""
+@pytest.fixture
+def made(monkeypatch: pytest.MonkeyPatch) -> list:
+    """Every PosteriorFocus benchmarks/bound.py makes, as it makes them."""
     made = []
 
     class Recording(bound.PosteriorFocus):
@@ -64,6 +62,14 @@ def test_a_probe_rule_names_its_result_and_reaches_the_posterior(
             super().__post_init__()
 
     monkeypatch.setattr(bound, "PosteriorFocus", Recording)
+    return made
+
+
+def test_a_probe_rule_names_its_result_and_reaches_the_posterior(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], made: list
+) -> None:
+    """--probe-rule chance: each kind's posterior probes by it, and its result is
+    KIND-chance; the robust kind reads as posterior-robust does."""
     argv = ["--set", "validation", "--analytic", "--scenarios", "1", "--out", str(tmp_path)]
     assert main([*argv, "--kind", "oracle", "--kind", "robust", "--probe-rule", "chance"]) == 0
     assert sorted(path.name for path in tmp_path.glob("*.json")) == [
@@ -77,18 +83,10 @@ def test_a_probe_rule_names_its_result_and_reaches_the_posterior(
 
 
 def test_the_scale_free_oracle_reads_each_file_in_an_unknown_pixel_scale(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], made: list
 ) -> None:
     """--kind oracle-scale-free: one posterior per instrument over that instrument's own file,
     scale_free, beside the oracle's, which knows its pixels."""
-    made = []
-
-    class Recording(bound.PosteriorFocus):
-        def __post_init__(self) -> None:
-            made.append(self)
-            super().__post_init__()
-
-    monkeypatch.setattr(bound, "PosteriorFocus", Recording)
     argv = ["--set", "validation", "--analytic", "--scenarios", "1", "--out", str(tmp_path)]
     assert main([*argv, "--kind", "oracle", "--kind", "oracle-scale-free"]) == 0
     assert sorted(path.name for path in tmp_path.glob("*.json")) == [

@@ -17,6 +17,7 @@ from alignrl.apparatus.family import FamilyColumn, load_family
 from alignrl.apparatus.instruments import INSTRUMENT_DIR, VALIDATION_SET
 from alignrl.checkpoints import load_checkpoint
 from alignrl.cli import main
+from alignrl.config import load_experiment
 from alignrl.deploy.policy import load_deployable
 from alignrl.envs.task import get_task
 from alignrl.evaluation.controllers import PolicyController
@@ -45,9 +46,8 @@ def test_the_champion_ships_its_learner_state_and_sees_no_units() -> None:
 def test_the_shipped_champion_acts_as_its_experiment_file_says() -> None:
     """The card in the package carries experiments/focus-v2.yaml's acting_options (the file
     the champion is trained and exported from), so a change to either shows here."""
-    from alignrl.config import load_experiment
-
-    acting = load_experiment("experiments/focus-v2.yaml").acting_options.model_dump()
+    experiment = Path(__file__).resolve().parents[1] / "experiments" / "focus-v2.yaml"
+    acting = load_experiment(experiment).acting_options.model_dump()
     task = resolve_source(CHAMPION).task
     chosen = {name: value for name, value in acting.items() if value is not None}
     assert chosen["posterior_probe_rule"] == "entropy"

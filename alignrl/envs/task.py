@@ -51,9 +51,9 @@ ACTING_OPTIONS = (
     "move_floor", "stop_at_best", "backlash_overshoot", "finish_at_fit", "finish_at_posterior",
     "stop_when_sure", "probe_until_sure", "posterior_draws", "posterior_far_noise",
     "posterior_walk_after", "posterior_walk_unmeasured", "posterior_no_edges",
-    "posterior_from_below", "posterior_on_sides",
-    "posterior_probe_rule", "posterior_saturation_px", "posterior_column", "finish_window",
-    "approach_from_below", "final_move", "final_move_reach",
+    "posterior_from_below", "posterior_on_sides", "posterior_probe_rule",
+    "posterior_saturation_px", "posterior_column", "finish_window", "approach_from_below",
+    "final_move", "final_move_reach",
 )  # fmt: skip
 # The posterior of finish_at_posterior: the columns it draws (FamilyPosterior.draws)
 POSTERIOR_DRAWS, MIN_POSTERIOR_DRAWS, MAX_POSTERIOR_DRAWS = 256, 16, 4096
