@@ -25,7 +25,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from alignrl.apparatus.calibration import FROM_ABOVE, POPULATION, ROUNDS
+from alignrl.apparatus.calibration import ALIGNMENTS, FROM_ABOVE, POPULATION, ROUNDS
 from alignrl.apparatus.instruments import load_set
 from alignrl.apparatus.registry import make_apparatus
 from alignrl.cli.common import _at_least_zero
@@ -36,6 +36,8 @@ from alignrl.intervals import success_text
 from benchmarks.heldout import _controller as policy_controller
 
 JUDGED = "judged.json"
+# what a saved result must share with the command for --reuse to read it (with from_above)
+REUSED = ("policy", "alignments", "scenarios", "seed", "analytic")
 
 
 def _judge(args: argparse.Namespace, name: str) -> dict[str, Any]:
@@ -44,8 +46,9 @@ def _judge(args: argparse.Namespace, name: str) -> dict[str, Any]:
     path = out / JUDGED
     if args.reuse and path.exists():
         saved = json.loads(path.read_text())
-        if (saved["scenarios"], saved["seed"], saved["analytic"], saved.get("from_above", 0)) == (
-            args.scenarios, args.seed, args.analytic, args.from_above,
+        asked = (args.policy, args.alignments, args.scenarios, args.seed, args.analytic)
+        if (*(saved[key] for key in REUSED), saved.get("from_above", 0)) == (
+            *asked, args.from_above,
         ):  # fmt: skip
             print(f"{name}: read {path}", file=sys.stderr)
             return saved
@@ -99,7 +102,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--policy", default="champion:focus-v2")
     parser.add_argument("--set", default="heldout", dest="set_name")
     parser.add_argument("--instrument", action="append", help="only these (default: the set)")
-    parser.add_argument("--alignments", type=int, default=30, help="to calibrate on")
+    parser.add_argument("--alignments", type=int, default=ALIGNMENTS, help="to calibrate on")
     parser.add_argument("--population", type=int, default=POPULATION, help="of the search")
     parser.add_argument("--rounds", type=int, default=ROUNDS, help="of the search")
     parser.add_argument(

@@ -36,3 +36,10 @@ def test_the_benchmark_calibrates_judges_and_reuses(
     assert main([*argv, "--reuse"]) == 0
     assert not (tmp_path / "cal" / "narrow-interval" / "calibration.json").exists()
     assert "| narrow-interval |" in capsys.readouterr().out
+    # ... only a result of the same command: with other alignments it calibrates again
+    changed = [*argv, "--reuse"]
+    changed[changed.index("--alignments") + 1] = "2"
+    assert main(changed) == 0
+    assert (tmp_path / "cal" / "narrow-interval" / "calibration.json").exists()
+    again = json.loads((tmp_path / "cal" / "narrow-interval" / "judged.json").read_text())
+    assert again["alignments"] == 2

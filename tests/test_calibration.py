@@ -4,6 +4,7 @@ what its alignments there read."""
 
 from __future__ import annotations
 
+import inspect
 import json
 import math
 from pathlib import Path
@@ -15,6 +16,7 @@ from fake_drivers import TEN_NINETY, BlindLens, ParabolicLens
 from safetensors.torch import load_file
 
 from alignrl.apparatus.calibration import (
+    ALIGNMENTS,
     COLUMN_FIELDS,
     FROM_ABOVE,
     ColumnEvidence,
@@ -26,10 +28,10 @@ from alignrl.apparatus.calibration import (
     sweeps_of,
 )
 from alignrl.apparatus.family import PAIR_FIELDS
-from alignrl.apparatus.family_posterior import ColumnModels, FamilyPosterior
+from alignrl.apparatus.family_posterior import ColumnModels, FamilyPosterior, focus_box
 from alignrl.cli import main
 from alignrl.config import ConfigError, RunConfig, TaskOptions, parse_config
-from alignrl.deploy.calibrate import read_from_above
+from alignrl.deploy.calibrate import calibrate_policy, read_from_above
 from alignrl.deploy.policy import load_deployable
 from alignrl.envs.ending import EpisodeEnds
 from alignrl.envs.task import get_task
@@ -209,6 +211,8 @@ def test_calibrated_posterior_is_the_one_column_in_its_pixels() -> None:
     posterior = calibrated_posterior(COLUMN, 1.15)
     assert posterior.models.count == 1 and not posterior.scale_free
     assert posterior.far_noise == 0.1 and posterior.model_noise == 0.01
+    # its stop is relative to the chance at the optimum, the box's is not
+    assert posterior.relative_stop and not FamilyPosterior(focus_box()).relative_stop
 
 
 def test_calibrate_adapts_a_champion_on_a_driver_without_an_optimum(
@@ -262,3 +266,13 @@ def test_calibrate_refuses_before_any_alignment(
               "--from-above", "-1"])  # fmt: skip
     assert "-1 must be at least 0" in capsys.readouterr().err
     assert not any((tmp_path / name).exists() for name in "abc")
+
+
+def test_a_calibration_runs_ten_alignments_unless_told(capsys: pytest.CaptureFixture[str]) -> None:
+    """The default count, chosen on the validation instruments (ALIGNMENTS), is the library's
+    and the CLI's alike."""
+    assert ALIGNMENTS == 10
+    assert inspect.signature(calibrate_policy).parameters["alignments"].default == ALIGNMENTS
+    with pytest.raises(SystemExit):
+        main(["calibrate", "--help"])
+    assert f"to calibrate on (default: {ALIGNMENTS})" in " ".join(capsys.readouterr().out.split())

@@ -55,6 +55,7 @@ from alignrl.apparatus.family_posterior import (
 )
 
 __all__ = [
+    "ALIGNMENTS",
     "BACKLASH_SEARCHED",
     "CALIBRATED",
     "COLUMN_FIELDS",
@@ -83,6 +84,12 @@ CALIBRATED = {"far_noise": 0.1, "model_noise": 0.01}
 # 256 x 10 short of the best column it found at 0.5 (docs/benchmarks.md).
 CALIBRATION_REACH = 0.5
 POPULATION, ROUNDS, ELITE = 256, 8, 0.1
+# Alignments a calibration runs by default. Ten: with the champion of 2026-12-06 on the
+# validation instruments, ten (71-96 images) aligned all 600 columns at medians of 4, 3, 3, 2,
+# 6, 4, and thirty (214-284 images) all 600 at 4, 3, 3, 2, 11, 4: on val-steep the column
+# thirty found never let the posterior be sure, and every alignment read to its budget
+# (docs/benchmarks.md, twenty-fifth session).
+ALIGNMENTS = 10
 # Readings approached from above after each alignment (alignrl/deploy/calibrate.py), and the
 # backlash the search then reaches, a share of the interval: beyond the box's, since readings
 # from both sides tell it. Two by default: with the champion of 2026-12-06 on the validation
@@ -269,8 +276,10 @@ def column_family(column: Mapping[str, float]) -> FocusFamily:
 
 def calibrated_posterior(column: Mapping[str, float], spec_relative: float) -> FamilyPosterior:
     """The posterior over the one calibrated column (in its own pixels), as it read during
-    the calibration (CALIBRATED)."""
-    return FamilyPosterior(column_family(column), spec_relative=spec_relative, **CALIBRATED)
+    the calibration (CALIBRATED), its stop relative to the chance at the optimum (a column
+    whose fitted noise keeps that below the confidence still ends: `relative_stop`)."""
+    family = column_family(column)
+    return FamilyPosterior(family, spec_relative=spec_relative, relative_stop=True, **CALIBRATED)
 
 
 def sweeps_of(records: Sequence, low: float, high: float) -> list[list[tuple[float, ...]]]:

@@ -24,7 +24,8 @@ where its expected entropy over the optimum's grid is least; "chance", where the
 setting's expected chance of passing is greatest one reading ahead), over a
 grid of settings and settings around the posterior's quantiles; it is done once the setting
 most likely to pass the session's verification (`spec_relative` x the best width) passes
-with probability `confidence`, and ends there.
+with probability `confidence` (with `relative_stop`, `confidence` x the chance a setting at
+the optimum itself would: no reading can do better), and ends there.
 
 With `scale_free` the readings' pixel scale is unknown too: every reading is the model's
 times a factor of the episode, flat on a log scale, marginalised per state in closed form
@@ -310,6 +311,9 @@ class FamilyPosterior:
     # both); "chance", where it leaves the final setting the greatest expected chance of
     # passing the verification (one reading ahead: the stop's own question)
     probe_rule: str = "variance"
+    # stop at `confidence` x the chance at the optimum: one known column too noisy to pass
+    # surely at focus still ends (not a box: there it mixes columns not yet told apart)
+    relative_stop: bool = False
     models: ColumnModels = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -371,7 +375,7 @@ class FamilyPosterior:
 
     def decide(self) -> tuple[float, bool]:
         """(setting, done): where to take the next reading, or, done, the setting most likely
-        to pass the verification once it passes with the `confidence` asked."""
+        to pass the verification once it is as sure as `confidence` asks (`final`)."""
         setting, chance = self._final(self._posterior)
         if chance >= self.confidence:
             return setting, True
@@ -382,7 +386,8 @@ class FamilyPosterior:
         return self._next_probe(self._posterior)
 
     def final(self) -> tuple[float, float]:
-        """The setting most likely to pass the verification now, and that chance."""
+        """The setting most likely to pass the verification now, and that chance (with
+        `relative_stop`, as a share of the chance at the optimum itself)."""
         return self._final(self._posterior)
 
     # --- the model ------------------------------------------------------------------------
@@ -500,10 +505,12 @@ class FamilyPosterior:
         self, settings: np.ndarray, k: np.ndarray, z: np.ndarray, n: np.ndarray,
         scaled: bool = False,
     ):  # fmt: skip
-        """The reading model at `settings` (M,) for states (S,): arrays (M, S); `scaled`
-        (scale_free): in the pixels of the readings so far, as each state's scale puts them."""
+        """The reading model at `settings` (M,) for states (S,): arrays (M, S), or (1, S) at
+        each state's optimum (`settings` None); `scaled` (scale_free): in the pixels of the
+        readings so far, as each state's scale puts them."""
         models = self.models.picked(k)
-        error = settings[:, None] - models.lag[None, :] - self._grid[n][None, :]
+        at = models.lag + self._grid[n] if settings is None else settings[:, None]
+        error = at - models.lag[None, :] - self._grid[n][None, :]
         none, mean, spread = models.reading(error, models.specimen_rel * self._scale_nodes[0, z, 0])
         if scaled and self._scale is not None:
             shift, variance = self._scale.estimate(k, z, n)
@@ -576,20 +583,24 @@ class FamilyPosterior:
         return np.linspace(span[0], span[1], count) + lag
 
     def _passes(self, settings: np.ndarray, k: np.ndarray, z: np.ndarray, n: np.ndarray):
-        """Each state's chance of passing the verification at each of `settings`: (M, S)."""
+        """Each state's chance of passing the verification at each of `settings` (None: its
+        optimum, _state_reading): (M, S)."""
         none, mean, spread = self._state_reading(settings, k, z, n)
         spec = self.spec_relative * self.models.best_px()[k, 0, 0]
         return (1.0 - none) * ndtr((spec[None, :] - mean) / spread)
 
     def _final(self, posterior: np.ndarray) -> tuple[float, float]:
-        """The setting most likely to pass the verification, and that chance."""
+        """The setting most likely to pass the verification, and that chance (`final`)."""
         k, z, n, weight = self._scored(posterior, STOP_STATES)
         settings = self._final_settings(k, n, weight, STOP_SETTINGS)
         chances = np.zeros(settings.size)
         for chunk in np.array_split(np.arange(settings.size), 9):
             chances[chunk] = self._passes(settings[chunk], k, z, n) @ weight
         index = int(np.argmax(chances))
-        return float(settings[index]), float(chances[index])
+        if not self.relative_stop:
+            return float(settings[index]), float(chances[index])
+        attainable = float(self._passes(None, k, z, n)[0] @ weight)
+        return float(settings[index]), float(min(chances[index] / max(attainable, 1e-300), 1.0))
 
 
 # FamilyPosterior in any pixel scale: one specimen point, the unknown factor covers the

@@ -1,4 +1,4 @@
-"""`alignrl calibrate`: a champion adapted to one microscope in a few dozen alignments, by
+"""`alignrl calibrate`: a champion adapted to one microscope in ten alignments, by
 calibrating the posterior that walks and ends its alignments (issue 21).
 
 The policy (a champion or any export whose task ends at the focus posterior,
@@ -30,6 +30,7 @@ from typing import Any
 
 from alignrl.apparatus.base import Apparatus
 from alignrl.apparatus.calibration import (
+    ALIGNMENTS,
     COLUMN_FIELDS,
     FROM_ABOVE,
     POPULATION,
@@ -85,7 +86,7 @@ def calibrate_policy(
     spec: str,
     apparatus: Apparatus,
     out: str | Path,
-    alignments: int = 30,
+    alignments: int = ALIGNMENTS,
     seed: int = 0,
     spec_px: float | None = None,
     budget: int | None = None,

@@ -163,10 +163,11 @@ class Task:
     # (its reading model); a fraction of a second of computing per episode end.
     finish_at_posterior: bool = False
     # With finish_at_posterior: an episode also ends (as a stop whose last move is 0) once
-    # that best setting passes with this probability; 0: only the policy stops.
+    # that best setting passes with this probability (a calibrated posterior_column's: x the
+    # chance at the optimum itself, FamilyPosterior.relative_stop); 0: only the policy stops.
     stop_when_sure: float = 0.0
-    # With finish_at_posterior: a stop is taken only once that best setting passes with this
-    # probability; before, the stopping action reads once more where the posterior would
+    # With finish_at_posterior: a stop is taken only once the posterior is that sure of its
+    # best setting (as stop_when_sure); before, the stopping action reads once more where it would
     # probe next (and the policy acts on); 0: every stop is taken.
     probe_until_sure: float = 0.0
     # With finish_at_posterior: the columns that posterior draws from the box (and draws
