@@ -36,8 +36,9 @@ from alignrl.intervals import success_text
 from benchmarks.heldout import _controller as policy_controller
 
 JUDGED = "judged.json"
-# what a saved result must share with the command for --reuse to read it (with from_above)
-REUSED = ("policy", "alignments", "scenarios", "seed", "analytic")
+# what a saved result must share with the command (its options of the same names) for
+# --reuse to read it; a result saved before readings from above has none
+REUSED = ("policy", "alignments", "scenarios", "seed", "analytic", "from_above")
 
 
 def _judge(args: argparse.Namespace, name: str) -> dict[str, Any]:
@@ -46,10 +47,7 @@ def _judge(args: argparse.Namespace, name: str) -> dict[str, Any]:
     path = out / JUDGED
     if args.reuse and path.exists():
         saved = json.loads(path.read_text())
-        asked = (args.policy, args.alignments, args.scenarios, args.seed, args.analytic)
-        if (*(saved[key] for key in REUSED), saved.get("from_above", 0)) == (
-            *asked, args.from_above,
-        ):  # fmt: skip
+        if all(saved.get(key, 0) == getattr(args, key) for key in REUSED):
             print(f"{name}: read {path}", file=sys.stderr)
             return saved
     apparatus = make_apparatus(instrument_spec(name), {"analytic": args.analytic})

@@ -19,6 +19,7 @@ import pytest
 import yaml
 
 from alignrl.cli import main
+from alignrl.deploy.card import _shown
 from alignrl.envs.task import get_task
 from alignrl.runs.sources import CHAMPIONS, resolve_source, shipped_champions
 
@@ -74,8 +75,6 @@ def test_the_champions_are_package_data() -> None:
 def test_a_card_names_no_machines_folders(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """A card records a source under the working directory relative to it (a card shipped in
     the package names no one's folders), one elsewhere as it is."""
-    from alignrl.deploy.card import _shown
-
     monkeypatch.chdir(tmp_path)
     assert _shown(tmp_path / "runs" / "a" / "best.pt") == str(Path("runs", "a", "best.pt"))
     assert _shown("/elsewhere/best.pt") == "/elsewhere/best.pt"

@@ -15,6 +15,7 @@ from alignrl.apparatus.family import (
     BOUNDED,
     PAIR_FIELDS,
     FamilyColumn,
+    FocusFamily,
     family_path,
     load_family,
 )
@@ -464,7 +465,7 @@ def test_a_column_too_noisy_to_pass_surely_even_at_focus_still_ends():
     posterior) it stops once the final setting passes with the confidence x the chance at
     the optimum (a column fitted noisy: docs/benchmarks.md, twenty-fifth session)."""
     noisy = {**_instrument("val-mid").model_dump(), "reading_noise_rel": 0.08}
-    family = type(_instrument("val-mid")).model_validate(noisy)
+    family = FocusFamily.model_validate(noisy)
     apparatus = FamilyColumn(family, analytic=True)
     medians = {}
     for relative in (False, True):

@@ -509,8 +509,9 @@ class FamilyPosterior:
         each state's optimum (`settings` None); `scaled` (scale_free): in the pixels of the
         readings so far, as each state's scale puts them."""
         models = self.models.picked(k)
-        at = models.lag + self._grid[n] if settings is None else settings[:, None]
-        error = at - models.lag[None, :] - self._grid[n][None, :]
+        error = np.zeros((1, k.size))  # settings None: each state's own optimum
+        if settings is not None:
+            error = settings[:, None] - models.lag[None, :] - self._grid[n][None, :]
         none, mean, spread = models.reading(error, models.specimen_rel * self._scale_nodes[0, z, 0])
         if scaled and self._scale is not None:
             shift, variance = self._scale.estimate(k, z, n)
@@ -583,8 +584,7 @@ class FamilyPosterior:
         return np.linspace(span[0], span[1], count) + lag
 
     def _passes(self, settings: np.ndarray, k: np.ndarray, z: np.ndarray, n: np.ndarray):
-        """Each state's chance of passing the verification at each of `settings` (None: its
-        optimum, _state_reading): (M, S)."""
+        """Each state's chance of passing at `settings` (None: its optimum): (M, S)."""
         none, mean, spread = self._state_reading(settings, k, z, n)
         spec = self.spec_relative * self.models.best_px()[k, 0, 0]
         return (1.0 - none) * ndtr((spec[None, :] - mean) / spread)
