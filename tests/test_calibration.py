@@ -17,6 +17,7 @@ from safetensors.torch import load_file
 
 from alignrl.apparatus.calibration import (
     ALIGNMENTS,
+    CALIBRATED_STOP,
     COLUMN_FIELDS,
     FROM_ABOVE,
     ColumnEvidence,
@@ -231,6 +232,11 @@ def test_calibrate_adapts_a_champion_on_a_driver_without_an_optimum(
     calibrated = load_deployable(str(out))
     found = [result["column"][name] for name in COLUMN_FIELDS]
     assert np.allclose(calibrated.task.posterior_column, found, rtol=1e-8)
+    # it stops at the calibrated chance, where the champion it came from stops at its own
+    champion = load_deployable(str(light_export)).task
+    assert (champion.stop_when_sure, champion.probe_until_sure) == (0.98, 0.98)
+    stops = (calibrated.task.stop_when_sure, calibrated.task.probe_until_sure)
+    assert stops == (CALIBRATED_STOP, CALIBRATED_STOP) == (0.9, 0.9)
     record = json.loads((out / "calibration.json").read_text())
     assert record["alignments"] == 4 and record["column"] == result["column"]
     # each alignment ends with two readings from above (its backlash), after those from below:

@@ -58,6 +58,7 @@ __all__ = [
     "ALIGNMENTS",
     "BACKLASH_SEARCHED",
     "CALIBRATED",
+    "CALIBRATED_STOP",
     "COLUMN_FIELDS",
     "FROM_ABOVE",
     "Calibration",
@@ -79,6 +80,15 @@ COLUMN_FIELDS = tuple(_FAMILY_NAMES.values())
 # reading is trusted less (as posterior-robust does on images); what the fit leaves near
 # focus is the column's noise, and the model's own spread beyond it small.
 CALIBRATED = {"far_noise": 0.1, "model_noise": 0.01}
+# The chance (x the chance at the optimum itself) at which a calibrated policy stops, and
+# before which its stops are readings (Task.stop_when_sure, probe_until_sure), where the
+# champion's box stops at 0.98. One known column's posterior, trusting far readings less,
+# states less than it should: on val-steep, calibrated on ten alignments, every setting it
+# gave 0.8-0.98 passed (benchmarks/reliability.py). Chosen on the validation instruments
+# with ten alignments (docs/benchmarks.md, twenty-sixth session): 0.9 aligned all 600
+# columns in two sessions at medians of 3, 3, 3, 2, 6, 3, where 0.98 aligned them at 4, 3, 3,
+# 2, 6, 4; 0.8 lost one.
+CALIBRATED_STOP = 0.9
 # The search looks this share of every range beyond the box: a column may be steeper, wider
 # or noisier than any the box holds. 1.5 (strong-hysteresis's backlash) left the search of
 # 256 x 10 short of the best column it found at 0.5 (docs/benchmarks.md).

@@ -7,9 +7,10 @@ Task.finish_at_posterior, and approaches every setting from below) runs a sessio
 readings of those alignments calibrate the column's reading model
 (alignrl/apparatus/calibration.py: no optimum needed, a driver that cannot tell its own is
 calibrated alike); the policy is then exported to `out` (safetensors, with its learner state
-where it has one) with that column as its posterior's (`task_options.posterior_column`), and
-`calibration.json` beside it says what was read and found. The network is the policy's own,
-tensor for tensor: what changes is what its posterior knows of the column.
+where it has one) with that column as its posterior's (`task_options.posterior_column`),
+stopping at CALIBRATED_STOP (`stop_when_sure`, `probe_until_sure`), and `calibration.json`
+beside it says what was read and found. The network is the policy's own, tensor for tensor:
+what changes is what its posterior knows of the column, and how sure it must be.
 
 Every reading of an alignment but its first is approached from below, so those readings
 cannot tell the column's backlash. After each alignment `from_above` more readings (default
@@ -31,6 +32,7 @@ from typing import Any
 from alignrl.apparatus.base import Apparatus
 from alignrl.apparatus.calibration import (
     ALIGNMENTS,
+    CALIBRATED_STOP,
     COLUMN_FIELDS,
     FROM_ABOVE,
     POPULATION,
@@ -46,7 +48,7 @@ __all__ = [
     "CALIBRATION_FILE",
     "Calibrated",
     "calibrate_policy",
-    "column_override",
+    "calibrated_overrides",
     "read_from_above",
 ]
 
@@ -65,10 +67,15 @@ class Calibrated:
     from_above: int = 0
 
 
-def column_override(column: dict[str, float]) -> str:
-    """The `--set` assignment that gives a policy this calibrated column (a YAML mapping)."""
+def calibrated_overrides(column: dict[str, float]) -> list[str]:
+    """The `--set` assignments that give a policy this calibrated column (a YAML mapping)
+    and the calibrated stop (CALIBRATED_STOP)."""
     values = ", ".join(f"{name}: {column[name]:.9g}" for name in COLUMN_FIELDS)
-    return f"task_options.posterior_column={{{values}}}"
+    return [
+        f"task_options.posterior_column={{{values}}}",
+        f"task_options.stop_when_sure={CALIBRATED_STOP}",
+        f"task_options.probe_until_sure={CALIBRATED_STOP}",
+    ]
 
 
 def _check_policy(spec: str, task: Any) -> None:
@@ -153,7 +160,7 @@ def calibrate_policy(
         on_round=on_round,
     )
     source = resolve_source(spec)
-    source = with_acting_options(source, [column_override(calibration.column)])
+    source = with_acting_options(source, calibrated_overrides(calibration.column))
     export_policy(
         source,
         out,
