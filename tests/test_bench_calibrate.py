@@ -7,6 +7,7 @@ from pathlib import Path
 
 import pytest
 
+from alignrl.apparatus.calibration import CALIBRATED_STOP
 from benchmarks.calibrate import main
 
 
@@ -43,3 +44,11 @@ def test_the_benchmark_calibrates_judges_and_reuses(
     assert (tmp_path / "cal" / "narrow-interval" / "calibration.json").exists()
     again = json.loads((tmp_path / "cal" / "narrow-interval" / "judged.json").read_text())
     assert again["alignments"] == 2
+    # ... and only one judged with today's calibrated stop
+    assert again["stop"] == CALIBRATED_STOP
+    judged_path = tmp_path / "cal" / "narrow-interval" / "judged.json"
+    judged_path.write_text(json.dumps({**again, "stop": 0.98}))
+    (tmp_path / "cal" / "narrow-interval" / "calibration.json").unlink()
+    assert main(changed) == 0
+    assert (tmp_path / "cal" / "narrow-interval" / "calibration.json").exists()
+    assert json.loads(judged_path.read_text())["stop"] == CALIBRATED_STOP
