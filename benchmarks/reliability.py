@@ -34,12 +34,10 @@ import numpy as np
 
 from alignrl.apparatus.base import Apparatus
 from alignrl.apparatus.instruments import diagnosis_problem
-from alignrl.apparatus.registry import make_apparatus
-from alignrl.deploy.policy import load_deployable
-from alignrl.envs.core import AlignmentEpisodes
 from alignrl.envs.design import twin_of
 from alignrl.envs.task import Task
 from alignrl.evaluation.session import verify_task
+from benchmarks.trace import SLOT, begin_episode, one_slot
 
 # Stated chances are binned at these edges (the last bin holds the stops at 0.98)
 EDGES = (0.0, 0.5, 0.8, 0.9, 0.95, 0.98, 1.0)
@@ -89,21 +87,15 @@ def stated_chances(
 ) -> list[Stated]:
     """Every reading of `episodes` episodes of the policy on `apparatus_spec` (its ending
     posterior must be on: `finish_at_posterior`)."""
-    policy = load_deployable(policy_spec)
-    task = policy.task.for_acting()
+    policy, task, column, engine = one_slot(policy_spec, apparatus_spec, images)
     if not task.finish_at_posterior:
         raise ValueError(f"{policy_spec} ends without a posterior: it states no chance")
-    column = make_apparatus(apparatus_spec, {"analytic": not images})
-    engine = AlignmentEpisodes([column], task, policy.history)
-    slot = np.array([0])
     rows: list[Stated] = []
     for episode in range(episodes):
-        engine.begin(slot, [seed + episode])
-        start = np.random.default_rng(seed + episode).uniform(-1.0, 1.0)
-        engine.misalign(slot, np.array([[start]]))
+        begin_episode(engine, seed + episode)
         while engine.active[0]:
             taken = int(engine.acquisitions[0])
-            engine.step(slot, np.asarray(policy.act(engine.observation(0)), float)[None])
+            engine.step(SLOT, np.asarray(policy.act(engine.observation(0)), float)[None])
             stopped = not engine.active[0]
             if int(engine.acquisitions[0]) == taken:  # a stop without a reading
                 if stopped and rows and rows[-1].episode == episode:
@@ -158,8 +150,8 @@ def stopped_at(rows: list[Stated], level: float) -> Stop:
     )
 
 
-def table(bins: list[Bin], rows: list[Stated]) -> str:
-    """The bins as a markdown table, and the stops' line."""
+def table(bins: list[Bin], rows: list[Stated], stops: list[Stop]) -> str:
+    """The bins as a markdown table, the line of the policy's own stops, and `stops`."""
     lines = [
         "| chance stated | readings | mean stated | passed |",
         "| --- | --- | --- | --- |",
@@ -167,19 +159,19 @@ def table(bins: list[Bin], rows: list[Stated]) -> str:
     for each in bins:
         shown = "-" if not each.count else f"{each.stated:.3f} | {each.found:.3f}"
         lines.append(f"| {each.low:.2f}-{each.high:.2f} | {each.count} | {shown} |")
-    stops = [row for row in rows if row.stopped]
-    if stops:
+    ends = [row for row in rows if row.stopped]
+    if ends:
         lines.append("")
         lines.append(
-            f"the last reading of each of {len(stops)} episodes: mean stated "
-            f"{np.mean([row.chance for row in stops]):.3f}, passed "
-            f"{np.mean([row.passed for row in stops]):.3f}; readings per episode, median "
-            f"{np.median([row.readings for row in stops]):g}"
+            f"the last reading of each of {len(ends)} episodes: mean stated "
+            f"{np.mean([row.chance for row in ends]):.3f}, passed "
+            f"{np.mean([row.passed for row in ends]):.3f}; readings per episode, median "
+            f"{np.median([row.readings for row in ends]):g}"
         )
         lines.append("")
         lines.append("| had it stopped once as sure as | readings, median | passed |")
         lines.append("| --- | --- | --- |")
-        for stop in (stopped_at(rows, level) for level in STOPS):
+        for stop in stops:
             lines.append(f"| {stop.level:.2f} | {stop.median_readings:g} | {stop.passed:.3f} |")
     return "\n".join(lines)
 
@@ -234,11 +226,12 @@ def main(argv: list[str] | None = None) -> int:
         print(f"benchmarks.reliability: {error}", file=sys.stderr)
         return 2
     bins = binned(rows)
+    stops = [stopped_at(rows, level) for level in STOPS]
     args.out.mkdir(parents=True, exist_ok=True)
     written = {
         "args": {key: str(value) for key, value in vars(args).items()},
         "bins": [asdict(each) for each in bins],
-        "stops": [asdict(stopped_at(rows, level)) for level in STOPS],
+        "stops": [asdict(stop) for stop in stops],
         "readings": [asdict(row) for row in rows],
     }
     (args.out / "reliability.json").write_text(json.dumps(written, indent=1))
@@ -246,7 +239,7 @@ def main(argv: list[str] | None = None) -> int:
     plot(bins, args.out / "reliability.png", f"{args.policy} on {args.apparatus} ({reading})")
     print(f"{args.policy} on {args.apparatus}, {args.episodes} episodes from seed {args.seed} "
           f"({reading})\n")  # fmt: skip
-    print(table(bins, rows))
+    print(table(bins, rows, stops))
     return 0
 
 

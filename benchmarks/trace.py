@@ -30,22 +30,35 @@ from alignrl.envs.core import AlignmentEpisodes, feature_layout
 from alignrl.envs.fit_features import FIT_FEATURES
 from alignrl.evaluation.session import verify_task
 
+SLOT = np.array([0])  # the one apparatus an engine of one_slot drives
+
+
+def one_slot(policy_spec: str, apparatus_spec: str, images: bool) -> tuple:
+    """(policy, its acting task, the column, an engine of one slot on it): analytic
+    readings unless `images`."""
+    policy = load_deployable(policy_spec)
+    task = policy.task.for_acting()
+    column = make_apparatus(apparatus_spec, {"analytic": not images})
+    return policy, task, column, AlignmentEpisodes([column], task, policy.history)
+
+
+def begin_episode(engine: AlignmentEpisodes, seed: int) -> None:
+    """Episode `seed` on SLOT: the column's draw and a start uniform over the interval,
+    both from the seed."""
+    engine.begin(SLOT, [seed])
+    start = np.random.default_rng(seed).uniform(-1.0, 1.0)
+    engine.misalign(SLOT, np.array([[start]]))
+
 
 def trace(
     policy_spec: str, instrument: str, episodes: int, seed: int, images: bool = False
 ) -> list[str]:
-    policy = load_deployable(policy_spec)
-    task = policy.task.for_acting()
-    column = make_apparatus(f"instrument:{instrument}", {"analytic": not images})
-    engine = AlignmentEpisodes([column], task, policy.history)
+    policy, task, column, engine = one_slot(policy_spec, f"instrument:{instrument}", images)
     layout = feature_layout(len(task.knobs), task.extra_features)
     fit = slice(layout["extras"].stop - FIT_FEATURES, None) if task.fit_features else None
-    slot = np.array([0])
     lines: list[str] = []
     for episode in range(episodes):
-        engine.begin(slot, [seed + episode])
-        start = np.random.default_rng(seed + episode).uniform(-1.0, 1.0)
-        engine.misalign(slot, np.array([[start]]))
+        begin_episode(engine, seed + episode)
         low, span = engine.low[0, 0], engine.span[0, 0]
         optimum = engine.aligned[0, 0]
         lines.append(
@@ -65,7 +78,7 @@ def trace(
                 f"{(engine.setting[0, 0] - optimum) / span:+.4f}) read {engine.width[0]:.2f} px"
                 f"{shown} -> move {action[0]:+.3f} stop {action[1]:+.2f}"
             )
-            engine.step(slot, action[None])
+            engine.step(SLOT, action[None])
         # Judged as a session judges: on one more image where the aligner left the column
         # (its narrowest reading, or a fit's optimum where no reading was taken).
         width, _, _ = verify_task(column, task)
