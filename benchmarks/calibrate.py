@@ -9,7 +9,8 @@ instrument's session at the validation seed (1,000,000: never the judging sessio
 columns), fits the column's reading model to what they read and exports the policy with it
 to OUT/INSTRUMENT; that policy is then judged on the held-out table's session (seed 0, 100
 alignments, as benchmarks/heldout.py), and the result written to OUT/INSTRUMENT/judged.json
-(read back with --reuse where the same options and today's calibrated stop made it). The
+(read back with --reuse where the same options, today's calibrated stop and its far noise
+made it). The
 table: per instrument, the calibration's session (the champion
 as it is), the steps it took (every image: its acquisitions, the verification after each
 alignment, which the calibration reads too, and the readings from above, --from-above),
@@ -28,6 +29,7 @@ from typing import Any
 
 from alignrl.apparatus.calibration import (
     ALIGNMENTS,
+    CALIBRATED,
     CALIBRATED_STOP,
     FROM_ABOVE,
     POPULATION,
@@ -43,9 +45,11 @@ from alignrl.intervals import success_text
 from benchmarks.heldout import _controller as policy_controller
 
 JUDGED = "judged.json"
+FAR_NOISE = CALIBRATED["far_noise"]
 # what a saved result must share with the command (its options of the same names) for
 # --reuse to read it; a result saved before readings from above has none. It must also have
-# been judged with today's calibrated stop (CALIBRATED_STOP; none saved before it changed).
+# been judged with today's calibrated stop and far noise (CALIBRATED_STOP, CALIBRATED; none
+# saved before either changed).
 REUSED = ("policy", "alignments", "scenarios", "seed", "analytic", "from_above")
 
 
@@ -56,7 +60,8 @@ def _judge(args: argparse.Namespace, name: str) -> dict[str, Any]:
     if args.reuse and path.exists():
         saved = json.loads(path.read_text())
         same = all(saved.get(key, 0) == getattr(args, key) for key in REUSED)
-        if same and saved.get("stop") == CALIBRATED_STOP:
+        today = (saved.get("stop"), saved.get("far_noise")) == (CALIBRATED_STOP, FAR_NOISE)
+        if same and today:
             print(f"{name}: read {path}", file=sys.stderr)
             return saved
     apparatus = make_apparatus(instrument_spec(name), {"analytic": args.analytic})
@@ -81,6 +86,7 @@ def _judge(args: argparse.Namespace, name: str) -> dict[str, Any]:
         "alignments": args.alignments,
         "from_above": args.from_above,
         "stop": controller.task.stop_when_sure,
+        "far_noise": controller.task.posterior_far_noise,
         # every image the calibration took and read: the alignments' acquisitions, their
         # verifications and the readings from above
         "steps": calibrated.calibration.readings,

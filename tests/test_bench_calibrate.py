@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from alignrl.apparatus.calibration import CALIBRATED_STOP
+from alignrl.apparatus.calibration import CALIBRATED, CALIBRATED_STOP
 from benchmarks.calibrate import main
 
 
@@ -52,3 +52,11 @@ def test_the_benchmark_calibrates_judges_and_reuses(
     assert main(changed) == 0
     assert (tmp_path / "cal" / "narrow-interval" / "calibration.json").exists()
     assert json.loads(judged_path.read_text())["stop"] == CALIBRATED_STOP
+    # ... and with today's far noise: one judged with the far noise before is judged again
+    again = json.loads(judged_path.read_text())
+    assert again["far_noise"] == CALIBRATED["far_noise"]
+    judged_path.write_text(json.dumps({**again, "far_noise": 0.1}))
+    (tmp_path / "cal" / "narrow-interval" / "calibration.json").unlink()
+    assert main(changed) == 0
+    assert (tmp_path / "cal" / "narrow-interval" / "calibration.json").exists()
+    assert json.loads(judged_path.read_text())["far_noise"] == CALIBRATED["far_noise"]

@@ -17,6 +17,7 @@ from safetensors.torch import load_file
 
 from alignrl.apparatus.calibration import (
     ALIGNMENTS,
+    CALIBRATED,
     CALIBRATED_STOP,
     COLUMN_FIELDS,
     FROM_ABOVE,
@@ -179,6 +180,9 @@ def test_the_task_reads_a_calibrated_column_and_refuses_a_wrong_one() -> None:
     posterior = ends._posteriors[0]
     assert posterior.models.count == 1 and not posterior.scale_free  # the column, in its px
     assert posterior._readings == [(0.5, 4.0, 0.0)]  # the column as found: side unknown
+    # far readings trusted as the policy's task says (a column given by hand to the
+    # champion: its 0.1; an export of alignrl calibrate: the far noise it was fitted with)
+    assert posterior.far_noise == champion.posterior_far_noise == 0.1
     with pytest.raises(ValueError, match=r"posterior_column.*finish_at_posterior"):
         options.apply(get_task("focus"))
     with pytest.raises(ValueError, match=r"missing: curve_power.*unknown: power"):
@@ -211,7 +215,10 @@ def test_sweeps_read_the_first_reading_on_an_unknown_side_and_end_at_the_verific
 def test_calibrated_posterior_is_the_one_column_in_its_pixels() -> None:
     posterior = calibrated_posterior(COLUMN, 1.15)
     assert posterior.models.count == 1 and not posterior.scale_free
-    assert posterior.far_noise == 0.1 and posterior.model_noise == 0.01
+    assert posterior.far_noise == CALIBRATED["far_noise"] == 0.05
+    assert posterior.model_noise == 0.01
+    # read with the far noise a column was fitted with, where it is told
+    assert calibrated_posterior(COLUMN, 1.15, far_noise=0.1).far_noise == 0.1
     # its stop is relative to the chance at the optimum, the box's is not
     assert posterior.relative_stop and not FamilyPosterior(focus_box()).relative_stop
 
@@ -237,7 +244,12 @@ def test_calibrate_adapts_a_champion_on_a_driver_without_an_optimum(
     assert (champion.stop_when_sure, champion.probe_until_sure) == (0.98, 0.98)
     stops = (calibrated.task.stop_when_sure, calibrated.task.probe_until_sure)
     assert stops == (CALIBRATED_STOP, CALIBRATED_STOP) == (0.9, 0.9)
+    # its far readings trusted as when its column was fitted, where the champion's box
+    # posterior trusts them less
+    assert champion.posterior_far_noise == 0.1
+    assert calibrated.task.posterior_far_noise == CALIBRATED["far_noise"] == 0.05
     record = json.loads((out / "calibration.json").read_text())
+    assert record["far_noise"] == CALIBRATED["far_noise"]
     assert record["alignments"] == 4 and record["column"] == result["column"]
     # each alignment ends with two readings from above (its backlash), after those from below:
     # the CLI's default is the library's

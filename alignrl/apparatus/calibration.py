@@ -78,8 +78,13 @@ __all__ = [
 COLUMN_FIELDS = tuple(_FAMILY_NAMES.values())
 # How a calibration, and the posterior over the column it found, read: far from focus a
 # reading is trusted less (as posterior-robust does on images); what the fit leaves near
-# focus is the column's noise, and the model's own spread beyond it small.
-CALIBRATED = {"far_noise": 0.1, "model_noise": 0.01}
+# focus is the column's noise, and the model's own spread beyond it small. The export keeps
+# its far noise (Task.posterior_far_noise), with which its column was fitted. 0.05: on the
+# validation instruments' ten-alignment calibrations every reading was likelier than with
+# the box posterior's 0.1 (per reading, val-backlash -0.58 against -0.78, val-steep -0.69
+# against -0.79), and their policies aligned as many columns in as many acquisitions or
+# fewer (val-steep 100/100 at 5 against 6; docs/benchmarks.md, twenty-seventh session).
+CALIBRATED = {"far_noise": 0.05, "model_noise": 0.01}
 # The chance (x the chance at the optimum itself) at which a calibrated policy stops, and
 # before which its stops are readings (Task.stop_when_sure, probe_until_sure), where the
 # champion's box stops at 0.98. One known column's posterior, trusting far readings less,
@@ -284,12 +289,16 @@ def column_family(column: Mapping[str, float]) -> FocusFamily:
     return FocusFamily.model_validate(data)
 
 
-def calibrated_posterior(column: Mapping[str, float], spec_relative: float) -> FamilyPosterior:
+def calibrated_posterior(
+    column: Mapping[str, float], spec_relative: float, far_noise: float | None = None
+) -> FamilyPosterior:
     """The posterior over the one calibrated column (in its own pixels), as it read during
-    the calibration (CALIBRATED), its stop relative to the chance at the optimum (a column
+    the calibration (CALIBRATED; `far_noise` in place of its far noise where given: the one
+    the column was fitted with), its stop relative to the chance at the optimum (a column
     whose fitted noise keeps that below the confidence still ends: `relative_stop`)."""
     family = column_family(column)
-    return FamilyPosterior(family, spec_relative=spec_relative, relative_stop=True, **CALIBRATED)
+    reads = CALIBRATED if far_noise is None else {**CALIBRATED, "far_noise": far_noise}
+    return FamilyPosterior(family, spec_relative=spec_relative, relative_stop=True, **reads)
 
 
 def sweeps_of(records: Sequence, low: float, high: float) -> list[list[tuple[float, ...]]]:

@@ -8,7 +8,8 @@ readings of those alignments calibrate the column's reading model
 (alignrl/apparatus/calibration.py: no optimum needed, a driver that cannot tell its own is
 calibrated alike); the policy is then exported to `out` (safetensors, with its learner state
 where it has one) with that column as its posterior's (`task_options.posterior_column`),
-stopping at CALIBRATED_STOP (`stop_when_sure`, `probe_until_sure`), and `calibration.json`
+read with the far noise it was fitted with (`posterior_far_noise`, CALIBRATED), stopping at
+CALIBRATED_STOP (`stop_when_sure`, `probe_until_sure`), and `calibration.json`
 beside it says what was read and found. The network is the policy's own, tensor for tensor:
 what changes is what its posterior knows of the column, and how sure it must be.
 
@@ -32,6 +33,7 @@ from typing import Any
 from alignrl.apparatus.base import Apparatus
 from alignrl.apparatus.calibration import (
     ALIGNMENTS,
+    CALIBRATED,
     CALIBRATED_STOP,
     COLUMN_FIELDS,
     FROM_ABOVE,
@@ -68,11 +70,13 @@ class Calibrated:
 
 
 def calibrated_overrides(column: dict[str, float]) -> list[str]:
-    """The `--set` assignments that give a policy this calibrated column (a YAML mapping)
-    and the calibrated stop (CALIBRATED_STOP)."""
+    """The `--set` assignments that give a policy this calibrated column (a YAML mapping),
+    the far noise it was fitted with (CALIBRATED) and the calibrated stop
+    (CALIBRATED_STOP)."""
     values = ", ".join(f"{name}: {column[name]:.9g}" for name in COLUMN_FIELDS)
     return [
         f"task_options.posterior_column={{{values}}}",
+        f"task_options.posterior_far_noise={CALIBRATED['far_noise']}",
         f"task_options.stop_when_sure={CALIBRATED_STOP}",
         f"task_options.probe_until_sure={CALIBRATED_STOP}",
     ]
@@ -183,6 +187,7 @@ def calibrate_policy(
             "threshold_px": _finite(session.median_threshold_px),
         },
         "readings": calibration.readings,
+        "far_noise": CALIBRATED["far_noise"],  # with which the column was fitted
         "log_evidence": calibration.log_evidence,
         "progress": list(calibration.progress),
         "column": calibration.column,

@@ -256,14 +256,18 @@ class EpisodeEnds:
 
     def _calibrated(self) -> FamilyPosterior:
         """The posterior over the column calibrated on the microscope (Task.posterior_column,
-        alignrl/apparatus/calibration.py), in its own pixels."""
+        alignrl/apparatus/calibration.py), in its own pixels, far readings trusted as the
+        task says (Task.posterior_far_noise: `alignrl calibrate` writes the far noise the
+        column was fitted with)."""
         from alignrl.apparatus.calibration import (
             COLUMN_FIELDS,
             calibrated_posterior,
         )
 
         column = dict(zip(COLUMN_FIELDS, self.task.posterior_column, strict=True))
-        return calibrated_posterior(column, self.task.success.relative)
+        return calibrated_posterior(
+            column, self.task.success.relative, far_noise=self.task.posterior_far_noise
+        )
 
     def plan(
         self, index: int, setting: np.ndarray, low: np.ndarray, high: np.ndarray
