@@ -10,9 +10,8 @@ columns), fits the column's reading model to what they read and exports the poli
 to OUT/INSTRUMENT; that policy is then judged on the held-out table's session (seed 0, 100
 alignments, as benchmarks/heldout.py), and the result written to OUT/INSTRUMENT/judged.json
 (read back with --reuse where the same options, today's calibrated stop and its far noise
-made it). The
-table: per instrument, the calibration's session (the champion
-as it is), the steps it took (every image: its acquisitions, the verification after each
+made it). The table: per instrument, the calibration's session (the champion as it is), the
+steps it took (every image: its acquisitions, the verification after each
 alignment, which the calibration reads too, and the readings from above, --from-above),
 and the calibrated policy on the judging session. Images unless --analytic. Not a test:
 about three minutes per instrument on 2 cores with ten alignments.
