@@ -9,11 +9,12 @@ instrument's session at the validation seed (1,000,000: never the judging sessio
 columns), fits the column's reading model to what they read and exports the policy with it
 to OUT/INSTRUMENT; that policy is then judged on the held-out table's session (seed 0, 100
 alignments, as benchmarks/heldout.py), and the result written to OUT/INSTRUMENT/judged.json
-(read back with --reuse where the same options, today's calibrated stop and its far noise
-made it). The table: per instrument, the calibration's session (the champion as it is), the
-steps it took (every image: its acquisitions, the verification after each
-alignment, which the calibration reads too, and the readings from above, --from-above),
-and the calibrated policy on the judging session. Images unless --analytic. Not a test:
+(read back with --reuse where the same options, today's calibrated stop and the same far
+noise, or its search, made it). The table: per instrument, the calibration's session (the
+champion as it is), the steps it took (every image: its acquisitions, the verification
+after each alignment, which the calibration reads too, and the readings from above,
+--from-above), the far noise the column was fitted with, and the calibrated policy on the
+judging session. Images unless --analytic. Not a test:
 about three minutes per instrument on 2 cores with ten alignments.
 """
 
@@ -28,15 +29,15 @@ from typing import Any
 
 from alignrl.apparatus.calibration import (
     ALIGNMENTS,
-    CALIBRATED,
     CALIBRATED_STOP,
+    FAR_NOISE_SEARCHED,
     FROM_ABOVE,
     POPULATION,
     ROUNDS,
 )
 from alignrl.apparatus.instruments import load_set
 from alignrl.apparatus.registry import make_apparatus
-from alignrl.cli.common import _at_least_zero
+from alignrl.cli.common import _at_least_zero, _share
 from alignrl.deploy.calibrate import calibrate_policy
 from alignrl.evaluation.instrument_sets import instrument_spec
 from alignrl.evaluation.session import VALIDATION_SEED, run_session
@@ -44,12 +45,19 @@ from alignrl.intervals import success_text
 from benchmarks.heldout import _controller as policy_controller
 
 JUDGED = "judged.json"
-FAR_NOISE = CALIBRATED["far_noise"]
 # what a saved result must share with the command (its options of the same names) for
 # --reuse to read it; a result saved before readings from above has none. It must also have
-# been judged with today's calibrated stop and far noise (CALIBRATED_STOP, CALIBRATED; none
-# saved before either changed).
+# been judged with today's calibrated stop (CALIBRATED_STOP) and its far noise found as the
+# command finds it: searched over today's FAR_NOISE_SEARCHED, or the --far-noise given (a
+# result saved before the search had none: its far noise was given).
 REUSED = ("policy", "alignments", "scenarios", "seed", "analytic", "from_above")
+
+
+def _far_noise_as_asked(saved: dict[str, Any], far_noise: float | None) -> bool:
+    """Whether a saved result's far noise was found as `far_noise` (None: searched) asks."""
+    if far_noise is None:
+        return saved.get("far_noise_searched") == list(FAR_NOISE_SEARCHED)
+    return saved.get("far_noise_searched") is None and saved.get("far_noise") == far_noise
 
 
 def _judge(args: argparse.Namespace, name: str) -> dict[str, Any]:
@@ -59,8 +67,8 @@ def _judge(args: argparse.Namespace, name: str) -> dict[str, Any]:
     if args.reuse and path.exists():
         saved = json.loads(path.read_text())
         same = all(saved.get(key, 0) == getattr(args, key) for key in REUSED)
-        today = (saved.get("stop"), saved.get("far_noise")) == (CALIBRATED_STOP, FAR_NOISE)
-        if same and today:
+        today = saved.get("stop") == CALIBRATED_STOP
+        if same and today and _far_noise_as_asked(saved, args.far_noise):
             print(f"{name}: read {path}", file=sys.stderr)
             return saved
     apparatus = make_apparatus(instrument_spec(name), {"analytic": args.analytic})
@@ -74,6 +82,7 @@ def _judge(args: argparse.Namespace, name: str) -> dict[str, Any]:
         population=args.population,
         rounds=args.rounds,
         from_above=args.from_above,
+        far_noise=args.far_noise,
         force=True,
         command=f"python -m benchmarks.calibrate --policy {args.policy} (instrument {name})",
     )
@@ -86,6 +95,7 @@ def _judge(args: argparse.Namespace, name: str) -> dict[str, Any]:
         "from_above": args.from_above,
         "stop": controller.task.stop_when_sure,
         "far_noise": controller.task.posterior_far_noise,
+        "far_noise_searched": list(FAR_NOISE_SEARCHED) if args.far_noise is None else None,
         # every image the calibration took and read: the alignments' acquisitions, their
         # verifications and the readings from above
         "steps": calibrated.calibration.readings,
@@ -124,6 +134,12 @@ def main(argv: list[str] | None = None) -> int:
         default=FROM_ABOVE,
         help="readings from above per alignment",
     )
+    parser.add_argument(
+        "--far-noise",
+        type=_share,
+        default=None,
+        help="the calibration's far noise (default: searched with the column)",
+    )
     parser.add_argument("--scenarios", type=int, default=100, help="judged on")
     parser.add_argument("--seed", type=int, default=0, help="of the judging session")
     parser.add_argument("--analytic", action="store_true", help="analytic readings, no images")
@@ -137,14 +153,14 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{args.policy} calibrated on {args.alignments} alignments per instrument "
           f"(seed {VALIDATION_SEED}), {judged}")  # fmt: skip
     print()
-    print("| instrument | calibration session (steps) | calibrated |")
-    print("| --- | --- | --- |")
+    print("| instrument | calibration session (steps) | far noise | calibrated |")
+    print("| --- | --- | --- | --- |")
     for result in results:
         shown = success_text(result["calibration_successes"], result["alignments"])
         print(f"| {result['instrument']} | {shown} at {result['calibration_median']:g} "
-              f"({result['steps']}) | {_cell(result)} |")  # fmt: skip
+              f"({result['steps']}) | {result['far_noise']:.3g} | {_cell(result)} |")  # fmt: skip
     total = sum(result["successes"] for result in results)
-    print(f"| **total** | | {success_text(total, args.scenarios * len(results))} |")
+    print(f"| **total** | | | {success_text(total, args.scenarios * len(results))} |")
     return 0
 
 

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from alignrl.apparatus.calibration import CALIBRATED, CALIBRATED_STOP
+from alignrl.apparatus.calibration import CALIBRATED_STOP, FAR_NOISE_SEARCHED
 from benchmarks.calibrate import main
 
 
@@ -52,11 +52,24 @@ def test_the_benchmark_calibrates_judges_and_reuses(
     assert main(changed) == 0
     assert (tmp_path / "cal" / "narrow-interval" / "calibration.json").exists()
     assert json.loads(judged_path.read_text())["stop"] == CALIBRATED_STOP
-    # ... and with today's far noise: one judged with the far noise before is judged again
+    # ... and with its far noise found as asked: searched by default, so one found with a
+    # far noise given (as every result saved before the search) is judged again ...
     again = json.loads(judged_path.read_text())
-    assert again["far_noise"] == CALIBRATED["far_noise"]
-    judged_path.write_text(json.dumps({**again, "far_noise": 0.1}))
+    grid = list(FAR_NOISE_SEARCHED)
+    assert again["far_noise_searched"] == grid and again["far_noise"] in grid
+    judged_path.write_text(json.dumps({**again, "far_noise": 0.05, "far_noise_searched": None}))
     (tmp_path / "cal" / "narrow-interval" / "calibration.json").unlink()
     assert main(changed) == 0
     assert (tmp_path / "cal" / "narrow-interval" / "calibration.json").exists()
-    assert json.loads(judged_path.read_text())["far_noise"] == CALIBRATED["far_noise"]
+    assert json.loads(judged_path.read_text())["far_noise_searched"] == grid
+    # ... and --far-noise fits with that one, and reads back only a result fitted with it
+    assert main([*changed, "--far-noise", "0.07"]) == 0
+    fixed = json.loads(judged_path.read_text())
+    assert (fixed["far_noise"], fixed["far_noise_searched"]) == (0.07, None)
+    calibration = json.loads(
+        (tmp_path / "cal" / "narrow-interval" / "calibration.json").read_text()
+    )
+    assert (calibration["far_noise"], calibration["far_noise_searched"]) == (0.07, None)
+    (tmp_path / "cal" / "narrow-interval" / "calibration.json").unlink()
+    assert main([*changed, "--far-noise", "0.07"]) == 0
+    assert not (tmp_path / "cal" / "narrow-interval" / "calibration.json").exists()

@@ -20,6 +20,7 @@ from alignrl.apparatus.calibration import (
     CALIBRATED,
     CALIBRATED_STOP,
     COLUMN_FIELDS,
+    FAR_NOISE_SEARCHED,
     FROM_ABOVE,
     ColumnEvidence,
     calibrate,
@@ -56,11 +57,14 @@ COLUMN = {
 }
 
 
-def _sweeps(column: dict[str, float], count: int, seed: int = 0, above: int = 0) -> list:
+def _sweeps(
+    column: dict[str, float], count: int, seed: int = 0, above: int = 0, far: float = 0.0
+) -> list:
     """Alignments on `column` as its reading model has them: the optimum anywhere in the
     middle of the interval, the first reading where the column was found (its backlash's
     middle branch), five more from below around the optimum, near and far, and `above` from
-    above on its flanks."""
+    above on its flanks; `far`: each reading off the model by a log-normal factor of spread
+    `far` x log(its width / the in-focus one), as images far from focus read."""
     rng = np.random.default_rng(seed)
     models = ColumnModels.at(column_family(column), MIDDLE, 0.0)
     sweeps = []
@@ -75,6 +79,9 @@ def _sweeps(column: dict[str, float], count: int, seed: int = 0, above: int = 0)
         _, mean, _ = models.reading(error[:, None, None], np.zeros((1, 1, 1)))
         mean = mean.ravel()
         noisy = mean * (1 + column["reading_noise_rel"] * rng.standard_normal(mean.size))
+        if far:
+            spread = far * np.log(mean / models.best_px()[0, 0, 0])
+            noisy = noisy * np.exp(spread * rng.standard_normal(mean.size))
         sweeps.append(list(zip(settings.tolist(), noisy.tolist(), sides.tolist(), strict=True)))
     return sweeps
 
@@ -103,6 +110,46 @@ def test_calibrate_finds_the_column_and_one_beyond_the_box() -> None:
     assert list(calibration.progress) == sorted(calibration.progress)  # the best is kept
     assert calibration.alignments == 12 and calibration.readings == 72
     assert set(calibration.column) == set(COLUMN_FIELDS)
+
+
+def test_the_evidence_tells_how_far_readings_stray() -> None:
+    """Each column read with its own far noise: the readings' evidence is highest at the
+    spread their far readings were drawn with, and a per-column far noise reads as the
+    same share given to all."""
+    shares = np.array([0.01, 0.05, 0.2, 0.6])
+    evidence = ColumnEvidence(column_family(COLUMN), draws=1)
+    rows = np.repeat(MIDDLE, len(shares), axis=0)
+    for drawn in (0.01, 0.2):
+        log = column_evidence(evidence, rows, _sweeps(COLUMN, 12, seed=3, far=drawn), shares)
+        assert shares[int(np.argmax(log))] == drawn, log
+    models = ColumnModels.at(column_family(COLUMN), rows, 0.01, shares)
+    error, scale = np.linspace(-0.2, 0.2, 9)[None, None, :], np.zeros((1, 1, 1))
+    for index, share in enumerate(shares):
+        alone = ColumnModels.at(column_family(COLUMN), MIDDLE, 0.01, float(share))
+        assert np.allclose(models.reading(error, scale)[2][index], alone.reading(error, scale)[2])
+        picked = models.picked(np.array([index]))
+        assert np.allclose(picked.reading(error[0], scale[0])[2], alone.reading(error, scale)[2])
+
+
+def test_calibrate_searches_the_far_noise_unless_given() -> None:
+    """The far noise is weighed with the kept columns: the least searched (0.05) where the
+    readings follow the model far from focus, more where they stray; one given is kept
+    throughout."""
+    clean = calibrate(_sweeps(COLUMN, 12, seed=4), population=32, rounds=4)
+    stray = calibrate(_sweeps(COLUMN, 12, seed=4, far=0.25), population=32, rounds=4)
+    assert clean.far_noise in FAR_NOISE_SEARCHED and stray.far_noise in FAR_NOISE_SEARCHED
+    assert clean.far_noise == min(FAR_NOISE_SEARCHED) == 0.05
+    assert stray.far_noise >= 0.15, (clean, stray)
+    # the far noise's step is one more in the progress: where it is the search's 0.05, the
+    # search's best column as found; else likelier than that (the least searched is 0.05)
+    assert len(clean.progress) == 5 and clean.progress[-1] == clean.progress[-2]
+    assert clean.column == calibrate(_sweeps(COLUMN, 12, seed=4), population=32, rounds=4,
+                                     far_noise=0.05).column  # fmt: skip
+    assert len(stray.progress) == 5 and stray.progress[-1] > stray.progress[-2]
+    given = calibrate(_sweeps(COLUMN, 4, seed=4), population=8, rounds=1, far_noise=0.07)
+    assert given.far_noise == 0.07 and len(given.progress) == 1
+    with pytest.raises(ValueError, match=r"far noise is a share in \[0, 1\], got 1.5"):
+        calibrate(_sweeps(COLUMN, 2), far_noise=1.5)
 
 
 def test_a_calibration_without_readings_or_search_is_refused() -> None:
@@ -245,11 +292,12 @@ def test_calibrate_adapts_a_champion_on_a_driver_without_an_optimum(
     stops = (calibrated.task.stop_when_sure, calibrated.task.probe_until_sure)
     assert stops == (CALIBRATED_STOP, CALIBRATED_STOP) == (0.9, 0.9)
     # its far readings trusted as when its column was fitted, where the champion's box
-    # posterior trusts them less
+    # posterior trusts them less: fitted with the column, unless given (--far-noise)
     assert champion.posterior_far_noise == 0.1
-    assert calibrated.task.posterior_far_noise == CALIBRATED["far_noise"] == 0.05
     record = json.loads((out / "calibration.json").read_text())
-    assert record["far_noise"] == CALIBRATED["far_noise"]
+    assert record["far_noise_searched"] == list(FAR_NOISE_SEARCHED)
+    assert result["far_noise"] == record["far_noise"] in FAR_NOISE_SEARCHED
+    assert calibrated.task.posterior_far_noise == pytest.approx(record["far_noise"], rel=1e-8)
     assert record["alignments"] == 4 and record["column"] == result["column"]
     # each alignment ends with two readings from above (its backlash), after those from below:
     # the CLI's default is the library's
@@ -283,6 +331,10 @@ def test_calibrate_refuses_before_any_alignment(
         main([*base, "--policy", str(light_export), "--out", str(tmp_path / "c"),
               "--from-above", "-1"])  # fmt: skip
     assert "-1 must be at least 0" in capsys.readouterr().err
+    with pytest.raises(SystemExit):  # argparse: a share
+        main([*base, "--policy", str(light_export), "--out", str(tmp_path / "c"),
+              "--far-noise", "1.5"])  # fmt: skip
+    assert "1.5 must be a share in [0, 1]" in capsys.readouterr().err
     assert not any((tmp_path / name).exists() for name in "abc")
 
 

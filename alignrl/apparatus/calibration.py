@@ -60,11 +60,13 @@ __all__ = [
     "CALIBRATED",
     "CALIBRATED_STOP",
     "COLUMN_FIELDS",
+    "FAR_NOISE_SEARCHED",
     "FROM_ABOVE",
     "Calibration",
     "ColumnEvidence",
     "calibrate",
     "calibrated_posterior",
+    "check_far_noise",
     "check_search",
     "column_evidence",
     "column_family",
@@ -85,6 +87,17 @@ COLUMN_FIELDS = tuple(_FAMILY_NAMES.values())
 # against -0.79), and their policies aligned as many columns in as many acquisitions or
 # fewer (val-steep 100/100 at 5 against 6; docs/benchmarks.md, twenty-seventh session).
 CALIBRATED = {"far_noise": 0.05, "model_noise": 0.01}
+# The far noises a calibration weighs (`calibrate`): its search done at CALIBRATED's 0.05,
+# the best column it kept is weighed with each, then the columns it kept with the likeliest,
+# and the likeliest of them is the calibration (at least as likely as the search's best at
+# 0.05, one of these). How much a far reading tells depends on the specimen and the
+# detector as much as on the column, so the column's own readings say it, rather than the
+# simulator's images that chose 0.05 (which stays the far noise of a column given without
+# one). None below 0.05: a posterior too sure of far readings loses columns where one not
+# sure enough only spends an image more (at 0.03, val-steep 94/100 where 0.05 aligned all;
+# searched from 0.01, near-bound and narrow-interval took 0.03 and 0.02 and near-bound lost
+# a column: docs/benchmarks.md, twenty-seventh and twenty-eighth sessions).
+FAR_NOISE_SEARCHED = (0.05, 0.07, 0.1, 0.15, 0.2, 0.3)
 # The chance (x the chance at the optimum itself) at which a calibrated policy stops, and
 # before which its stops are readings (Task.stop_when_sure, probe_until_sure), where the
 # champion's box stops at 0.98. One known column's posterior, trusting far readings less,
@@ -127,9 +140,11 @@ class ColumnEvidence(FamilyPosterior):
     `log_evidence` holds per column the log of the chance of its readings (up to a constant
     the same for every column)."""
 
-    def use(self, rows: np.ndarray) -> None:
-        """Columns at `rows` (K, len(PAIR_FIELDS)) of fractions of the box, equally likely."""
-        self._initial = ColumnModels.at(self.family, rows, self.model_noise, self.far_noise)
+    def use(self, rows: np.ndarray, far_noise: np.ndarray | None = None) -> None:
+        """Columns at `rows` (K, len(PAIR_FIELDS)) of fractions of the box, equally likely,
+        each read with its own far noise where `far_noise` (K,) is given."""
+        far = self.far_noise if far_noise is None else far_noise
+        self._initial = ColumnModels.at(self.family, rows, self.model_noise, far)
         self._prior = np.broadcast_to(self._prior[:1], (len(rows), *self._prior.shape[1:])).copy()
         self._prior /= self._prior.sum()
 
@@ -152,9 +167,15 @@ class ColumnEvidence(FamilyPosterior):
         return super()._drifted(posterior)
 
 
-def column_evidence(evidence: ColumnEvidence, rows: np.ndarray, sweeps: Sequence[Sweep]):
-    """The log evidence (K,) of the columns at `rows` for every reading of `sweeps`."""
-    evidence.use(rows)
+def column_evidence(
+    evidence: ColumnEvidence,
+    rows: np.ndarray,
+    sweeps: Sequence[Sweep],
+    far_noise: np.ndarray | None = None,
+):
+    """The log evidence (K,) of the columns at `rows` (each read with its own `far_noise`
+    where given) for every reading of `sweeps`."""
+    evidence.use(rows, far_noise)
     total = np.zeros(len(rows))
     for sweep in sweeps:
         evidence.begin()
@@ -175,6 +196,7 @@ class Calibration:
     alignments: int
     readings: int
     progress: tuple[float, ...]
+    far_noise: float = CALIBRATED["far_noise"]  # with which the column reads (fitted or given)
 
     def per_reading(self) -> float:
         """The mean log evidence per reading (comparable across calibrations of a column)."""
@@ -191,6 +213,13 @@ def check_search(population: int, rounds: int, elite: float = ELITE) -> None:
         )
 
 
+def check_far_noise(far_noise: float | None) -> None:
+    """ValueError for a far noise a calibration cannot read with: not a share in [0, 1]
+    (None: searched)."""
+    if far_noise is not None and not (math.isfinite(far_noise) and 0.0 <= far_noise <= 1.0):
+        raise ValueError(f"a calibration's far noise is a share in [0, 1], got {far_noise}")
+
+
 def calibrate(
     sweeps: Sequence[Sweep],
     family: FocusFamily | None = None,
@@ -200,26 +229,36 @@ def calibrate(
     elite: float = ELITE,
     seed: int = 0,
     on_round: Callable[[int, int, float], None] | None = None,
+    far_noise: float | None = None,
 ) -> Calibration:
     """The column of `family` (default: the focus training box) widened by `reach` whose
-    reading model makes `sweeps` most likely (module docstring); where some reading was
-    approached from above, backlash up to BACKLASH_SEARCHED at least. `on_round(done, rounds,
-    best log evidence)` after each round. ValueError for no reading in focus's sense (fewer
-    than two measured widths in all), a population below 8, rounds below 1 or an elite share
-    outside (0, 1)."""
+    reading model makes `sweeps` most likely (module docstring), and with it the far noise
+    its far readings are read with (FAR_NOISE_SEARCHED: after the search, the best column's
+    likeliest; `far_noise`: that one throughout instead); where some reading was
+    approached from above, backlash up to BACKLASH_SEARCHED at least. `on_round(done, steps,
+    best log evidence)` after each round and after the far noise's (steps: `rounds`, one
+    more where the far noise is searched).
+    ValueError for no reading in focus's sense (fewer than two measured widths in all), a
+    population below 8, rounds below 1, an elite share outside (0, 1) or a far noise
+    outside [0, 1]."""
     measured = sum(1 for sweep in sweeps for _, width, _ in sweep if math.isfinite(width))
     if measured < 2:
         raise ValueError(
             f"a calibration needs measured readings: {len(sweeps)} alignments hold {measured}"
         )
     check_search(population, rounds, elite)
+    check_far_noise(far_noise)
     box = widened(family if family is not None else focus_box(0.0), reach)
     if any(side < 0 for sweep in sweeps for _, _, side in sweep):  # backlash tells
         lowest, highest = box.hysteresis_fraction
         reach_to = {"hysteresis_fraction": (lowest, max(highest, BACKLASH_SEARCHED))}
         box = FocusFamily.model_validate({**box.model_dump(), **reach_to})
-    evidence = ColumnEvidence(box, draws=population, seed=seed, **CALIBRATED)
+    searching = far_noise is None
+    far = CALIBRATED["far_noise"] if searching else far_noise
+    evidence = ColumnEvidence(box, draws=population, seed=seed, **{**CALIBRATED, "far_noise": far})
     rng = np.random.default_rng(seed)
+    shares = np.array(FAR_NOISE_SEARCHED)
+
     # only the reading model's parameters are searched; the rest (interval, optimum, dose)
     # say nothing of the readings and stay in the box's middle
     searched = [PAIR_FIELDS.index(name) for name in COLUMN_FIELDS]
@@ -228,6 +267,7 @@ def calibrate(
     kept_rows, kept_log = rows[:0], np.zeros(0)
     keep = max(2, round(elite * population))
     progress = []
+    steps = rounds + searching
     for done in range(1, rounds + 1):
         log = column_evidence(evidence, rows, sweeps)
         every_rows, every_log = np.concatenate([kept_rows, rows]), np.concatenate([kept_log, log])
@@ -235,13 +275,26 @@ def calibrate(
         kept_rows, kept_log = every_rows[order], every_log[order]
         progress.append(float(kept_log[0]))
         if on_round is not None:
-            on_round(done, rounds, progress[-1])
+            on_round(done, steps, progress[-1])
         spread = np.maximum(kept_rows[:, searched].std(axis=0), MIN_SPREAD)
         drawn = kept_rows[:, searched].mean(axis=0) + spread * rng.standard_normal(
             (population, len(searched))
         )
         rows = rows.copy()
         rows[:, searched] = np.clip(drawn, 0.0, 1.0)
+    if searching:  # the best column with each far noise, the kept ones with the likeliest
+        log = column_evidence(
+            evidence, np.repeat(kept_rows[:1], shares.size, axis=0), sweeps, shares
+        )
+        far = float(shares[int(np.argmax(log))])
+        if far == CALIBRATED["far_noise"]:  # the search's own: its best stands as found
+            progress.append(progress[-1])
+        else:
+            log = column_evidence(evidence, kept_rows, sweeps, np.full(len(kept_rows), far))
+            kept_rows = kept_rows[np.argsort(-log, kind="stable")]
+            progress.append(float(log.max()))
+        if on_round is not None:
+            on_round(steps, steps, progress[-1])
     best = ColumnModels.at(box, kept_rows[:1], 0.0)
     column = {
         name: float(getattr(best, attribute)[0, 0, 0]) for attribute, name in _FAMILY_NAMES.items()
@@ -252,6 +305,7 @@ def calibrate(
         alignments=len(sweeps),
         readings=sum(len(sweep) for sweep in sweeps),
         progress=tuple(progress),
+        far_noise=float(far),
     )
 
 

@@ -191,7 +191,8 @@ class ColumnModels:
     lag: np.ndarray
     rows: np.ndarray  # (K, len(PAIR_FIELDS)): where each column was drawn (`at`)
     model_noise: float = 0.01
-    far_noise: float = 0.0
+    # one share for every column, or one per column (K, 1, 1): a calibration searches it
+    far_noise: float | np.ndarray = 0.0
 
     @classmethod
     def of(
@@ -210,13 +211,13 @@ class ColumnModels:
 
     @classmethod
     def at(
-        cls, family: FocusFamily, rows: np.ndarray, model_noise: float, far_noise: float = 0.0,
-        flat_decades: float = 0.0,
+        cls, family: FocusFamily, rows: np.ndarray, model_noise: float,
+        far_noise: float | np.ndarray = 0.0, flat_decades: float = 0.0,
     ) -> ColumnModels:  # fmt: skip
         """The columns at `rows` (K, len(PAIR_FIELDS)) of fractions of the box (column_at);
         with `flat_decades`, a row's flat-bottom fraction u places it at 10^(-flat_decades
         (1 - u)) of the box's range (log-uniform over those decades, FLAT_DECADES) rather
-        than at u."""
+        than at u; `far_noise` one share for all, or one per row (K,)."""
         placed = np.array(rows, float)
         if flat_decades:
             flat = PAIR_FIELDS.index("flat_fraction")
@@ -226,6 +227,8 @@ class ColumnModels:
             name: np.array([getattr(draw, attribute) for draw in columns], float)[:, None, None]
             for name, attribute in _FAMILY_NAMES.items()
         }
+        if np.ndim(far_noise):
+            far_noise = np.asarray(far_noise, float).reshape(len(columns), 1, 1)
         return cls(
             **values, rows=np.asarray(rows, float), model_noise=model_noise, far_noise=far_noise
         )
@@ -247,6 +250,8 @@ class ColumnModels:
     def picked(self, columns: np.ndarray) -> ColumnModels:
         """The models of `columns` (S,), one per state: parameters of shape (S,)."""
         picked = {name: getattr(self, name)[columns, 0, 0] for name in _FAMILY_NAMES}
+        if np.ndim(self.far_noise):
+            picked["far_noise"] = self.far_noise[columns, 0, 0]
         return replace(self, **picked, rows=self.rows[columns])
 
     def reading(self, error: np.ndarray, scale: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -265,7 +270,7 @@ class ColumnModels:
         levelled = levelled_px(true, self.saturation)
         mean = levelled * np.exp(scale)
         relative = self.model_noise**2
-        if self.far_noise:
+        if np.any(self.far_noise):
             relative = relative + (self.far_noise * np.log(levelled / self.best_px())) ** 2
         spread = np.sqrt((mean * self.noise_rel) ** 2 + self.noise_px**2 + relative * mean**2)
         return none, mean, spread

@@ -16,6 +16,7 @@ from alignrl.cli.common import (
     _emit,
     _json_object,
     _seed,
+    _share,
     _shield_options,
 )
 
@@ -63,7 +64,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
             bars["session"].close()
             bars["fit"] = bar(args.rounds, "round", "calibrating")
 
-    def calibrated_round(_done: int, _rounds: int, best: float) -> None:
+    def calibrated_round(_done: int, steps: int, best: float) -> None:
+        bars["fit"].total = steps  # the rounds, and the far noise's where it is searched
         bars["fit"].set_postfix_str(f"log evidence {best:.1f}", refresh=False)
         bars["fit"].update(1)
 
@@ -84,6 +86,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
             from_above=args.from_above,
             on_alignment=alignment,
             on_round=calibrated_round,
+            far_noise=args.far_noise,
         )
     finally:
         for bar in bars.values():
@@ -99,6 +102,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         "readings": calibration.readings,
         "log_evidence": calibration.log_evidence,
         "column": calibration.column,
+        "far_noise": calibration.far_noise,
         "seconds": round(result.seconds, 1),
     }
     lines = [
@@ -107,8 +111,11 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         f"{session.median_acquisitions:g} acquisitions; {calibration.readings} readings"
         f"{f', {args.from_above} per alignment from above' if args.from_above else ''})",
         *column_lines(calibration.column),
+        f"  far from focus: a reading's spread {100 * calibration.far_noise:.2g} % of it more "
+        f"per e-fold of its width over the in-focus one"
+        f"{' (given)' if args.far_noise is not None else ' (fitted)'}",
         f"  log evidence {calibration.log_evidence:.1f} ({calibration.per_reading():.2f} per "
-        f"reading) after {len(calibration.progress)} rounds, {result.seconds:.0f} s",
+        f"reading) after {args.rounds} rounds, {result.seconds:.0f} s",
         f"  written: {result.out} (the policy with this column, {CALIBRATION_FILE})",
         f"  next: alignrl evaluate --policy {result.out} --apparatus {args.apparatus}",
     ]
@@ -163,6 +170,14 @@ def add_calibrate_parser(verbs: argparse._SubParsersAction[argparse.ArgumentPars
         metavar="N",
         help="images approached from above after each alignment, which tell the column's "
         "backlash (default: 2; 0: none)",
+    )
+    calibrate.add_argument(
+        "--far-noise",
+        type=_share,
+        default=None,
+        metavar="SHARE",
+        help="how much less a reading far from focus is trusted, per e-fold of its width "
+        "over the in-focus one (default: fitted with the column, between 0.05 and 0.3)",
     )
     calibrate.add_argument(
         "--out", required=True, metavar="DIR", help="folder the calibrated policy goes to"

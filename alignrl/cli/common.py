@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from collections.abc import Sequence
 from typing import Any
@@ -74,6 +75,14 @@ def _at_least_zero(text: str) -> int:
     value = _parsed(text, int)
     if value < 0:
         raise argparse.ArgumentTypeError(f"{value} must be at least 0")
+    return value
+
+
+def _share(text: str) -> float:
+    """A share option: a finite number in [0, 1]."""
+    value = _parsed(text, float)
+    if not (math.isfinite(value) and 0.0 <= value <= 1.0):
+        raise argparse.ArgumentTypeError(f"{text[:40]} must be a share in [0, 1]")
     return value
 
 

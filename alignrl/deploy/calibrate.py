@@ -8,8 +8,9 @@ readings of those alignments calibrate the column's reading model
 (alignrl/apparatus/calibration.py: no optimum needed, a driver that cannot tell its own is
 calibrated alike); the policy is then exported to `out` (safetensors, with its learner state
 where it has one) with that column as its posterior's (`task_options.posterior_column`),
-read with the far noise it was fitted with (`posterior_far_noise`, CALIBRATED), stopping at
-CALIBRATED_STOP (`stop_when_sure`, `probe_until_sure`), and `calibration.json`
+read with the far noise fitted with it (`posterior_far_noise`: searched over
+FAR_NOISE_SEARCHED, or the one given), stopping at CALIBRATED_STOP (`stop_when_sure`,
+`probe_until_sure`), and `calibration.json`
 beside it says what was read and found. The network is the policy's own, tensor for tensor:
 what changes is what its posterior knows of the column, and how sure it must be.
 
@@ -36,11 +37,13 @@ from alignrl.apparatus.calibration import (
     CALIBRATED,
     CALIBRATED_STOP,
     COLUMN_FIELDS,
+    FAR_NOISE_SEARCHED,
     FROM_ABOVE,
     POPULATION,
     ROUNDS,
     Calibration,
     calibrate,
+    check_far_noise,
     check_search,
     sweeps_of,
 )
@@ -69,14 +72,15 @@ class Calibrated:
     from_above: int = 0
 
 
-def calibrated_overrides(column: dict[str, float]) -> list[str]:
+def calibrated_overrides(
+    column: dict[str, float], far_noise: float = CALIBRATED["far_noise"]
+) -> list[str]:
     """The `--set` assignments that give a policy this calibrated column (a YAML mapping),
-    the far noise it was fitted with (CALIBRATED) and the calibrated stop
-    (CALIBRATED_STOP)."""
+    the far noise it was fitted with and the calibrated stop (CALIBRATED_STOP)."""
     values = ", ".join(f"{name}: {column[name]:.9g}" for name in COLUMN_FIELDS)
     return [
         f"task_options.posterior_column={{{values}}}",
-        f"task_options.posterior_far_noise={CALIBRATED['far_noise']}",
+        f"task_options.posterior_far_noise={far_noise:.9g}",
         f"task_options.stop_when_sure={CALIBRATED_STOP}",
         f"task_options.probe_until_sure={CALIBRATED_STOP}",
     ]
@@ -108,11 +112,13 @@ def calibrate_policy(
     from_above: int = FROM_ABOVE,
     on_alignment: Callable[[Any], None] | None = None,
     on_round: Callable[[int, int, float], None] | None = None,
+    far_noise: float | None = None,
 ) -> Calibrated:
-    """Calibrate policy `spec` on `apparatus` and export it to `out` (module docstring).
-    ValueError (before any alignment) for a policy that cannot be calibrated, an `out` that
-    holds something without `force`, fewer than one alignment, a negative `from_above`;
-    whatever run_session, the apparatus and the export refuse."""
+    """Calibrate policy `spec` on `apparatus` and export it to `out` (module docstring):
+    the far noise searched with the column, or `far_noise` where given. ValueError (before
+    any alignment) for a policy that cannot be calibrated, an `out` that holds something
+    without `force`, fewer than one alignment, a negative `from_above`, a far noise outside
+    [0, 1]; whatever run_session, the apparatus and the export refuse."""
     from alignrl.deploy.export import _refuse_to_overwrite, export_policy, with_acting_options
     from alignrl.deploy.policy import load_deployable
     from alignrl.evaluation.controllers import PolicyController
@@ -125,6 +131,7 @@ def calibrate_policy(
     if from_above < 0:
         raise ValueError(f"from_above counts readings per alignment, got {from_above}")
     check_search(population, rounds)
+    check_far_noise(far_noise)
     policy = load_deployable(spec)
     _check_policy(spec, policy.task)
     out = Path(out)
@@ -162,9 +169,11 @@ def calibrate_policy(
         rounds=rounds,
         seed=seed,
         on_round=on_round,
+        far_noise=far_noise,
     )
     source = resolve_source(spec)
-    source = with_acting_options(source, calibrated_overrides(calibration.column))
+    overrides = calibrated_overrides(calibration.column, calibration.far_noise)
+    source = with_acting_options(source, overrides)
     export_policy(
         source,
         out,
@@ -187,7 +196,9 @@ def calibrate_policy(
             "threshold_px": _finite(session.median_threshold_px),
         },
         "readings": calibration.readings,
-        "far_noise": CALIBRATED["far_noise"],  # with which the column was fitted
+        "far_noise": calibration.far_noise,  # with which the column was fitted
+        # where it was searched (null: given)
+        "far_noise_searched": list(FAR_NOISE_SEARCHED) if far_noise is None else None,
         "log_evidence": calibration.log_evidence,
         "progress": list(calibration.progress),
         "column": calibration.column,
