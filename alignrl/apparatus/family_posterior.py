@@ -191,8 +191,7 @@ class ColumnModels:
     lag: np.ndarray
     rows: np.ndarray  # (K, len(PAIR_FIELDS)): where each column was drawn (`at`)
     model_noise: float = 0.01
-    # one share for every column, or one per column (K, 1, 1): a calibration searches it
-    far_noise: float | np.ndarray = 0.0
+    far_noise: float | np.ndarray = 0.0  # one share for all, or one per column (K, 1, 1)
 
     @classmethod
     def of(
@@ -227,11 +226,8 @@ class ColumnModels:
             name: np.array([getattr(draw, attribute) for draw in columns], float)[:, None, None]
             for name, attribute in _FAMILY_NAMES.items()
         }
-        if np.ndim(far_noise):
-            far_noise = np.asarray(far_noise, float).reshape(len(columns), 1, 1)
-        return cls(
-            **values, rows=np.asarray(rows, float), model_noise=model_noise, far_noise=far_noise
-        )
+        far = np.asarray(far_noise, float).reshape(-1, 1, 1) if np.ndim(far_noise) else far_noise
+        return cls(**values, rows=np.asarray(rows, float), model_noise=model_noise, far_noise=far)
 
     @property
     def count(self) -> int:
@@ -249,9 +245,8 @@ class ColumnModels:
 
     def picked(self, columns: np.ndarray) -> ColumnModels:
         """The models of `columns` (S,), one per state: parameters of shape (S,)."""
-        picked = {name: getattr(self, name)[columns, 0, 0] for name in _FAMILY_NAMES}
-        if np.ndim(self.far_noise):
-            picked["far_noise"] = self.far_noise[columns, 0, 0]
+        named = [*_FAMILY_NAMES, *(["far_noise"] if np.ndim(self.far_noise) else [])]
+        picked = {name: getattr(self, name)[columns, 0, 0] for name in named}
         return replace(self, **picked, rows=self.rows[columns])
 
     def reading(self, error: np.ndarray, scale: np.ndarray) -> tuple[np.ndarray, ...]:
