@@ -95,7 +95,7 @@ def _judge(args: argparse.Namespace, name: str) -> dict[str, Any]:
         "from_above": args.from_above,
         "stop": controller.task.stop_when_sure,
         "far_noise": controller.task.posterior_far_noise,
-        "far_noise_searched": list(FAR_NOISE_SEARCHED) if args.far_noise is None else None,
+        "far_noise_searched": calibrated.calibration.far_noise_searched,
         # every image the calibration took and read: the alignments' acquisitions, their
         # verifications and the readings from above
         "steps": calibrated.calibration.readings,

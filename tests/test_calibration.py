@@ -148,6 +148,7 @@ def test_calibrate_searches_the_far_noise_unless_given() -> None:
     assert len(stray.progress) == 5 and stray.progress[-1] > stray.progress[-2]
     given = calibrate(_sweeps(COLUMN, 4, seed=4), population=8, rounds=1, far_noise=0.07)
     assert given.far_noise == 0.07 and len(given.progress) == 1
+    assert clean.far_noise_searched == FAR_NOISE_SEARCHED and given.far_noise_searched is None
     with pytest.raises(ValueError, match=r"far noise is a share in \[0, 1\], got 1.5"):
         calibrate(_sweeps(COLUMN, 2), far_noise=1.5)
 

@@ -197,6 +197,7 @@ class Calibration:
     readings: int
     progress: tuple[float, ...]
     far_noise: float = CALIBRATED["far_noise"]  # with which the column reads (fitted or given)
+    far_noise_searched: tuple[float, ...] | None = None  # those weighed; None: given
 
     def per_reading(self) -> float:
         """The mean log evidence per reading (comparable across calibrations of a column)."""
@@ -257,8 +258,6 @@ def calibrate(
     far = CALIBRATED["far_noise"] if searching else far_noise
     evidence = ColumnEvidence(box, draws=population, seed=seed, **{**CALIBRATED, "far_noise": far})
     rng = np.random.default_rng(seed)
-    shares = np.array(FAR_NOISE_SEARCHED)
-
     # only the reading model's parameters are searched; the rest (interval, optimum, dose)
     # say nothing of the readings and stay in the box's middle
     searched = [PAIR_FIELDS.index(name) for name in COLUMN_FIELDS]
@@ -283,13 +282,15 @@ def calibrate(
         rows = rows.copy()
         rows[:, searched] = np.clip(drawn, 0.0, 1.0)
     if searching:  # the best column with each far noise, the kept ones with the likeliest
+        shares = np.array(FAR_NOISE_SEARCHED)
         log = column_evidence(
             evidence, np.repeat(kept_rows[:1], shares.size, axis=0), sweeps, shares
         )
-        far = float(shares[int(np.argmax(log))])
-        if far == CALIBRATED["far_noise"]:  # the search's own: its best stands as found
-            progress.append(progress[-1])
+        likeliest = float(shares[int(np.argmax(log))])
+        if likeliest == far:  # the search's own: its best stands as found (weighed again in
+            progress.append(progress[-1])  # another batch, its evidence moves by ~1e-7)
         else:
+            far = likeliest
             log = column_evidence(evidence, kept_rows, sweeps, np.full(len(kept_rows), far))
             kept_rows = kept_rows[np.argsort(-log, kind="stable")]
             progress.append(float(log.max()))
@@ -306,6 +307,7 @@ def calibrate(
         readings=sum(len(sweep) for sweep in sweeps),
         progress=tuple(progress),
         far_noise=float(far),
+        far_noise_searched=FAR_NOISE_SEARCHED if searching else None,
     )
 
 

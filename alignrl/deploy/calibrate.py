@@ -37,7 +37,6 @@ from alignrl.apparatus.calibration import (
     CALIBRATED,
     CALIBRATED_STOP,
     COLUMN_FIELDS,
-    FAR_NOISE_SEARCHED,
     FROM_ABOVE,
     POPULATION,
     ROUNDS,
@@ -198,7 +197,7 @@ def calibrate_policy(
         "readings": calibration.readings,
         "far_noise": calibration.far_noise,  # with which the column was fitted
         # where it was searched (null: given)
-        "far_noise_searched": list(FAR_NOISE_SEARCHED) if far_noise is None else None,
+        "far_noise_searched": calibration.far_noise_searched,  # JSON writes it as a list
         "log_evidence": calibration.log_evidence,
         "progress": list(calibration.progress),
         "column": calibration.column,
