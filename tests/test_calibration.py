@@ -100,7 +100,8 @@ def test_the_evidence_prefers_the_column_the_readings_came_from() -> None:
 
 
 def test_calibrate_finds_the_column_and_one_beyond_the_box() -> None:
-    found = calibrate(_sweeps(COLUMN, 16), population=64, rounds=6).column
+    # as many alignments as `alignrl calibrate` takes by default
+    found = calibrate(_sweeps(COLUMN, ALIGNMENTS), population=64, rounds=6).column
     assert found["blur_px_per_interval"] == pytest.approx(40.0, rel=0.2)
     assert found["floor_sigma_px"] == pytest.approx(1.2, rel=0.2)
     # the box's gains reach 120 px per interval; the search looks half its span beyond
@@ -176,12 +177,13 @@ def test_a_reading_from_above_lies_on_the_other_branch_of_the_backlash() -> None
 
 def test_readings_from_above_tell_a_backlash_beyond_the_box() -> None:
     """A column with 1.5 % backlash (the box's reaches 0.6 %, the widened search 0.9 %):
-    with two readings from above per alignment the search reaches further and finds it;
-    from below alone (readings that say little of backlash) it keeps to the widened box."""
+    with two readings from above per alignment (of as many as `alignrl calibrate` takes by
+    default) the search reaches further and finds it; from below alone (readings that say
+    little of backlash) it keeps to the widened box."""
     lagged = {**COLUMN, "hysteresis_fraction": 0.015}
-    both = calibrate(_sweeps(lagged, 16, seed=2, above=2), population=64, rounds=6)
+    both = calibrate(_sweeps(lagged, ALIGNMENTS, seed=2, above=2), population=64, rounds=6)
     assert both.column["hysteresis_fraction"] == pytest.approx(0.015, rel=0.25)
-    below = calibrate(_sweeps(lagged, 16, seed=2), population=64, rounds=6)
+    below = calibrate(_sweeps(lagged, ALIGNMENTS, seed=2), population=64, rounds=6)
     assert below.column["hysteresis_fraction"] < 0.0095
 
 

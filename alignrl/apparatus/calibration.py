@@ -162,8 +162,9 @@ class ColumnEvidence(FamilyPosterior):
         kept = (totals > 0)[:, None, None]
         # each column its own share again (a column that ruled its every state out starts
         # from the prior; its evidence says how unlikely it is)
-        posterior = np.where(kept, posterior / np.where(kept, totals[:, None, None], 1.0),
-                             self._prior * self.models.count)  # fmt: skip
+        posterior = posterior / np.where(kept, totals[:, None, None], 1.0)
+        if not kept.all():
+            posterior = np.where(kept, posterior, self._prior * self.models.count)
         return super()._drifted(posterior)
 
 

@@ -453,11 +453,11 @@ class FamilyPosterior:
         if variance.max() < 0.01:
             return posterior
         share = 0.5 * variance / passes  # to each neighbour, per pass
+        spread = np.empty_like(posterior)  # each grid point's two neighbours, summed
         for _ in range(passes):
-            spread = np.zeros_like(posterior)
-            spread[..., 1:] += posterior[..., :-1]
-            spread[..., :-1] += posterior[..., 1:]
-            posterior = (1.0 - 2.0 * share) * posterior + share * spread
+            np.add(posterior[..., :-2], posterior[..., 2:], out=spread[..., 1:-1])
+            spread[..., 0], spread[..., -1] = posterior[..., 1], posterior[..., -2]
+            posterior = (1.0 - 2.0 * share) * posterior + np.multiply(share, spread, out=spread)
         return posterior / posterior.sum()
 
     def _renewable(self, posterior: np.ndarray) -> bool:
