@@ -36,7 +36,7 @@ PASS_SHARE = 0.9
 SEED = 7
 
 
-def pass_mark(card: dict, scenarios: int = SCENARIOS) -> int:
+def pass_mark(card: dict, scenarios: int) -> int:
     """Of `scenarios`, the successes a champion must reach: PASS_SHARE, or below a best card
     session under 95/100, 80 % of that session's share."""
     rows = card["evaluations"]["rows"]
