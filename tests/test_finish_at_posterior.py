@@ -8,10 +8,18 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from alignrl.apparatus.family_posterior import PROBE_RULES, SCALE_FREE, FamilyPosterior, focus_box
+from alignrl.apparatus.family_posterior import (
+    PROBE_RULES,
+    SCALE_FREE,
+    SCORED_STATES,
+    STOP_STATES,
+    FamilyPosterior,
+    focus_box,
+)
 from alignrl.apparatus.registry import make_apparatus
 from alignrl.config import TaskOptions
 from alignrl.envs.core import AlignmentEpisodes
+from alignrl.envs.ending import EpisodeEnds
 from alignrl.envs.task import POSTERIOR_PROBE_RULES, get_task
 
 WALK = [0.9, -0.6, 0.4, -0.3]  # probes on both sides of focus, from the episode's start
@@ -134,12 +142,14 @@ def test_stopping_when_sure_needs_the_posterior_and_a_chance_below_one() -> None
 
 
 def test_the_posterior_draws_as_many_columns_as_the_task_says() -> None:
-    """posterior_draws: the episode's posterior is one of that many columns, and its end is
-    what a FamilyPosterior of as many columns says of the same readings."""
+    """posterior_draws: the episode's posterior is one of that many columns, judging 8 and 80
+    states per column (STATES_PER_COLUMN), and its end is what a FamilyPosterior of as many
+    columns and states says of the same readings."""
     task = _task(stop_at_best=True, posterior_draws=64)
     episodes, slot, unit = _walked(task)
     assert episodes.ends._posterior(0).models.count == 64
-    posterior = FamilyPosterior(focus_box(), draws=64, **SCALE_FREE)
+    assert episodes.ends._posterior(0).resample == (512, 5120)
+    posterior = FamilyPosterior(focus_box(), draws=64, resample=(512, 5120), **SCALE_FREE)
     posterior.begin()
     low, span = float(episodes.low[0, 0]), float(episodes.span[0, 0])
     for reading in episodes.ends.readings[0]:
@@ -147,6 +157,19 @@ def test_the_posterior_draws_as_many_columns_as_the_task_says() -> None:
     episodes.step(slot, np.array([[0.0, 1.0]]))
     assert float(unit.read()["defocus"]) == pytest.approx(low + posterior.final()[0] * span)
     assert float(unit.read()["defocus"]) != pytest.approx(_posterior_best(episodes))
+
+
+@pytest.mark.parametrize(("draws", "resample"), [(16, (128, 1280)), (256, (2000, 20000))])
+def test_an_episodes_posterior_judges_states_in_proportion_to_its_columns_up_to_a_cap(
+    draws: int, resample: tuple[int, int]
+) -> None:
+    """From 250 columns on (the default 256, the champion's 1,024) every posterior judges
+    the same SCORED_STATES and STOP_STATES; fewer columns, fewer states."""
+    assert (SCORED_STATES, STOP_STATES) == (2000, 20000)
+    ends = EpisodeEnds(1, 1, _task(stop_at_best=True, posterior_draws=draws))
+    assert ends._posterior(0).resample == resample
+    with pytest.raises(ValueError, match="resample"):
+        FamilyPosterior(focus_box(), draws=16, resample=(0, 100))
 
 
 def test_posterior_draws_needs_the_posterior_and_a_sane_count() -> None:

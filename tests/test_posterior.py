@@ -36,6 +36,10 @@ from alignrl.evaluation.controllers import CountingApparatus
 from alignrl.evaluation.posterior import PosteriorFocus
 from alignrl.evaluation.session import run_session
 
+# A posterior of 32 columns judging as many states per column as an episode's does
+# (alignrl/envs/ending.py, STATES_PER_COLUMN): 8 per probe, 80 per stop
+SMALL = {"draws": 32, "resample": (256, 2560)}
+
 
 def _instrument(name: str):
     return load_family(instrument_names("validation")[name])
@@ -111,7 +115,7 @@ def test_knowing_only_a_box_it_still_aligns(rule):
     inside the box, by each probe rule: nearly every column of a session in a few
     acquisitions (a setting written at random passes in about one in twenty; the "chance"
     rule with its score's sign turned, probing where the final setting gains least, aligned
-    4 of 12 at 20)."""
+    3 of 12 at 20)."""
     path = instrument_names("validation")["val-mid"]
     box = load_family(
         path,
@@ -120,7 +124,7 @@ def test_knowing_only_a_box_it_still_aligns(rule):
         curve_power=[1.6, 2.6],
         hysteresis_fraction=[0.0, 0.006],
     )
-    controller = PosteriorFocus(box, draws=32, probe_rule=rule)
+    controller = PosteriorFocus(box, probe_rule=rule, **SMALL)
     assert controller.models.count == 32
     apparatus = FamilyColumn(load_family(path), analytic=True)
     session = run_session(controller, apparatus, get_task("focus"), scenarios=12, seed=1)
@@ -168,7 +172,7 @@ def test_a_scale_free_posterior_aligns_a_column_at_another_magnification():
     for scale_free in (True, False):
         apparatus = _Magnified(FamilyColumn(load_family(path), analytic=True), 3.0)
         options = {"scale_free": True, "specimen_points": 1} if scale_free else {}
-        controller = PosteriorFocus(box, draws=32, **options)
+        controller = PosteriorFocus(box, **SMALL, **options)
         session = run_session(controller, apparatus, get_task("focus"), scenarios=8, seed=1)
         successes[scale_free] = session.successes
     assert successes[True] >= 6

@@ -79,6 +79,8 @@ __all__ = [
     "FAMILY_REACH",
     "FLAT_DECADES",
     "SCALE_FREE",
+    "SCORED_STATES",
+    "STOP_STATES",
     "ColumnModels",
     "FamilyPosterior",
     "focus_box",
@@ -102,13 +104,12 @@ BRANCHES = (1.0, -1.0, 0.0)
 FAMILY_REACH = 0.0
 # How the posterior weighs a column's flat bottom (`flat_fraction`, the box's 0-1 % of the
 # interval either side of the optimum): log-uniformly over FLAT_DECADES decades below the
-# box's widest (`ColumnModels.at`), where the box draws it uniformly. A plateau's width is a
-# scale, known to its order of magnitude at best; drawn uniformly, half the columns have one
-# wider than 0.5 % of the interval, more than the whole passing window of a steep column
-# (0.3-0.5 %), and on a steep column without one, readings that never showed focus leave
-# the posterior sure of a wide window no reading has seen (docs/benchmarks.md,
-# twenty-first session). Two decades set beforehand; kept on set:validation, where it
-# aligned more columns than the uniform prior at each confidence tried (0.95, 0.97, 0.99).
+# box's widest (`ColumnModels.at`), not uniformly as the box draws it. A plateau's width is
+# a scale, known to its order of magnitude at best; drawn uniformly, half the columns have
+# one wider than a steep column's whole passing window (0.3-0.5 %), and readings that never
+# showed focus leave the posterior sure of a window no reading has seen (docs/benchmarks.md,
+# twenty-first session). Two decades set beforehand; kept on set:validation (more columns
+# aligned than the uniform prior at each confidence tried: 0.95, 0.97, 0.99).
 FLAT_DECADES = 2.0
 
 
@@ -314,6 +315,7 @@ class FamilyPosterior:
     # stop at `confidence` x the chance at the optimum: one known column too noisy to pass
     # surely at focus still ends (not a box: there it mixes columns not yet told apart)
     relative_stop: bool = False
+    resample: tuple[int, int] = (SCORED_STATES, STOP_STATES)  # the probe's states, the stop's
     models: ColumnModels = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -321,8 +323,8 @@ class FamilyPosterior:
             raise ValueError(f"confidence must lie in (0, 1), got {self.confidence}")
         if not self.spec_relative > 1.0:
             raise ValueError(f"spec_relative must exceed 1, got {self.spec_relative}")
-        if self.draws < 1 or self.specimen_points < 1 or self.max_acquisitions < 1:
-            raise ValueError("draws, specimen_points and max_acquisitions must be at least 1")
+        if min(self.draws, self.specimen_points, self.max_acquisitions, *self.resample) < 1:
+            raise ValueError("draws, specimen_points, max_acquisitions, resample: at least 1")
         if self.optimum_prior not in ("box", "interval"):
             raise ValueError(f"optimum_prior must be box or interval, got {self.optimum_prior!r}")
         if not (math.isfinite(self.far_noise) and self.far_noise >= 0.0):
@@ -492,8 +494,7 @@ class FamilyPosterior:
         return k, z, n, posterior[k, z, n]
 
     def _scored(self, posterior: np.ndarray, most: int) -> tuple[np.ndarray, ...]:
-        """The live states, systematically resampled to at most `most` (equal weights
-        then), and their weights."""
+        """The live states and their weights, systematically resampled to at most `most`."""
         k, z, n, weight = self._live(posterior)
         if k.size > most:
             picks = _systematic(weight, most, 0.5)
@@ -531,7 +532,7 @@ class FamilyPosterior:
     def _next_probe(self, posterior: np.ndarray) -> float:
         """The next reading's setting: the least expected variance of the optimum, or the
         greatest expected chance of the final setting (`probe_rule`)."""
-        k, z, n, weight = self._scored(posterior, SCORED_STATES)
+        k, z, n, weight = self._scored(posterior, self.resample[0])
         u = self._grid[n]
         lag = float(np.sum(weight * self.models.lag[k, 0, 0]))
         settings = self._candidates(u, weight, lag)
@@ -541,8 +542,7 @@ class FamilyPosterior:
             shift = self._scale.estimate(k, z, n)[0]
             top, bottom = top * math.exp(shift.max()), bottom * math.exp(shift.min())
         edges = np.geomspace(bottom, top, self.reading_bins - 1)
-        passes = None
-        cells = None
+        passes = cells = None
         if self.probe_rule == "entropy":  # the states by their optimum's grid point
             order = np.argsort(n, kind="stable")
             k, z, n, weight, u = k[order], z[order], n[order], weight[order], u[order]
@@ -591,7 +591,7 @@ class FamilyPosterior:
 
     def _final(self, posterior: np.ndarray) -> tuple[float, float]:
         """The setting most likely to pass the verification, and that chance (`final`)."""
-        k, z, n, weight = self._scored(posterior, STOP_STATES)
+        k, z, n, weight = self._scored(posterior, self.resample[1])
         settings = self._final_settings(k, n, weight, STOP_SETTINGS)
         chances = np.zeros(settings.size)
         for chunk in np.array_split(np.arange(settings.size), 9):
