@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 
 import benchmarks.bound as bound
+from alignrl.envs.ending import resample_for
 from alignrl.evaluation.posterior import ROBUST
 from benchmarks.bound import main
 
@@ -56,7 +57,7 @@ def test_oracle_rows_are_written_read_back_and_shown_beside(
 def made(monkeypatch: pytest.MonkeyPatch) -> list:
     """Every PosteriorFocus benchmarks/bound.py makes, as it makes it; each then aligns with
     at most 64 columns (the robust kind draws 1,024), judging as many states as an episode's
-    posterior of 64 (STATES_PER_COLUMN): the same files and rows, whose figures these tests
+    posterior of as many (resample_for): the same files and rows, whose figures these tests
     do not read, in less computing."""
     made = []
 
@@ -64,7 +65,7 @@ def made(monkeypatch: pytest.MonkeyPatch) -> list:
         def __post_init__(self) -> None:
             made.append(copy.copy(self))
             self.draws = min(self.draws, 64)
-            self.resample = (512, 5120)
+            self.resample = resample_for(self.draws)
             super().__post_init__()
 
     monkeypatch.setattr(bound, "PosteriorFocus", Recording)

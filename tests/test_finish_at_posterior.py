@@ -19,7 +19,7 @@ from alignrl.apparatus.family_posterior import (
 from alignrl.apparatus.registry import make_apparatus
 from alignrl.config import TaskOptions
 from alignrl.envs.core import AlignmentEpisodes
-from alignrl.envs.ending import EpisodeEnds
+from alignrl.envs.ending import EpisodeEnds, resample_for
 from alignrl.envs.task import POSTERIOR_PROBE_RULES, get_task
 
 WALK = [0.9, -0.6, 0.4, -0.3]  # probes on both sides of focus, from the episode's start
@@ -159,15 +159,13 @@ def test_the_posterior_draws_as_many_columns_as_the_task_says() -> None:
     assert float(unit.read()["defocus"]) != pytest.approx(_posterior_best(episodes))
 
 
-@pytest.mark.parametrize(("draws", "resample"), [(16, (128, 1280)), (256, (2000, 20000))])
-def test_an_episodes_posterior_judges_states_in_proportion_to_its_columns_up_to_a_cap(
-    draws: int, resample: tuple[int, int]
-) -> None:
+def test_an_episodes_posterior_judges_states_in_proportion_to_its_columns_up_to_a_cap() -> None:
     """From 250 columns on (the default 256, the champion's 1,024) every posterior judges
     the same SCORED_STATES and STOP_STATES; fewer columns, fewer states."""
     assert (SCORED_STATES, STOP_STATES) == (2000, 20000)
-    ends = EpisodeEnds(1, 1, _task(stop_at_best=True, posterior_draws=draws))
-    assert ends._posterior(0).resample == resample
+    for draws, resample in [(16, (128, 1280)), (256, (2000, 20000))]:
+        ends = EpisodeEnds(1, 1, _task(stop_at_best=True, posterior_draws=draws))
+        assert ends._posterior(0).resample == resample_for(draws) == resample
     with pytest.raises(ValueError, match="resample"):
         FamilyPosterior(focus_box(), draws=16, resample=(0, 100))
 

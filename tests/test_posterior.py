@@ -31,14 +31,14 @@ from alignrl.apparatus.family_posterior import (
 )
 from alignrl.apparatus.instruments import instrument_names
 from alignrl.cli import main
+from alignrl.envs.ending import resample_for
 from alignrl.envs.task import get_task
 from alignrl.evaluation.controllers import CountingApparatus
 from alignrl.evaluation.posterior import PosteriorFocus
 from alignrl.evaluation.session import run_session
 
-# A posterior of 32 columns judging as many states per column as an episode's does
-# (alignrl/envs/ending.py, STATES_PER_COLUMN): 8 per probe, 80 per stop
-SMALL = {"draws": 32, "resample": (256, 2560)}
+# A posterior of 32 columns judging as many states as an episode's posterior of 32 does
+SMALL = {"draws": 32, "resample": resample_for(32)}
 
 
 def _instrument(name: str):

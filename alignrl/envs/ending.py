@@ -54,13 +54,22 @@ from alignrl.envs.task import Task
 if TYPE_CHECKING:  # made on first use: scipy's Sobol' and the box
     from alignrl.apparatus.family_posterior import FamilyPosterior
 
-__all__ = ["STATES_PER_COLUMN", "EndPlan", "EpisodeEnds", "Noted"]
+__all__ = ["STATES_PER_COLUMN", "EndPlan", "EpisodeEnds", "Noted", "resample_for"]
 
 # The states an episode's posterior scores a probe on and judges a stop on, per column it
 # draws (Task.posterior_draws), up to the posterior's own SCORED_STATES and STOP_STATES:
 # both reached at 250 columns, so the default 256 and the champion's 1,024 judge as many
 # states as ever, and a posterior of fewer columns costs less in proportion.
 STATES_PER_COLUMN = (8, 80)
+
+
+def resample_for(draws: int) -> tuple[int, int]:
+    """The states (probe, stop) a posterior of `draws` columns judges (STATES_PER_COLUMN;
+    FamilyPosterior.resample)."""
+    from alignrl.apparatus.family_posterior import SCORED_STATES, STOP_STATES
+
+    probe, stop = STATES_PER_COLUMN
+    return min(SCORED_STATES, probe * draws), min(STOP_STATES, stop * draws)
 
 
 class Noted(NamedTuple):
@@ -245,21 +254,15 @@ class EpisodeEnds:
             if made is None:
                 from alignrl.apparatus.family_posterior import (
                     SCALE_FREE,
-                    SCORED_STATES,
-                    STOP_STATES,
                     FamilyPosterior,
                     focus_box,
                 )
 
-                draws = self.task.posterior_draws
                 made = FamilyPosterior(
                     focus_box(saturation_px=self.task.posterior_saturation_px or None),
                     spec_relative=self.task.success.relative,
-                    draws=draws,
-                    resample=(
-                        min(SCORED_STATES, STATES_PER_COLUMN[0] * draws),
-                        min(STOP_STATES, STATES_PER_COLUMN[1] * draws),
-                    ),
+                    draws=self.task.posterior_draws,
+                    resample=resample_for(self.task.posterior_draws),
                     far_noise=self.task.posterior_far_noise,
                     probe_rule=self.task.posterior_probe_rule,
                     **SCALE_FREE,
