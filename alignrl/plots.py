@@ -15,6 +15,8 @@ only inside functions and draws on the Agg canvas, never through pyplot's global
 
 from __future__ import annotations
 
+import functools
+import hashlib
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -44,6 +46,8 @@ __all__ = [
     "draw_success",
     "draw_success_references",
     "draw_update_metric",
+    "drawn_from",
+    "inputs_digest",
     "losses_figure",
     "new_figure",
     "panel_figure",
@@ -58,6 +62,7 @@ __all__ = [
 EPISODE_WINDOW = 100  # training episodes per point of a curve, as in seed fig. 6.1.1
 UPDATE_WINDOW = 10  # rows of updates.csv per smoothed point (SAC logs a row per 50 updates)
 DPI = 120
+INPUTS_KEY = "alignrl-inputs"  # a PNG's text: the digest of what it was drawn from
 ENV_STEPS_LABEL = "env steps (image acquisitions)"
 LEGEND_INSIDE_MAX = 6  # a legend with more entries goes beside the axes, not over the lines
 LEGEND_BESIDE_WIDTH = 8.5  # inches: a figure with its legend beside widens to at least this
@@ -461,11 +466,58 @@ class TrainingFigures:
     skipped: dict[str, str]
 
 
-def save_png(figure: Figure, path: Path) -> None:
-    """Atomically: a report read while it is rewritten shows the old figure or the new one."""
+def save_png(figure: Figure, path: Path, inputs: str | None = None) -> None:
+    """Atomically: a report read while it is rewritten shows the old figure or the new one.
+    `inputs` (`inputs_digest`) goes into the PNG as the text INPUTS_KEY."""
     from alignrl.checkpoints import atomic_write
 
-    atomic_write(path, lambda handle: figure.savefig(handle, format="png"))
+    metadata = {INPUTS_KEY: inputs} if inputs is not None else None
+    atomic_write(path, lambda handle: figure.savefig(handle, format="png", metadata=metadata))
+
+
+@functools.cache
+def _drawing() -> bytes:
+    """What draws a figure besides its inputs: this module and the intervals it draws, and
+    the versions of matplotlib and alignrl."""
+    import matplotlib
+
+    from alignrl import __version__, intervals
+
+    digest = hashlib.blake2b(digest_size=16)
+    for module in (__file__, intervals.__file__):
+        digest.update(Path(module).read_bytes())
+    digest.update(f"{matplotlib.__version__} {__version__}".encode())
+    return digest.digest()
+
+
+def inputs_digest(metrics: RunMetrics, *drawn_with: Any) -> str:
+    """A digest of what a run's figures are drawn from: its metrics tables, the options
+    `drawn_with` (colour, labels, references, by their repr) and the drawing code."""
+    import pandas as pd
+
+    digest = hashlib.blake2b(_drawing(), digest_size=16)
+    for table in (metrics.updates, metrics.episodes, metrics.evaluations, metrics.test):
+        if table is None:
+            digest.update(b"no table")
+            continue
+        digest.update(repr((list(table.columns), list(map(str, table.dtypes)))).encode())
+        digest.update(pd.util.hash_pandas_object(table, index=True).to_numpy().tobytes())
+    digest.update(repr(drawn_with).encode())
+    return digest.hexdigest()
+
+
+def drawn_from(path: Path) -> str | None:
+    """The inputs digest a PNG written by `save_png` carries; None for a missing, damaged or
+    foreign file."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as image:
+            image.load()
+            found = image.info.get(INPUTS_KEY)
+    except (OSError, ValueError, SyntaxError, UnidentifiedImageError):
+        return None
+    return found if isinstance(found, str) else None
 
 
 def _build_figures(
@@ -514,15 +566,21 @@ def write_figures(
 ) -> TrainingFigures:
     """Write every figure the metrics allow as PNGs into `out_dir` (created if needed): the
     run's curves in `colour` (a league member's own), `steps_label` under the horizontal axes
-    (what the env_steps columns count), `references` across the success and acquisitions."""
+    (what the env_steps columns count), `references` across the success and acquisitions.
+    A PNG there drawn from the same tables and options (its INPUTS_KEY text) is kept as it
+    is: a report written again (`alignrl leaderboard` after `alignrl league run`) redraws
+    only the figures whose tables changed."""
     built, skipped = _build_figures(metrics, colour, references)
+    inputs = inputs_digest(metrics, colour, steps_label, tuple(references))
     written = []
     for name in FIGURES:
         if name in built:
-            for axes in built[name].axes:
-                axes.set_xlabel(steps_label)
-            save_png(built[name], out_dir / name)
-            written.append(out_dir / name)
+            path = out_dir / name
+            if drawn_from(path) != inputs:  # else drawn from these very tables already
+                for axes in built[name].axes:
+                    axes.set_xlabel(steps_label)
+                save_png(built[name], path, inputs)
+            written.append(path)
     return TrainingFigures(
         written=written, skipped={name: skipped[name] for name in FIGURES if name in skipped}
     )

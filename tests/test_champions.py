@@ -34,6 +34,11 @@ SCENARIOS = 20
 # card's best share.
 PASS_SHARE = 0.9
 SEED = 7
+# On an instrument set (`set:NAME`; focus-v2's, on images, spends seconds of its posterior an
+# alignment) the session is the fewest scenarios that reach each instrument, at a seed of the
+# hundred from SEED that needs fewest (InstrumentSet.reset: the scenario's seed mod the set's
+# size): seed 7's first 13 reach each of set:validation's six, seed 22's first 7 do.
+MAX_SCENARIOS = 50
 
 
 def pass_mark(card: dict, scenarios: int) -> int:
@@ -44,18 +49,26 @@ def pass_mark(card: dict, scenarios: int) -> int:
     return math.ceil(PASS_SHARE * scenarios) if best >= 0.95 else int(0.8 * best * scenarios)
 
 
-def scenarios_for(apparatus: str) -> int:
-    """SCENARIOS; on an instrument set (`set:NAME`; focus-v2's, on images, spends seconds of
-    its posterior an alignment), the fewest of SEED's scenarios that reach each instrument."""
-    if not apparatus.startswith("set:"):
-        return SCENARIOS
-    count = len(load_set(apparatus.removeprefix("set:")))
+def _reaching(seed: int, count: int) -> int:
+    """How many of `seed`'s first scenarios reach each of `count` instruments."""
     reached: set[int] = set()
-    for index in range(SCENARIOS):
-        reached.add(scenario_seed(SEED, index) % count)  # InstrumentSet.reset: seed mod n
+    for index in range(MAX_SCENARIOS):
+        reached.add(scenario_seed(seed, index) % count)
         if len(reached) == count:
             return index + 1
-    return SCENARIOS
+    return MAX_SCENARIOS
+
+
+def session_for(apparatus: str) -> tuple[int, int]:
+    """(scenarios, seed) of a champion's session: SCENARIOS at SEED; on an instrument set,
+    the fewest scenarios that reach each instrument, at the first seed from SEED on that
+    needs no more than a seed among the next hundred."""
+    if not apparatus.startswith("set:"):
+        return SCENARIOS, SEED
+    count = len(load_set(apparatus.removeprefix("set:")))
+    fewest = min(_reaching(seed, count) for seed in range(SEED, SEED + 100))
+    seed = next(seed for seed in range(SEED, SEED + 100) if _reaching(seed, count) == fewest)
+    return fewest, seed
 
 
 FOCUS = "champion:focus-v1"
@@ -108,7 +121,7 @@ def test_a_shipped_champion_aligns_held_out_scenarios(
 ) -> None:
     card = json.loads((folder / "card.json").read_text())
     training = card["training"]
-    scenarios = scenarios_for(training["eval_apparatus"])
+    scenarios, seed = session_for(training["eval_apparatus"])
     command = [
         "evaluate",
         "--policy",
@@ -122,7 +135,7 @@ def test_a_shipped_champion_aligns_held_out_scenarios(
         "--scenarios",
         str(scenarios),
         "--seed",
-        str(SEED),
+        str(seed),
         "--json",
     ]
     assert main(command) == 0

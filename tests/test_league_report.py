@@ -92,10 +92,10 @@ def finished(tmp_path_factory: pytest.TempPathFactory) -> Finished:
     run = root / "runs" / "tiny"
     out, figures = io.StringIO(), {}
 
-    def keeping(save: Callable[[Figure, Path], None]) -> Callable[[Figure, Path], None]:
-        def save_and_keep(figure: Figure, path: Path) -> None:
+    def keeping(save: Callable[..., None]) -> Callable[..., None]:
+        def save_and_keep(figure: Figure, path: Path, *inputs: str | None) -> None:
             figures[str(path.relative_to(run))] = figure
-            save(figure, path)
+            save(figure, path, *inputs)
 
         return save_and_keep
 

@@ -15,6 +15,7 @@ import numpy as np
 import pandas as pd
 import pytest
 from matplotlib.container import ErrorbarContainer
+from PIL import Image
 
 from alignrl.cli import main
 from alignrl.config import ExperimentConfig, dump_experiment
@@ -22,6 +23,7 @@ from alignrl.intervals import wilson
 from alignrl.plots import (
     FIGURES,
     draw_success,
+    drawn_from,
     losses_figure,
     panel_figure,
     rolling_mean,
@@ -151,6 +153,30 @@ def test_report_touches_nothing_else_in_the_run(reported: tuple[Path, dict]) -> 
     run, before = reported
     after = {name: state for name, state in snapshot(run).items() if not name.startswith("report")}
     assert after == before
+
+
+def test_a_report_written_again_redraws_only_what_changed(tmp_path: Path) -> None:
+    """Each PNG carries a digest of what it was drawn from: written again from the same
+    tables it is kept (the very file), from other tables, or where the PNG was damaged or
+    replaced by hand, it is drawn anew."""
+    run = full_run(tmp_path)
+    first = write_run_report(run).figures.written
+    files = {path.name: path.stat().st_ino for path in first}
+    (digest,) = {drawn_from(path) for path in first}
+    assert digest is not None
+    (run / "report" / "losses.png").write_bytes(PNG_MAGIC + b"damaged")
+    Image.new("RGB", (4, 4)).save(run / "report" / "reward.png")  # a PNG drawn elsewhere
+    again = write_run_report(run).figures.written
+    assert again == first and all(drawn_from(path) == digest for path in again)
+    kept = {path.name for path in again if path.stat().st_ino == files[path.name]}
+    assert kept == set(files) - {"losses.png", "reward.png"}
+    files = {path.name: path.stat().st_ino for path in again}
+    episodes = run / "metrics" / "episodes.csv"
+    episodes.write_text(episodes.read_text() + "1208,151,0.5,1,2,0.2\n")  # one more episode
+    redrawn = write_run_report(run).figures.written
+    (changed,) = {drawn_from(path) for path in redrawn}
+    assert changed not in (None, digest)
+    assert not {path.name for path in redrawn if path.stat().st_ino == files[path.name]}
 
 
 def test_empty_metrics_still_give_a_report(tmp_path: Path) -> None:

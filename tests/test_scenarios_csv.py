@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from alignrl.apparatus import scenarios
 from alignrl.apparatus.scenarios import (
     META_COLUMNS,
     ScenarioFormatError,
@@ -156,6 +157,36 @@ def test_writer_then_reader_round_trips(tmp_path: Path, suffix: str) -> None:
         )
         np.testing.assert_array_equal(again.voltages, original.voltages)
         np.testing.assert_array_equal(again.edge_widths, original.edge_widths)
+
+
+def test_contents_read_before_are_not_parsed_again(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A process parses a file's contents once (a league builds an apparatus per environment
+    from one recording): each read gets arrays of its own, and a file that changed, even to
+    as many bytes within the same clock tick, is parsed again."""
+    parsed: list[Path] = []
+    parse = scenarios._parse_scenarios
+    monkeypatch.setattr(
+        scenarios, "_parse_scenarios", lambda path: parsed.append(path) or parse(path)
+    )
+    path = write_records(tmp_path / "set.csv", RECORDS[:2])
+    first = read_scenarios(path)
+    first.voltages[:] = 0.0  # the caller's own
+    again = read_scenarios(tmp_path / "." / "set.csv")
+    assert len(parsed) == 1 and again.path == str(tmp_path / "." / "set.csv")
+    np.testing.assert_array_equal(again.voltages[0, :5], RECORDS[0].voltages)
+    # rewritten with one digit changed: as many bytes, and read anew
+    text = path.read_text()
+    path.write_text(text.replace("12.5,6.5", "12.5,6.6"))
+    assert path.stat().st_size == len(text)
+    assert read_scenarios(path).edge_widths[0, 1] == 6.6 and len(parsed) == 2
+    with ScenarioWriter(path, 8, mode="append") as writer:  # a recorder continuing it
+        writer.write(RECORDS[2])
+    assert len(read_scenarios(path)) == 3 and len(parsed) == 3
+    path.write_text(text.replace("12.5,6.5", "12.5,x.5"))  # and a broken one is refused
+    with pytest.raises(ScenarioFormatError, match="column edge_width_2"):
+        read_scenarios(path)
 
 
 @pytest.mark.parametrize("suffix", [".csv", ".csv.gz"])

@@ -43,9 +43,8 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import qmc
 
-from alignrl.apparatus.family import PAIR_FIELDS, FocusFamily
+from alignrl.apparatus.family import PAIR_FIELDS, FocusFamily, even_fractions
 from alignrl.apparatus.family_posterior import (
     _FAMILY_NAMES,
     ColumnModels,
@@ -263,7 +262,7 @@ def calibrate(
     # say nothing of the readings and stay in the box's middle
     searched = [PAIR_FIELDS.index(name) for name in COLUMN_FIELDS]
     rows = np.full((population, len(PAIR_FIELDS)), 0.5)
-    rows[:, searched] = qmc.Sobol(len(searched), scramble=True, seed=seed).random(population)
+    rows[:, searched] = even_fractions(len(searched), population, seed)
     kept_rows, kept_log = rows[:0], np.zeros(0)
     keep = max(2, round(elite * population))
     progress = []

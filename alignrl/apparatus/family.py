@@ -65,6 +65,7 @@ __all__ = [
     "design_names",
     "draw_column",
     "draw_fractions",
+    "even_fractions",
     "family_digest",
     "family_names",
     "family_path",
@@ -277,6 +278,15 @@ def draw_fractions(
     else:
         fractions = {name: float(rng.random()) for name in PAIR_FIELDS}
     return fractions, int(rng.integers(len(family.specimens)))
+
+
+def even_fractions(dimensions: int, count: int, seed: int | None) -> np.ndarray:
+    """`count` points of the unit cube of `dimensions`, (count, dimensions): a scrambled
+    Sobol' sequence (generator `seed`), spread over every axis more evenly than independent
+    draws (scipy.stats, 0.6 s to import, is imported by the first call)."""
+    from scipy.stats import qmc
+
+    return qmc.Sobol(dimensions, scramble=True, seed=seed).random(count)
 
 
 def column_at(family: FocusFamily, fractions: Mapping[str, float], specimen: int) -> ColumnDraw:

@@ -59,7 +59,6 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.special import ndtr
-from scipy.stats import qmc
 
 from alignrl.apparatus.family import (
     BOUNDED,
@@ -68,6 +67,7 @@ from alignrl.apparatus.family import (
     PAIR_FIELDS,
     FocusFamily,
     column_at,
+    even_fractions,
     family_path,
     load_family,
 )
@@ -206,7 +206,7 @@ class ColumnModels:
         single = all(
             getattr(family, name)[0] == getattr(family, name)[1] for name in _FAMILY_NAMES.values()
         )
-        rows = qmc.Sobol(len(PAIR_FIELDS), scramble=True, seed=seed).random(1 if single else draws)
+        rows = even_fractions(len(PAIR_FIELDS), 1 if single else draws, seed)
         return cls.at(family, rows, model_noise, far_noise, flat_decades)
 
     @classmethod
