@@ -89,8 +89,12 @@ def focus_sigma_px(
     `gain` px per that unit."""
     error = np.asarray(error, dtype=np.float64)
     asymmetry = np.asarray(asymmetry, dtype=np.float64)
-    side = np.where(error > 0, np.sqrt(asymmetry), 1.0 / np.sqrt(asymmetry))
-    blur = gain * side * np.maximum(0.0, np.abs(error) - flat)
+    above = error > 0
+    # each side's gain, broadcast beforehand: np.where broadcasts small operands slowly
+    steeper, gentler, _ = np.broadcast_arrays(
+        gain * np.sqrt(asymmetry), gain * (1.0 / np.sqrt(asymmetry)), above
+    )
+    blur = np.where(above, steeper, gentler) * np.maximum(0.0, np.abs(error) - flat)
     return (floor_sigma_px**curve_power + blur**curve_power) ** (1.0 / curve_power)
 
 
