@@ -352,6 +352,24 @@ def test_a_shipped_learner_provides_all_the_agent_asks(name: str) -> None:
 
 
 @pytest.mark.parametrize("name", ["sac", "ppo"])
+def test_a_learner_that_only_acts_makes_no_optimizer(name: str) -> None:
+    """A shipped learner makes its optimizers when an update or a state first asks for them:
+    a policy loaded to act (`alignrl align`, `evaluate`) makes none, and so never imports
+    what torch's first optimizer needs (1.5-2 s a command)."""
+    agent = Agent(MemberSpec("m", "aligner", name, (8, 7), 2, 1, {"hidden": [8]}), envs=2)
+    agent.load_policy_state(agent.policy_state())
+    action = agent.act(np.zeros((8, 7), np.float32), deterministic=True)
+    assert action.shape == (2,) and np.all(np.isfinite(action))
+    names = ("optimizer", "actor_optimizer", "critic_optimizer", "alpha_optimizer")
+    assert not [key for key in names if key in vars(agent.learner)]
+    optimizers = agent.learner.optimizers
+    made = [key for key in names if key in vars(agent.learner)]
+    assert len(made) == len(optimizers)  # made now, and once
+    assert list(map(id, agent.learner.optimizers)) == list(map(id, optimizers))
+    assert set(made) <= set(agent.learner.state_dict())  # what a checkpoint keeps
+
+
+@pytest.mark.parametrize("name", ["sac", "ppo"])
 def test_a_shipped_learners_settings_are_its_class_attributes(name: str) -> None:
     """What the registry tells before the class is imported is what the class says."""
     where, settings = SHIPPED[name]

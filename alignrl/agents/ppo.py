@@ -18,6 +18,7 @@ epochs on one rollout); `PPOLearner` is PPO as a member trains with it
 from __future__ import annotations
 
 import copy
+import functools
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
 from typing import Any
@@ -223,10 +224,14 @@ class PPO:
         self.policy = PolicyNet(history, features, action_dim, cfg).to(self.device)
         secret_in = secret_dim if cfg.secret_critics else 0
         self.value = ValueNet(history, features, secret_in, cfg).to(self.device)
-        self.optimizer = torch.optim.Adam(
-            [*self.policy.parameters(), *self.value.parameters()], lr=cfg.learning_rate
-        )
         self.updates = 0  # rollouts learned from
+
+    @functools.cached_property
+    def optimizer(self) -> torch.optim.Adam:
+        """Made when first asked for (an update, a state): a policy that only acts never
+        makes one (as SAC's, alignrl/agents/sac.py)."""
+        parameters = [*self.policy.parameters(), *self.value.parameters()]
+        return torch.optim.Adam(parameters, lr=self.config.learning_rate)
 
     # --- acting -------------------------------------------------------------------------
 

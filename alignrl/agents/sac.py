@@ -15,6 +15,7 @@ random warm-up, and a number of updates per env step.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
@@ -171,13 +172,28 @@ class SAC:
         )
         self._v_parameters = list(self.v.parameters())
         self._v_target_parameters = list(self.v_target.parameters())
-        # Fused Adam: one kernel per step instead of a dozen small ops per parameter tensor,
-        # the largest share of an update's time on a CPU (benchmarks/sb3_sac.py).
-        adam = {"lr": cfg.learning_rate, "fused": True}
-        self.actor_optimizer = torch.optim.Adam(self._actor_parameters, **adam)
-        self.critic_optimizer = torch.optim.Adam(self._critic_parameters, **adam)
-        self.alpha_optimizer = torch.optim.Adam([self.log_alpha], **adam)
         self.updates = 0
+
+    # The optimizers are made when first asked for (an update, a state): a policy that only
+    # acts (`alignrl align`, `evaluate`) never makes one, and never waits the 1.5 s torch takes
+    # to import what its first optimizer needs. Fused Adam: one kernel per step instead of a
+    # dozen small ops per parameter tensor, the largest share of an update's time on a CPU
+    # (benchmarks/sb3_sac.py).
+
+    def _adam(self, parameters: list[Tensor]) -> torch.optim.Adam:
+        return torch.optim.Adam(parameters, lr=self.config.learning_rate, fused=True)
+
+    @functools.cached_property
+    def actor_optimizer(self) -> torch.optim.Adam:
+        return self._adam(self._actor_parameters)
+
+    @functools.cached_property
+    def critic_optimizer(self) -> torch.optim.Adam:
+        return self._adam(self._critic_parameters)
+
+    @functools.cached_property
+    def alpha_optimizer(self) -> torch.optim.Adam:
+        return self._adam([self.log_alpha])
 
     # --- acting -------------------------------------------------------------------------
 
