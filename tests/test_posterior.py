@@ -278,19 +278,23 @@ def test_a_widened_box_holds_the_box_within_what_the_family_allows():
         widened(box, -0.1)
 
 
-@pytest.mark.parametrize("name", ["posterior", "posterior-scale-free", "posterior-robust"])
+@pytest.mark.parametrize(
+    ("name", "scenarios"),
+    [("posterior", 4), ("posterior-scale-free", 4), ("posterior-robust", 2)],
+)
 def test_evaluate_runs_the_family_posterior_by_name(
-    name: str, capsys: pytest.CaptureFixture[str]
+    name: str, scenarios: int, capsys: pytest.CaptureFixture[str]
 ) -> None:
     """`alignrl evaluate --policy posterior` (or posterior-scale-free, posterior-robust): the
     posterior over the training box, on a validation instrument it was never given the file
-    of (posterior-robust, weighing flat bottoms log-uniformly, takes 5.5 on these four)."""
+    of (posterior-robust, four times the columns and 10 s an alignment, on the first two of
+    the four: it aligns both at 5.5, as it does all four)."""
     argv = ["evaluate", "--policy", name, "--apparatus", "instrument:val-mid"]
-    args = ["--apparatus-args", '{"analytic": true}', "--scenarios", "4", "--json", "--quiet"]
-    assert main([*argv, *args]) == 0
+    args = ["--apparatus-args", '{"analytic": true}', "--scenarios", str(scenarios)]
+    assert main([*argv, *args, "--json", "--quiet"]) == 0
     report = json.loads(capsys.readouterr().out)
     assert report["controller"] == name and report["task"] == "focus"
-    assert report["successes"] >= 3 and report["median_acquisitions"] <= 6
+    assert report["successes"] >= scenarios - 1 and report["median_acquisitions"] <= 6
 
 
 def test_far_noise_widens_the_spread_with_the_distance_from_focus_only():
