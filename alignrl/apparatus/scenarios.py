@@ -30,6 +30,7 @@ import hashlib
 import io
 import math
 import os
+import threading
 import zlib
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, replace
@@ -423,6 +424,7 @@ def read_header_pairs(path: str | Path) -> int:
 # validate, 2 ms to digest), so a process parses a file's contents once.
 _READ: dict[tuple[str, bytes], ScenarioSet] = {}
 _READ_KEPT = 4  # files kept (the shipped recording takes about 2 MB as arrays)
+_READ_LOCK = threading.Lock()
 
 
 def _content_key(path: Path) -> tuple[str, bytes] | None:
@@ -449,14 +451,18 @@ def read_scenarios(path: str | Path) -> ScenarioSet:
     read before from the same file are not parsed again; each call gets arrays of its own."""
     path = Path(path)
     key = _content_key(path)
-    if key is not None and key in _READ:
-        _READ[key] = _READ.pop(key)  # the most recently read is kept longest
-        return _copied(_READ[key], path)
+    with _READ_LOCK:  # (a driver's calls may run on a thread of their own)
+        data = _READ.pop(key, None) if key is not None else None
+        if data is not None:
+            _READ[key] = data  # the most recently read is kept longest
+    if data is not None:
+        return _copied(data, path)
     data = _parse_scenarios(path)
     if key is not None and key == _content_key(path):  # unchanged while it was parsed
-        _READ[key] = data
-        while len(_READ) > _READ_KEPT:
-            del _READ[next(iter(_READ))]
+        with _READ_LOCK:
+            _READ[key] = data
+            while len(_READ) > _READ_KEPT:
+                del _READ[next(iter(_READ))]
     return _copied(data, path)
 
 
