@@ -66,9 +66,8 @@ def session_for(apparatus: str) -> tuple[int, int]:
     if not apparatus.startswith("set:"):
         return SCENARIOS, SEED
     count = len(load_set(apparatus.removeprefix("set:")))
-    fewest = min(_reaching(seed, count) for seed in range(SEED, SEED + 100))
-    seed = next(seed for seed in range(SEED, SEED + 100) if _reaching(seed, count) == fewest)
-    return fewest, seed
+    seed = min(range(SEED, SEED + 100), key=lambda seed: _reaching(seed, count))  # the first
+    return _reaching(seed, count), seed
 
 
 FOCUS = "champion:focus-v1"

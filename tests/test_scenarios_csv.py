@@ -168,7 +168,9 @@ def test_contents_read_before_are_not_parsed_again(
     parsed: list[Path] = []
     parse = scenarios._parse_scenarios
     monkeypatch.setattr(
-        scenarios, "_parse_scenarios", lambda path: parsed.append(path) or parse(path)
+        scenarios,
+        "_parse_scenarios",
+        lambda path, *stored: parsed.append(path) or parse(path, *stored),
     )
     path = write_records(tmp_path / "set.csv", RECORDS[:2])
     first = read_scenarios(path)

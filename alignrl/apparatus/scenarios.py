@@ -33,6 +33,7 @@ import os
 import threading
 import zlib
 from collections.abc import Iterator, Sequence
+from contextlib import nullcontext
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import IO
@@ -154,12 +155,14 @@ def _is_gzip(path: Path) -> bool:
     return path.suffix == ".gz"
 
 
-def _read_bounded(path: Path) -> bytes:
+def _read_bounded(path: Path, stored: bytes | None = None) -> bytes:
     """The file's bytes (decompressed for .gz), read in chunks and refused past
-    MAX_TEXT_BYTES: a small gzip file may decompress to gigabytes."""
-    opened = gzip.open(path, "rb") if _is_gzip(path) else open(path, "rb")
+    MAX_TEXT_BYTES: a small gzip file may decompress to gigabytes. `stored`: its bytes as
+    already read from the disk."""
+    raw = open(path, "rb") if stored is None else io.BytesIO(stored)
+    unpacked = gzip.GzipFile(fileobj=raw, mode="rb") if _is_gzip(path) else nullcontext(raw)
     chunks, size = [], 0
-    with opened as handle:
+    with raw, unpacked as handle:
         while chunk := handle.read(READ_CHUNK):
             size += len(chunk)
             if size > MAX_TEXT_BYTES:
@@ -172,9 +175,9 @@ def _read_bounded(path: Path) -> bytes:
     return b"".join(chunks)
 
 
-def _read_text(path: Path) -> str:
+def _read_text(path: Path, stored: bytes | None = None) -> str:
     try:
-        return _read_bounded(path).decode("utf-8")
+        return _read_bounded(path, stored).decode("utf-8")
     except FileNotFoundError:
         raise FileNotFoundError(f"scenario file {path} does not exist") from None
     except (EOFError, gzip.BadGzipFile, zlib.error, UnicodeDecodeError) as error:
@@ -352,10 +355,10 @@ def _parse_row(cells: list[str], row: int, where: _Where, max_pairs: int) -> Sce
     return ScenarioRecord(scenario, seed, knob, low, high, voltages, widths, n_failed)
 
 
-def iter_records(path: str | Path) -> Iterator[ScenarioRecord]:
-    """Parse and validate a scenario file row by row."""
+def iter_records(path: str | Path, stored: bytes | None = None) -> Iterator[ScenarioRecord]:
+    """Parse and validate a scenario file row by row (`stored`: its bytes as already read)."""
     path = Path(path)
-    text = _read_text(path)
+    text = _read_text(path, stored)
     if text.strip() == "":
         raise ScenarioFormatError(f"{path} is empty: expected a header line, then one row each")
     if not text.endswith("\n"):
@@ -419,21 +422,19 @@ def read_header_pairs(path: str | Path) -> int:
     return _check_header(names, path)
 
 
-# Files read, by their bytes: a league or a training run builds an apparatus per environment
+# Files parsed, by their bytes: a league or a training run builds an apparatus per environment
 # and per session from the same recording (csv:default: 2000 scenarios, 0.3 s to parse and
-# validate, 2 ms to digest), so a process parses a file's contents once.
+# validate, under 1 ms to read and digest), so a process parses a file's contents once.
 _READ: dict[tuple[str, bytes], ScenarioSet] = {}
 _READ_KEPT = 4  # files kept (the shipped recording takes about 2 MB as arrays)
 _READ_LOCK = threading.Lock()
 
 
-def _content_key(path: Path) -> tuple[str, bytes] | None:
-    """Where the file lies and a digest of its bytes as stored; None for a file that cannot
-    be read, or one too large (parsing it then names the error)."""
+def _stored(path: Path) -> bytes | None:
+    """The file's bytes as stored; None for one that cannot be read or is too large (parsing
+    it then names the error)."""
     try:
-        if path.stat().st_size > MAX_TEXT_BYTES:
-            return None
-        return str(path.resolve()), hashlib.blake2b(path.read_bytes(), digest_size=16).digest()
+        return None if path.stat().st_size > MAX_TEXT_BYTES else path.read_bytes()
     except OSError:
         return None
 
@@ -450,15 +451,18 @@ def read_scenarios(path: str | Path) -> ScenarioSet:
     """Read and validate a whole scenario file into padded arrays. Contents this process has
     read before from the same file are not parsed again; each call gets arrays of its own."""
     path = Path(path)
-    key = _content_key(path)
+    stored = _stored(path)  # read once: digested, and parsed where not parsed before
+    key = None
+    if stored is not None:
+        key = (str(path.resolve()), hashlib.blake2b(stored, digest_size=16).digest())
     with _READ_LOCK:  # (a driver's calls may run on a thread of their own)
         data = _READ.pop(key, None) if key is not None else None
         if data is not None:
             _READ[key] = data  # the most recently read is kept longest
     if data is not None:
         return _copied(data, path)
-    data = _parse_scenarios(path)
-    if key is not None and key == _content_key(path):  # unchanged while it was parsed
+    data = _parse_scenarios(path, stored)
+    if key is not None:
         with _READ_LOCK:
             _READ[key] = data
             while len(_READ) > _READ_KEPT:
@@ -466,8 +470,8 @@ def read_scenarios(path: str | Path) -> ScenarioSet:
     return _copied(data, path)
 
 
-def _parse_scenarios(path: Path) -> ScenarioSet:
-    records = list(iter_records(path))
+def _parse_scenarios(path: Path, stored: bytes | None) -> ScenarioSet:
+    records = list(iter_records(path, stored))
     if not records:
         raise ScenarioFormatError(f"{path}: a header but no scenarios")
     max_pairs = read_header_pairs(path)
