@@ -29,6 +29,7 @@ LAYERS = {
     "alignrl.overlays": 0,
     "alignrl.intervals": 0,
     "alignrl.animation": 0,  # frames and GIFs of an alignment: numpy, matplotlib, Pillow
+    "alignrl.memory": 0,  # glibc's allocator tuned at start: freed arrays reused
     "alignrl.apparatus": 1,
     "alignrl.envs": 2,
     "alignrl.agents": 3,

@@ -27,6 +27,7 @@ from alignrl.cli.league import add_league_parsers
 from alignrl.cli.record import add_record_parsers
 from alignrl.cli.sessions import add_session_parsers
 from alignrl.cli.training import add_training_parsers
+from alignrl.memory import keep_freed_memory
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -46,6 +47,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    keep_freed_memory()  # large arrays freed at every step are reused (alignrl/memory.py)
     parser = build_parser()
     args = parser.parse_args(argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)  # recorded in a run's config
