@@ -1,14 +1,16 @@
 """Memory a process frees stays in it for the next array (glibc's allocator, tuned once).
 
-The focus posterior (alignrl/apparatus/family_posterior.py) makes and drops arrays of up to
-45 MB at every reading: columns by specimen points by optimum grid, several temporaries per
-line. By default glibc serves every block above its mmap threshold (128 KiB, raised by itself
-up to 32 MiB) with fresh pages from the kernel and hands them back when freed, and trims the
-heap's top once 128 KiB lie free there: such an array is faulted in page by page again at
-every step. Where page faults are dear (containers and sandboxes) that is time the numbers
-never needed: `alignrl evaluate --policy posterior-robust --apparatus instrument:val-mid
---scenarios 2` took 26.0 s with glibc's defaults and 22.4 s tuned, its system time 4.8 s
-against 2.2 s (`python -m benchmarks.allocator`, docs/benchmarks.md).
+The focus posterior (alignrl/apparatus/family_posterior.py) makes and drops arrays of 15 MB at
+every reading (1,024 columns x 1,836 optimum grid points; a calibration's search, 256 columns
+x 3 specimen points x up to 4,000, 20-25 MB), several temporaries per line. glibc serves a
+block above its mmap threshold with fresh pages from the kernel and hands them back when it
+is freed, and hands back the heap's free top above its trim threshold; it raises both by
+itself only as far as 32 MiB (twice that for the trim) and after the fact, so such arrays
+keep being faulted in page by page. Where page faults are dear that is time the numbers
+never needed: on this project's 2-core machine `alignrl evaluate --policy posterior-robust
+--apparatus instrument:val-mid --scenarios 2` took 26.0 s with glibc's defaults and 22.4 s
+tuned, its system time 4.8 s against 2.2 s (`python -m benchmarks.allocator`,
+docs/benchmarks.md).
 
 `keep_freed_memory` raises both thresholds to `KEPT_BYTES`: blocks up to 1 GiB come from the
 heap, and freed memory is reused rather than returned until over 1 GiB of it lies free at
@@ -27,8 +29,9 @@ from __future__ import annotations
 
 import ctypes
 import os
+from collections.abc import Mapping
 
-__all__ = ["KEPT_BYTES", "keep_freed_memory"]
+__all__ = ["KEPT_BYTES", "keep_freed_memory", "without_malloc_choices"]
 
 KEPT_BYTES = 1 << 30  # blocks up to this come from the heap; this much free is kept
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3  # glibc's mallopt parameters (malloc.h)
@@ -45,6 +48,16 @@ def keep_freed_memory() -> bool:
     if _applied is None:
         _applied = _tune()
     return _applied
+
+
+def without_malloc_choices(environment: Mapping[str, str]) -> dict[str, str]:
+    """`environment` less every variable that decides whether alignrl tunes glibc
+    (ALIGNRL_MALLOC and the user's malloc options): a process started with it tunes."""
+    return {
+        name: value
+        for name, value in environment.items()
+        if name != "ALIGNRL_MALLOC" and name not in _USER_OPTIONS
+    }
 
 
 def _tune() -> bool:

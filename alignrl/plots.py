@@ -520,15 +520,16 @@ def drawn_from(path: Path) -> str | None:
     return found if isinstance(found, str) else None
 
 
-def _build_figures(
+def _figure_makers(
     metrics: RunMetrics, colour: Any, references: Sequence[Reference]
-) -> tuple[dict[str, Figure], dict[str, str]]:
-    """Every figure the metrics allow, and why each other one is left out."""
+) -> tuple[dict[str, Callable[[], Figure]], dict[str, str]]:
+    """What draws each figure the metrics allow (called only for those drawn), and why each
+    other one is left out."""
     updates, episodes, evaluations = metrics.updates, metrics.episodes, metrics.evaluations
-    built: dict[str, Figure] = {}
+    makers: dict[str, Callable[[], Figure]] = {}
     skipped: dict[str, str] = {}
     if len(episodes):
-        built["reward.png"] = panel_figure(draw_return, episodes, colour=colour)
+        makers["reward.png"] = lambda: panel_figure(draw_return, episodes, colour=colour)
     else:
         skipped["reward.png"] = metrics.why_empty("episodes")
     if not len(updates):
@@ -536,14 +537,19 @@ def _build_figures(
     elif not update_metric_columns(updates):
         skipped["losses.png"] = "metrics/updates.csv has no columns besides the step counters"
     else:
-        built["losses.png"] = losses_figure(updates, colour)
+        makers["losses.png"] = lambda: losses_figure(updates, colour)
     if len(episodes) or len(evaluations):
         sessions = {"colour": colour, "test": metrics.test}
-        success = panel_figure(draw_success, episodes, evaluations, **sessions)
-        draw_success_references(success.axes[0], references)
-        acquisitions = panel_figure(draw_acquisitions, episodes, evaluations, **sessions)
-        draw_acquisition_references(acquisitions.axes[0], references)
-        built["success.png"], built["acquisitions.png"] = success, acquisitions
+
+        def with_references(draw: Callable[..., None], mark: Callable[..., None]) -> Figure:
+            figure = panel_figure(draw, episodes, evaluations, **sessions)
+            mark(figure.axes[0], references)
+            return figure
+
+        makers["success.png"] = lambda: with_references(draw_success, draw_success_references)
+        makers["acquisitions.png"] = lambda: with_references(
+            draw_acquisitions, draw_acquisition_references
+        )
     else:
         neither = f"{metrics.why_empty('episodes')} and {metrics.why_empty('evaluations')}"
         skipped["success.png"] = skipped["acquisitions.png"] = neither
@@ -553,8 +559,8 @@ def _build_figures(
         level = episodes["complexity"].iloc[0]
         skipped["complexity.png"] = f"the complexity was {level:g} in every episode"
     else:
-        built["complexity.png"] = panel_figure(draw_complexity, episodes, colour=colour)
-    return built, skipped
+        makers["complexity.png"] = lambda: panel_figure(draw_complexity, episodes, colour=colour)
+    return makers, skipped
 
 
 def write_figures(
@@ -568,18 +574,19 @@ def write_figures(
     run's curves in `colour` (a league member's own), `steps_label` under the horizontal axes
     (what the env_steps columns count), `references` across the success and acquisitions.
     A PNG there drawn from the same tables and options (its INPUTS_KEY text) is kept as it
-    is: a report written again (`alignrl leaderboard` after `alignrl league run`) redraws
-    only the figures whose tables changed."""
-    built, skipped = _build_figures(metrics, colour, references)
+    is, not drawn again: a report written again (`alignrl leaderboard` after `alignrl league
+    run`) draws only the figures whose tables changed."""
+    makers, skipped = _figure_makers(metrics, colour, references)
     inputs = inputs_digest(metrics, colour, steps_label, tuple(references))
     written = []
     for name in FIGURES:
-        if name in built:
+        if name in makers:
             path = out_dir / name
             if drawn_from(path) != inputs:  # else drawn from these very tables already
-                for axes in built[name].axes:
+                figure = makers[name]()
+                for axes in figure.axes:
                     axes.set_xlabel(steps_label)
-                save_png(built[name], path, inputs)
+                save_png(figure, path, inputs)
             written.append(path)
     return TrainingFigures(
         written=written, skipped={name: skipped[name] for name in FIGURES if name in skipped}

@@ -11,6 +11,8 @@ import sys
 
 import pytest
 
+from alignrl.memory import without_malloc_choices
+
 GLIBC = platform.libc_ver()[0] == "glibc"  # mallinfo2: glibc 2.33 and later
 
 # glibc's own account (mallinfo2) of a 40 MB array: the bytes it took from mmap for it, and
@@ -48,11 +50,9 @@ print(hashlib.blake2b(posterior._posterior.tobytes()).hexdigest())
 
 
 def _run(script: str, **environment: str) -> list[str]:
-    clean = {k: v for k, v in os.environ.items() if not k.startswith(("MALLOC_", "GLIBC_"))}
-    clean.pop("ALIGNRL_MALLOC", None)
     result = subprocess.run(
         [sys.executable, "-c", script],
-        env={**clean, **environment},
+        env={**without_malloc_choices(os.environ), **environment},
         capture_output=True,
         text=True,
         check=True,

@@ -17,6 +17,7 @@ import pytest
 from matplotlib.container import ErrorbarContainer
 from PIL import Image
 
+import alignrl.plots
 from alignrl.cli import main
 from alignrl.config import ExperimentConfig, dump_experiment
 from alignrl.intervals import wilson
@@ -177,6 +178,20 @@ def test_a_report_written_again_redraws_only_what_changed(tmp_path: Path) -> Non
     (changed,) = {drawn_from(path) for path in redrawn}
     assert changed not in (None, digest)
     assert not {path.name for path in redrawn if path.stat().st_ino == files[path.name]}
+
+
+def test_a_figure_kept_as_it_was_is_not_drawn_again(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    run = full_run(tmp_path)
+    first = write_run_report(run).figures.written
+
+    def refuse(*args: object, **kwargs: object) -> None:
+        raise AssertionError("a figure was drawn though its PNG was drawn from these tables")
+
+    monkeypatch.setattr(alignrl.plots, "panel_figure", refuse)
+    monkeypatch.setattr(alignrl.plots, "losses_figure", refuse)
+    assert write_run_report(run).figures.written == first
 
 
 def test_empty_metrics_still_give_a_report(tmp_path: Path) -> None:
