@@ -21,6 +21,7 @@ from typing import Any
 from alignrl.animation import alignment_gif, check_gif_path
 from alignrl.apparatus.audit import JsonLinesAudit, MemoryAudit
 from alignrl.apparatus.filming import Film, FilmedApparatus
+from alignrl.apparatus.guard import declared_intervals
 from alignrl.apparatus.registry import build_apparatus, make_apparatus
 from alignrl.apparatus.shield import resolve_limits
 from alignrl.config import ExperimentConfig, parse_experiment
@@ -31,7 +32,8 @@ from alignrl.envs.task import Task, get_task
 from alignrl.evaluation.baselines import CLASSICAL
 from alignrl.evaluation.controllers import PolicyController
 from alignrl.evaluation.session import SessionResult, run_session
-from alignrl.training import EvaluationSummary, Trainer
+from alignrl.runs.lock import RunLock
+from alignrl.training import EvaluationSummary, Trainer, check_evaluation_apparatus
 
 __all__ = ["TrainedRun", "align", "evaluate", "experiment", "load_policy", "train"]
 
@@ -61,9 +63,13 @@ def train(
 ) -> TrainedRun:
     """Train one aligner to the config's budget in `runs_dir`/<name>/ (`alignrl train`). A
     folder that already holds a run is refused (FileExistsError): choose another name, or
-    continue it with `alignrl train --resume`."""
-    trainer = Trainer.create(config, runs_dir)
-    evaluation = trainer.run(progress=progress)
+    continue it with `alignrl train --resume`. A run another process works on is refused
+    (RunLockedError), as the command refuses it; so is an evaluation apparatus that cannot be
+    built, before the run's folder exists."""
+    check_evaluation_apparatus(config)
+    with RunLock(Path(runs_dir) / config.name):
+        trainer = Trainer.create(config, runs_dir)
+        evaluation = trainer.run(progress=progress)
     return TrainedRun(trainer.run_dir, evaluation)
 
 
@@ -124,13 +130,14 @@ def align(
     gif_path = check_gif_path(gif, "gif") if gif is not None else None  # before any work
     loaded = load_policy(policy)
     unit = build_apparatus(apparatus, dict(apparatus_args or {}), seed)
-    shield_limits = resolve_limits(unit.knobs, dict(limits or {}), dict(max_step or {}))
+    knobs = declared_intervals(unit, apparatus)
+    shield_limits = resolve_limits(knobs, dict(limits or {}), dict(max_step or {}))
     film = Film() if gif_path is not None else None
     audit = JsonLinesAudit(str(log)) if log is not None else MemoryAudit()
     try:
         result = align_through_shield(
             loaded,
-            unit if film is None else FilmedApparatus(unit, film),
+            unit if film is None else FilmedApparatus(unit, film, knobs),
             shield_limits,
             audit,
             apparatus_spec=apparatus,

@@ -7,19 +7,13 @@ code derives new values into new objects, never edits a loaded config."""
 from __future__ import annotations
 
 import dataclasses
-import numbers
-import re
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Annotated, Any, Literal, TypeVar
+from typing import Annotated, Any, Literal
 
 import yaml
 from pydantic import (
-    BaseModel,
-    BeforeValidator,
-    ConfigDict,
     Field,
-    ValidationError,
     ValidationInfo,
     create_model,
     field_validator,
@@ -28,12 +22,24 @@ from pydantic import (
 
 from alignrl.agents.learners import LEARNERS, learner_defaults, learner_title
 from alignrl.apparatus.shield import DEFAULT_CALL_TIMEOUT_S
+from alignrl.config_reading import (  # noqa: F401 (re-exported: config files are read here)
+    MAX_EPISODE_STEPS,
+    SEED_LIMIT,
+    ConfigError,
+    Count,
+    EnvSteps,
+    Episodes,
+    Scenarios,
+    _Strict,
+    check_file_name,
+    overridden,
+    parse_config,
+    read_layered,
+    read_yaml,
+)
 from alignrl.devices import DEVICE, check_device_available
 from alignrl.envs.hindsight import HINDSIGHT_OPTIMA, HindsightOptimum  # noqa: F401 (re-exported)
 from alignrl.envs.task import ACTING_OPTIONS, POSTERIOR_PROBE_RULES
-from alignrl.overlays import Layers, OverlayError, apply_overrides
-from alignrl.overlays import resolve as resolve_overlays
-from alignrl.yaml_io import YAMLInputError, read_yaml_file
 
 __all__ = [
     "AdaptationConfig",
@@ -51,46 +57,11 @@ __all__ = [
 ]
 
 
-ModelT = TypeVar("ModelT", bound=BaseModel)
-
-
-class ConfigError(ValueError):
-    """A config file that cannot be used; the message names the file and the key."""
-
-
-class _Strict(BaseModel):
-    # allow_inf_nan: `.inf` or `.nan` in a YAML is a typo, never a setting.
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
-
-
-def _whole_number(value: Any) -> Any:
-    """A count is written as an integer: `true` is not 1, and `8.0` or `"8"` are typos."""
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
-        raise ValueError("expected a whole number such as 8")
-    return int(value)
-
-
-Count = Annotated[int, BeforeValidator(_whole_number)]
-
-SEED_LIMIT = 2**63  # seeds are stored as int64 (numpy, scenario files)
 MAX_HIDDEN_WIDTH = 8192  # units of one hidden layer: a 8192 x 8192 layer is 256 MB already
 MAX_HIDDEN_LAYERS = 16
 MAX_BUFFER_SIZE = 10_000_000  # replay transitions: a few GB at a history of 8
 MAX_UPDATES_PER_STEP = 16  # (SAC) gradient updates per env step
 HiddenWidth = Annotated[Count, Field(ge=1, le=MAX_HIDDEN_WIDTH)]
-
-# A run name or member id becomes one folder or file name (runs/<name>/, members/<id>.pt).
-FILE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,99}")
-
-
-def check_file_name(value: str, what: str) -> str:
-    """`value` if it is one safe path component, else a ValueError saying what is allowed."""
-    if not FILE_NAME.fullmatch(value):
-        raise ValueError(
-            f"{what} must be one folder name: 1 to 100 letters, digits, '.', '_' or '-', "
-            "starting with a letter or digit (no '/', no '..')"
-        )
-    return value
 
 
 # The learners' names, settings and defaults come from their registry
@@ -166,8 +137,8 @@ class LearnerConfig(_Strict):
     buffer_size: Count | None = _own_setting(
         "buffer_size", "replay capacity", ge=1000, le=MAX_BUFFER_SIZE
     )
-    learning_starts: Count | None = _own_setting("learning_starts", "steps before updates", ge=0)
-    random_steps: Count | None = _own_setting("random_steps", "uniform random steps", ge=0)
+    learning_starts: EnvSteps | None = _own_setting("learning_starts", "steps before updates", ge=0)
+    random_steps: EnvSteps | None = _own_setting("random_steps", "uniform random steps", ge=0)
     shared_critic_encoder: bool | None = _own_setting(
         "shared_critic_encoder", "Q1, Q2 and V read one history encoder"
     )
@@ -176,7 +147,9 @@ class LearnerConfig(_Strict):
     entropy_coef: float | None = _own_setting("entropy_coef", "entropy bonus", ge=0)
     value_coef: float | None = _own_setting("value_coef", "value loss weight", gt=0)
     epochs: Count | None = _own_setting("epochs", "passes per rollout", ge=1, le=100)
-    rollout_steps: Count | None = _own_setting("rollout_steps", "steps per env slot", ge=1)
+    rollout_steps: Count | None = _own_setting(
+        "rollout_steps", "steps per env slot", ge=1, le=MAX_BUFFER_SIZE
+    )
     initial_log_std: float | None = _own_setting("initial_log_std", "initial log-std", ge=-5, le=1)
 
     @field_validator("algorithm", mode="wrap")
@@ -247,7 +220,9 @@ class LearnerConfig(_Strict):
 class TaskOptions(_Strict):
     """Changes to a named task; unset fields keep the task's own values."""
 
-    episode_steps: Count | None = Field(None, ge=1, description="acquisitions after the first")
+    episode_steps: Count | None = Field(
+        None, ge=1, le=MAX_EPISODE_STEPS, description="acquisitions after the first"
+    )
     max_step_fraction: float | None = Field(None, gt=0, le=2, description="action scale")
     acquisition_cost: float | None = Field(None, ge=0, description="reward cost per image")
     out_of_bounds_penalty: float | None = Field(None, ge=0, description="bound penalty")
@@ -270,9 +245,11 @@ class TaskOptions(_Strict):
     finish_at_posterior: bool | None = Field(None, description="as finish_at_fit: posterior")
     stop_when_sure: float | None = Field(None, ge=0, lt=1, description="posterior stops at")
     probe_until_sure: float | None = Field(None, ge=0, lt=1, description="stop taken from")
-    posterior_draws: int | None = Field(None, ge=16, le=4096, description="posterior's columns")
+    posterior_draws: Count | None = Field(None, ge=16, le=4096, description="posterior's columns")
     posterior_far_noise: float | None = Field(None, ge=0, le=1, description="posterior's far_noise")
-    posterior_walk_after: int | None = Field(None, ge=0, le=100, description="posterior walks from")
+    posterior_walk_after: Count | None = Field(
+        None, ge=0, le=100, description="posterior walks from"
+    )
     posterior_walk_unmeasured: bool | None = Field(None, description="and while none measured")
     posterior_no_edges: bool | None = Field(None, description="posterior reads no-edge frames")
     posterior_from_below: bool | None = Field(None, description="posterior: readings from below")
@@ -325,20 +302,22 @@ class CurriculumConfig(_Strict):
     enabled: bool = Field(False, description="raise the complexity as the aligner succeeds")
     level: float = Field(0.1, gt=0, le=1, description="starting complexity level")
     step: float = Field(0.1, gt=0, le=1, description="change of the level per promotion")
-    window: Count = Field(200, ge=1, description="episodes judged per decision")
+    window: Episodes = Field(200, ge=1, description="episodes judged per decision")
     raise_at: float = Field(0.8, ge=0, le=1, description="success rate that raises the level")
     lower_at: float = Field(0.3, ge=0, le=1, description="success rate that lowers it")
 
 
 class BudgetConfig(_Strict):
-    env_steps: Count = Field(30_000, ge=1, description="environment steps (acquisitions) to train")
-    eval_every: Count = Field(5000, ge=1, description="env steps between validation sessions")
-    eval_scenarios: Count = Field(100, ge=1, description="alignments per validation session")
-    test_scenarios: Count | None = Field(
+    env_steps: EnvSteps = Field(
+        30_000, ge=1, description="environment steps (acquisitions) to train"
+    )
+    eval_every: EnvSteps = Field(5000, ge=1, description="env steps between validation sessions")
+    eval_scenarios: Scenarios = Field(100, ge=1, description="alignments per validation session")
+    test_scenarios: Scenarios | None = Field(
         None, ge=0, description="alignments of the test session of best.pt at the end (another "
         "seed, never used for a choice); null: eval_scenarios; 0: none"
     )  # fmt: skip
-    checkpoint_every: Count = Field(5000, ge=1, description="env steps between checkpoints")
+    checkpoint_every: EnvSteps = Field(5000, ge=1, description="env steps between checkpoints")
 
 
 class Provenance(_Strict):
@@ -473,7 +452,7 @@ class AdaptationConfig(_Strict):
 
     source: str = Field(description="the pre-trained aligner's checkpoint file it started from")
     source_member: str = Field(description="the pre-trained member's id")
-    source_steps: Count = Field(ge=0, description="env steps the aligner had seen before")
+    source_steps: EnvSteps = Field(ge=0, description="env steps the aligner had seen before")
     limits: dict[str, tuple[float, float]] = Field(
         default_factory=dict, description="site limits per knob, instrument units (low, high)"
     )
@@ -502,7 +481,7 @@ class AdaptationConfig(_Strict):
             "(one knob; else sharpest), or the setting of its sharpest reading"
         ),
     )
-    critic_warmup_steps: Count = Field(
+    critic_warmup_steps: EnvSteps = Field(
         0,
         ge=0,
         description=(
@@ -525,84 +504,8 @@ class ExperimentConfig(RunConfig):
     )
 
 
-SHOWN_VALUE = 100  # characters of a rejected value echoed in a message
-SHOWN_ERRORS = 10  # problems listed in one message
-
-
-def _shown(value: Any, limit: int = SHOWN_VALUE) -> str:
-    text = value if isinstance(value, str) else repr(value)
-    return text if len(text) <= limit else f"{text[:limit]}... ({len(text) - limit} more)"
-
-
-def _describe(error: ValidationError) -> str:
-    """The problems of a validation, one per key path, each value echoed in short."""
-    lines = []
-    problems = error.errors()
-    for item in problems[:SHOWN_ERRORS]:
-        key = _shown(".".join(str(part) for part in item["loc"]) or "(top level)", 200)
-        found = item.get("input")
-        shown = "" if isinstance(found, dict) else f" (found {_shown(repr(found))})"
-        message = item["msg"].removeprefix("Value error, ")
-        lines.append(f"{key}: {_shown(message, 400)}{shown}")
-    if len(problems) > SHOWN_ERRORS:
-        lines.append(f"and {len(problems) - SHOWN_ERRORS} more problems")
-    return "; ".join(lines)
-
-
-def parse_config(model: type[ModelT], data: Any, source: str, check_device: bool = False) -> ModelT:
-    """`data` (a YAML mapping) as a `model`; any problem is a ConfigError naming `source`,
-    the key path and what was expected. `check_device`: also refuse a torch device this
-    machine lacks (for a config about to run here)."""
-    if not isinstance(data, dict):
-        raise ConfigError(f"{source}: expected a mapping of settings at the top level")
-    try:
-        return model.model_validate(data, context={"check_device": check_device})
-    except ValidationError as error:
-        raise ConfigError(f"{source}: {_describe(error)}") from None
-
-
-def read_yaml(path: Path, what: str) -> Any:
-    """A YAML file read strictly and within bounds (alignrl.yaml_io: no duplicate keys, no
-    alias bombs); an empty file is an error, never a file of defaults."""
-    try:
-        data = read_yaml_file(path)
-    except FileNotFoundError:
-        raise ConfigError(f"{what} {path} does not exist") from None
-    except IsADirectoryError:
-        raise ConfigError(f"{what} {path} is a folder, not a YAML file") from None
-    except YAMLInputError as error:
-        raise ConfigError(str(error)) from None
-    if data is None:
-        raise ConfigError(f"{path}: empty {what}: write its settings (experiments/*.yaml)")
-    return data
-
-
-def read_layered(path: Path, what: str) -> Layers:
-    """An experiment YAML with its chain of `base:` files merged in (alignrl/overlays.py),
-    each file read as `read_yaml` reads it. A file without `base:` is read as it is; messages
-    about an overlay name it and its bases (`Layers.source`)."""
-    try:
-        return resolve_overlays(path, lambda file: read_yaml(file, what))
-    except OverlayError as error:
-        raise ConfigError(str(error)) from None
-
-
 def parse_experiment(data: Any, source: str = "config") -> ExperimentConfig:
     return parse_config(ExperimentConfig, data, source)
-
-
-def overridden(data: Any, source: str, overrides: Sequence[str]) -> tuple[Any, str]:
-    """A config's data with the command line's `--set key.path=value` assignments applied
-    (alignrl.overlays.apply_overrides), and its source as messages name it."""
-    if not overrides:
-        return data, source
-    if not isinstance(data, dict):
-        return data, source  # parse_config says what is wrong with it
-    try:
-        data = apply_overrides(data, list(overrides))
-    except OverlayError as error:
-        raise ConfigError(f"{source}: {error}") from None
-    return data, f"{source} with --set {' '.join(overrides)}"
 
 
 def load_experiment(path: str | Path, overrides: Sequence[str] = ()) -> ExperimentConfig:

@@ -22,7 +22,9 @@ user may call it too.
 It is left alone where glibc is not the C library (macOS, musl: nothing to tune there), where
 the environment already sets glibc's malloc options (MALLOC_MMAP_THRESHOLD_,
 MALLOC_TRIM_THRESHOLD_, MALLOC_TOP_PAD_, GLIBC_TUNABLES: the user's choice stands), and where
-ALIGNRL_MALLOC=system asks for glibc's defaults.
+ALIGNRL_MALLOC=system asks for glibc's defaults. ALIGNRL_MALLOC=tuned (or unset, or empty) is
+the tuning; any other value is a ValueError naming the variable and the values it takes
+(`check_malloc_choice`), never a typo silently read as the tuning.
 """
 
 from __future__ import annotations
@@ -31,22 +33,46 @@ import ctypes
 import os
 from collections.abc import Mapping
 
-__all__ = ["KEPT_BYTES", "keep_freed_memory", "without_malloc_choices"]
+__all__ = ["KEPT_BYTES", "MALLOC_CHOICES", "check_malloc_choice", "keep_freed_memory",
+           "without_malloc_choices"]  # fmt: skip
 
 KEPT_BYTES = 1 << 30  # blocks up to this come from the heap; this much free is kept
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3  # glibc's mallopt parameters (malloc.h)
 _USER_OPTIONS = ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_", "MALLOC_TOP_PAD_",
                  "GLIBC_TUNABLES")  # fmt: skip
 _applied: bool | None = None  # what the first call did (a process tunes once)
+MALLOC_VARIABLE = "ALIGNRL_MALLOC"
+# Its values (any case, spaces around ignored): the tuning, or glibc's defaults; unset or
+# empty is the tuning.
+MALLOC_CHOICES = {"tuned": "freed memory kept for reuse, the default",
+                  "system": "glibc's defaults"}  # fmt: skip
+SHOWN_VALUE = 40  # characters of an unknown value echoed in the message
+
+
+def check_malloc_choice() -> str:
+    """ALIGNRL_MALLOC's choice, "tuned" or "system" (unset or empty: "tuned"); ValueError
+    naming the variable, its value and the values it takes for any other value. Cheap: a
+    command may call it where its errors are reported, before `keep_freed_memory`."""
+    value = os.environ.get(MALLOC_VARIABLE, "")
+    choice = value.strip().lower() or "tuned"
+    if choice not in MALLOC_CHOICES:
+        shown = value if len(value) <= SHOWN_VALUE else f"{value[:SHOWN_VALUE]}..."
+        accepted = ", ".join(f"{name} ({meaning})" for name, meaning in MALLOC_CHOICES.items())
+        raise ValueError(
+            f"environment variable {MALLOC_VARIABLE}={shown!r} is not one of its values: "
+            f"{accepted}; or leave it unset"
+        )
+    return choice
 
 
 def keep_freed_memory() -> bool:
     """Tune glibc to keep freed memory for reuse (module docstring), once per process.
     Returns whether the thresholds are now raised: False where the C library is not glibc,
-    the environment sets malloc options already, or ALIGNRL_MALLOC=system."""
+    the environment sets malloc options already, or ALIGNRL_MALLOC=system. ValueError for
+    any other ALIGNRL_MALLOC than tuned or system (`check_malloc_choice`), nothing tuned."""
     global _applied
     if _applied is None:
-        _applied = _tune()
+        _applied = check_malloc_choice() == "tuned" and _tune()
     return _applied
 
 
@@ -56,13 +82,11 @@ def without_malloc_choices(environment: Mapping[str, str]) -> dict[str, str]:
     return {
         name: value
         for name, value in environment.items()
-        if name != "ALIGNRL_MALLOC" and name not in _USER_OPTIONS
+        if name != MALLOC_VARIABLE and name not in _USER_OPTIONS
     }
 
 
 def _tune() -> bool:
-    if os.environ.get("ALIGNRL_MALLOC", "").strip().lower() == "system":
-        return False
     if any(name in os.environ for name in _USER_OPTIONS):
         return False
     try:

@@ -10,6 +10,7 @@ a test session at another seed (TEST_SEED): the figure to report, since no choic
 run lives in runs/<name>/:
 
     config.yaml               the resolved experiment
+    .lock                     while a process works on the run (alignrl.runs.lock)
     knobs.json                the knobs' intervals and steps, for export (alignrl.runs.state)
     checkpoints/last.pt       everything needed to continue (atomic writes)
     checkpoints/best.pt       the learner of the best validation session so far
@@ -29,6 +30,7 @@ its budget (its final validation and test sessions are in last.pt) writes nothin
 from __future__ import annotations
 
 import dataclasses
+import os
 import shutil
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
@@ -48,7 +50,7 @@ from alignrl.checkpoints import (
     remove_partial_writes,
     save_checkpoint,
 )
-from alignrl.config import ExperimentConfig, dump_experiment
+from alignrl.config import ConfigError, ExperimentConfig, RunConfig, dump_experiment
 from alignrl.envs import Curriculum, VectorAlignmentEnv, make_apparatus_copies
 from alignrl.envs.task import Task
 from alignrl.evaluation.controllers import PolicyController
@@ -76,6 +78,7 @@ __all__ = [
     "EvaluationSummary",
     "TestSummary",
     "Trainer",
+    "check_evaluation_apparatus",
     "evaluate_policy",
     "start_adaptation",
 ]
@@ -116,6 +119,40 @@ def evaluate_policy(
     controller = PolicyController(name, act, task, history)
     unit = make_apparatus(apparatus, apparatus_args, shield=shield)
     return run_session(controller, unit, task, scenarios, seed)
+
+
+def check_evaluation_apparatus(config: RunConfig) -> None:
+    """Open a run's evaluation apparatus (eval_apparatus, eval_apparatus_args) once and check
+    that its sessions can judge the run's task, as a session does before its first alignment:
+    a spec, a file or arguments that cannot work are a ConfigError naming the spec before the
+    run directory exists, not a failure at the first validation session once training has
+    started. (A driver is constructed once more for it, behind the shield its sessions
+    have: an adaptation's limits and time limit, the audit in memory.)"""
+    from alignrl.apparatus.base import ApparatusError, knows_best_quality, offers_wobble
+    from alignrl.apparatus.measures import WOBBLE_KNOB
+
+    spec, task = config.eval_apparatus, config.resolved_task()
+    shield, adaptation = None, getattr(config, "adaptation", None)
+    if adaptation is not None:
+        from alignrl.adaptation import adaptation_shield
+
+        shield = adaptation_shield(adaptation, Path(os.devnull))  # a file opened on first use:
+        shield = dataclasses.replace(shield, audit=None, unit="evaluation")  # never here
+    try:
+        unit = make_apparatus(spec, config.eval_apparatus_args, shield=shield)
+        task.check_apparatus(unit.knobs)
+        if task.wobble and not (WOBBLE_KNOB in unit.knobs or offers_wobble(unit)):
+            raise ValueError(f"task {task.name!r} measures the wobble, and it has neither the "
+                             f"knob {WOBBLE_KNOB!r} nor a measure_wobble()")  # fmt: skip
+        if task.success.absolute_px is None and not knows_best_quality(unit):
+            raise ValueError("it cannot tell the best edge width it can reach (no "
+                             "best_quality()), so the task needs an absolute spec "
+                             "(task_options.success_absolute_px)")  # fmt: skip
+    except (ApparatusError, ValueError, OSError) as error:
+        raise ConfigError(
+            f"eval_apparatus {spec!r} (the apparatus of the evaluation sessions) cannot be "
+            f"used: {error}"
+        ) from None
 
 
 def _session_row(result: SessionResult) -> dict[str, Any]:

@@ -136,12 +136,32 @@ class _BoundedLoader(yaml.SafeLoader):
         return super().construct_mapping(node, deep=deep)
 
 
+def _not_text(text: str, error: yaml.YAMLError) -> str:
+    """The reader's refusal of a character (a NUL byte, another control character) as the
+    line, the column and the character, not the reader's own words."""
+    position, character = getattr(error, "position", None), getattr(error, "character", None)
+    if isinstance(character, str) and len(character) == 1:
+        character = ord(character)
+    if not isinstance(position, int) or not isinstance(character, int):
+        return f"not valid YAML: {_shortened(str(error))}"
+    line = text.count("\n", 0, position) + 1
+    column = position - (text.rfind("\n", 0, position) + 1) + 1
+    what = "a NUL byte: a binary file?" if character == 0 else "a control character"
+    return (
+        f"line {line}, column {column}: character U+{character:04X} ({what}) is not allowed "
+        "in a YAML file"
+    )
+
+
 def parse_yaml(text: str, source: str) -> Any:
     """One YAML document from `text`, read safely and strictly (see the module docstring);
     None for an empty document. Any problem is a YAMLInputError naming `source`."""
     if len(text) > MAX_FILE_BYTES:
         raise YAMLInputError(f"{source}: {len(text)} characters of YAML; at most {MAX_FILE_BYTES}")
-    loader = _BoundedLoader(text)
+    try:
+        loader = _BoundedLoader(text)  # its reader refuses what is no YAML text (a NUL byte)
+    except yaml.YAMLError as error:
+        raise YAMLInputError(f"{source}: {_not_text(text, error)}") from None
     try:
         return loader.get_single_data()
     except YAMLInputError as error:

@@ -198,6 +198,17 @@ def without_seconds(value: Any) -> Any:
     return value
 
 
+@pytest.fixture(scope="module")
+def light(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """As `light_export`, once for a module whose tests only read it."""
+    from alignrl.cli import main
+
+    out = tmp_path_factory.mktemp("light") / "light"
+    argv = ["export", "champion:focus-v2", "--format", "safetensors", "--with-learner-state"]
+    assert main([*argv, "--set", "task_options.posterior_draws=64", "--out", str(out)]) == 0
+    return out
+
+
 @pytest.fixture
 def light_export(tmp_path: Path) -> Path:
     """champion:focus-v2 exported with a posterior of 64 columns, not its 1,024 (the same

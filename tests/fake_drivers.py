@@ -11,6 +11,7 @@ import math
 import threading
 import time
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any, ClassVar
 
 import numpy as np
@@ -190,19 +191,33 @@ class FiveKnobColumn:
         return TEN_NINETY * self.sigma0
 
 
+def _bound(value: float | str) -> float:
+    return float(value)  # "inf", "-inf" and "nan" from JSON arguments too
+
+
 class HostileLens(ParabolicLens):
     """A ParabolicLens that lies, fails or hangs as told, and records every write it
     receives before checking it (`HostileLens.received`, across the instances a command
-    builds), so a test can see what got through the shield.
+    builds; `HostileLens.received_in`: each with the interval the driver declared as it came),
+    so a test can see what got through the shield.
 
     read_value: what read() says the defocus is; width: what measure() returns (a number,
-    or "nan"); write_error / measure_error / read_error: the name of an exception class
-    ("RuntimeError", "ApparatusError", ...) that call raises; hang: "read", "write",
-    "measure" or "reset": that call blocks for `hang_s` seconds (None: forever);
+    or "nan"); write_error / measure_error / read_error / reset_error / knobs_error /
+    image_error: the name of an exception class ("RuntimeError", "ApparatusError",
+    "SystemExit", ...) that call raises (knobs: the getter, after the constructor); hang:
+    "read", "write", "measure", "reset", "knobs" or "init" (the constructor): that call blocks
+    for `hang_s` seconds (None: forever), first creating the file `hang_marker` if given;
     hang_after: calls of that kind that return normally first.
+    narrow_after / narrow_to: after this many writes received, the knobs getter declares
+    `narrow_to` instead (a column that changed its allowed range); interval_at_reset: from
+    the second reset on, the knobs getter declares this interval ("inf" allowed);
+    integer_knob: the knob is named 1, not "defocus"; optimum_value: what optimum() says;
+    best_width: what best_quality() says (None: it has no best_quality); image_shape:
+    image() returns zeros of this shape; interval: the defocus interval (default 0..100 V).
     """
 
     received: ClassVar[list[dict[str, float]]] = []
+    received_in: ClassVar[list[tuple[dict[str, float], dict[Any, tuple[float, float]]]]] = []
     instances: ClassVar[list[HostileLens]] = []
 
     def __init__(
@@ -212,26 +227,74 @@ class HostileLens(ParabolicLens):
         write_error: str | None = None,
         measure_error: str | None = None,
         read_error: str | None = None,
+        reset_error: str | None = None,
+        knobs_error: str | None = None,
+        image_error: str | None = None,
         hang: str | None = None,
         hang_s: float | None = None,
         hang_after: int = 0,
+        hang_marker: str | None = None,
+        narrow_after: int | None = None,
+        narrow_to: tuple[float, float] = (45.0, 55.0),
+        interval_at_reset: tuple[float | str, float | str] | None = None,
+        integer_knob: bool = False,
+        optimum_value: dict[str, float] | None = None,
+        best_width: float | str | None = None,
+        image_shape: tuple[int, ...] | None = None,
+        interval: tuple[float, float] | None = None,
         **options: Any,
     ) -> None:
         self.read_value, self.width = read_value, width
         self.errors = {"write": write_error, "measure": measure_error, "read": read_error}
+        self.errors |= {"reset": reset_error, "knobs": knobs_error, "image": image_error}
         self.hang, self.hang_s, self.hang_after = hang, hang_s, hang_after
+        self.hang_marker = hang_marker
+        self.narrow_after, self.narrow_to = narrow_after, tuple(narrow_to)
+        self.interval_at_reset = interval_at_reset
+        self.integer_knob = integer_knob
+        self.optimum_value, self.best_width = optimum_value, best_width
+        self.image_shape = image_shape
+        if best_width is None:  # a lens that cannot tell its best width, as before
+            self.best_quality = None  # type: ignore[method-assign,assignment]
         self.counts: dict[str, int] = {}
+        self.mine: list[dict[str, float]] = []  # the writes this instance received
         self.hung = threading.Event()  # set while a call hangs
+        self.opened = False
+        self._misbehave("init")
         super().__init__(**options)
+        if interval is not None:
+            self._knobs = {"defocus": (float(interval[0]), float(interval[1]))}
+        self.opened = True
         HostileLens.instances.append(self)
+
+    @property
+    def knobs(self) -> Mapping[Any, tuple[float, float]]:  # type: ignore[override]
+        if self.opened:
+            self._misbehave("knobs")
+        return self.declared()
+
+    @knobs.setter
+    def knobs(self, value: Mapping[str, tuple[float, float]]) -> None:
+        self._knobs = dict(value)
+
+    def declared(self) -> dict[Any, tuple[float, float]]:
+        """The intervals the driver declares now (without misbehaving)."""
+        interval = self._knobs["defocus"]
+        if self.narrow_after is not None and len(self.mine) >= self.narrow_after:
+            interval = (float(self.narrow_to[0]), float(self.narrow_to[1]))
+        if self.interval_at_reset is not None and self.resets > 1:
+            interval = (_bound(self.interval_at_reset[0]), _bound(self.interval_at_reset[1]))
+        return {1 if self.integer_knob else "defocus": interval}
 
     def _misbehave(self, call: str) -> None:
         self.counts[call] = self.counts.get(call, 0) + 1
         if call == self.hang and self.counts[call] > self.hang_after:
             self.hung.set()
+            if self.hang_marker is not None:
+                Path(self.hang_marker).touch()
             threading.Event().wait(self.hang_s)  # None: never returns
         name = self.errors.get(call)
-        if name is not None:
+        if name is not None and (call != "reset" or self.opened):
             error = ApparatusError if name == "ApparatusError" else getattr(builtins, name)
             raise error(f"vendor SDK: {call} failed (E_{call.upper()}_42)")
 
@@ -239,21 +302,46 @@ class HostileLens(ParabolicLens):
         if hasattr(self, "counts"):  # ParabolicLens.__init__ resets before ours is done
             self._misbehave("reset")
         super().reset(seed)
+        if hasattr(self, "_knobs"):  # the column as found: the middle of its interval
+            self.voltage = 0.5 * sum(self._knobs["defocus"])
 
-    def read(self) -> dict[str, float]:
+    def read(self) -> dict[Any, float]:
         self._misbehave("read")
+        name = 1 if self.integer_knob else "defocus"
         if self.read_value is not None:
-            return {"defocus": self.read_value}
-        return super().read()
+            return {name: self.read_value}
+        return {name: self.voltage}
 
     def write(self, values: Mapping[str, float]) -> None:
+        declared = self.declared()
         HostileLens.received.append({name: float(value) for name, value in values.items()})
+        HostileLens.received_in.append((HostileLens.received[-1], declared))
+        self.mine.append(HostileLens.received[-1])
         self._misbehave("write")
-        super().write(values)
+        check_write(declared, values)
+        self.writes.append(dict(values))
+        self.voltage = float(next(iter(values.values())))
 
     def measure(self) -> float:
         self._misbehave("measure")
         true_width = super().measure()
         if self.width is None:
             return true_width
-        return float(self.width)
+        return self.width if isinstance(self.width, int) else float(self.width)
+
+    def image(self) -> np.ndarray | None:
+        self._misbehave("image")
+        return None if self.image_shape is None else np.zeros(self.image_shape)
+
+    def optimum(self) -> dict[str, float]:
+        return super().optimum() if self.optimum_value is None else dict(self.optimum_value)
+
+    def best_quality(self) -> float:
+        return float(self.best_width)  # type: ignore[arg-type]
+
+
+class HostileFamily(HostileLens):
+    """The hostile lens as an instrument family: it may bring other intervals with a new
+    column at reset (and only then)."""
+
+    draws_column_at_reset = True

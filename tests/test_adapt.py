@@ -20,8 +20,8 @@ import yaml
 from alignrl.adaptation import adaptation_config
 from alignrl.agents.agent import Agent
 from alignrl.apparatus import MeasurementError, make_apparatus
-from alignrl.apparatus.shield import TrainingShield
 from alignrl.apparatus.synthetic import PRESET_DIR, load_sem_config
+from alignrl.apparatus.training_shield import TrainingShield
 from alignrl.checkpoints import load_checkpoint
 from alignrl.cli import main
 from alignrl.config import TaskOptions, parse_experiment

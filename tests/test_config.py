@@ -91,3 +91,19 @@ def test_task_options_change_a_copy_of_the_named_task() -> None:
     assert get_task("focus").acquisition_cost == 0.0  # the registry's task is untouched
     with pytest.raises(ConfigError, match=r"task_options\.cost"):
         parse_experiment({"task_options": {"cost": 1}})
+
+
+@pytest.mark.parametrize(
+    ("options", "key"),
+    [
+        ({"posterior_draws": 64.0}, "posterior_draws"),
+        ({"posterior_walk_after": 2.0}, "posterior_walk_after"),
+        ({"episode_steps": 10**6}, "episode_steps"),
+    ],
+)
+def test_counts_of_task_options_are_whole_numbers_within_bounds(options: dict, key: str) -> None:
+    # A float for a count is a typo refused as one, never truncated; a count has a bound.
+    from alignrl.config import TaskOptions
+
+    with pytest.raises(ValueError, match=key):
+        TaskOptions(**options)

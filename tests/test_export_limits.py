@@ -132,3 +132,25 @@ def test_a_league_records_its_knobs_before_its_config(
         {"name": "defocus", "low": knobs[0], "high": knobs[1], "max_step": 25.0}
     ]
     assert writes.index(KNOBS_FILE) < writes.index("config.yaml")
+
+
+def test_an_export_never_carries_an_interval_wider_than_its_run_recorded(
+    trained: tuple[Path, list[str]], tmp_path: Path
+) -> None:
+    """An export of an export whose card was widened, interval and step alike (so that the
+    card agrees with itself), is held to the knobs.json of the run its card names."""
+    run, _ = trained
+    first = export_policy(resolve_source(run), tmp_path / "first", "safetensors").out
+    again = export_policy(resolve_source(first), tmp_path / "again", "safetensors")
+    assert again.card["knobs"] == LENS_KNOBS  # as recorded: exported again as it is
+    card = json.loads((first / "card.json").read_text())
+    assert card["source"]["run"] == str(run)
+    card["knobs"][0].update(low=-70.0, high=170.0, max_step=60.0)  # 0.25 x 240 V, as the rule
+    (first / "card.json").write_text(json.dumps(card))
+    source = resolve_source(first)  # the card alone is consistent
+    with pytest.raises(ExportError) as refused:
+        export_policy(source, tmp_path / "wide", "safetensors")
+    message = str(refused.value)
+    assert f"{first / 'card.json'}: knobs[0].low (defocus) is -70" in message
+    assert f"the 10 its run recorded in {run / KNOBS_FILE}" in message
+    assert not (tmp_path / "wide").exists()

@@ -435,3 +435,25 @@ def test_edge_sampling_stays_in_the_box_and_meets_its_edges_more_often() -> None
             "specimens": ["particles", "grid", "bars", "texture", "fibres"],
             "dose_electrons_per_px": [20, 400]}  # fmt: skip
     assert "contains the held-out instrument" in held_out_reason("family:focus", wide)
+
+
+def test_every_parameter_has_a_physical_range_that_every_shipped_column_lies_in() -> None:
+    from alignrl.apparatus.calibration import CALIBRATION_REACH
+    from alignrl.apparatus.family import PHYSICAL
+    from alignrl.apparatus.family_posterior import focus_box
+
+    assert set(PHYSICAL) == set(PAIR_FIELDS)
+    shipped = [FOCUS, *(family for _, family in load_set(HELD_OUT_SET) + load_set(VALIDATION_SET))]
+    shipped.append(focus_box(CALIBRATION_REACH))  # the box a calibration searches
+    for family in shipped:
+        for name, (lowest, highest, _) in PHYSICAL.items():
+            low, high = getattr(family, name)
+            assert lowest <= low <= high <= highest, (family.name, name)
+    for name, (lowest, highest, unit) in PHYSICAL.items():
+        for beyond in (highest * 10 + 1, lowest - abs(lowest) - 1, 1e300, -1e300):
+            if lowest <= beyond <= highest:
+                continue
+            with pytest.raises(ValueError, match=f"{name} .*physical range") as caught:
+                FocusFamily(**{name: beyond})
+            shown = "] V" if unit == "knob units" else f"] {unit}"  # the family's own unit
+            assert f"{highest:g}{shown}" in str(caught.value)

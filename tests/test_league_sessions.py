@@ -200,7 +200,7 @@ def test_an_apparatus_without_a_twin_plays_no_anchor_and_says_so(
     # Nor does a driver behind the shield, even one that can tell its optimum: a copy of it
     # would reach the same instrument around the shield.
     from alignrl.apparatus.limits import ShieldOptions
-    from alignrl.apparatus.shield import shield_apparatus
+    from alignrl.apparatus.training_shield import shield_apparatus
 
     shielded = shield_apparatus(ParabolicLens(), ShieldOptions())
     assert knows_optimum(shielded) and make_anchors(["hyperbola"], [shielded]) == []

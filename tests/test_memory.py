@@ -11,7 +11,7 @@ import sys
 
 import pytest
 
-from alignrl.memory import without_malloc_choices
+from alignrl.memory import check_malloc_choice, without_malloc_choices
 
 GLIBC = platform.libc_ver()[0] == "glibc"  # mallinfo2: glibc 2.33 and later
 
@@ -83,3 +83,40 @@ def test_malloc_options_of_the_user_are_left_alone() -> None:
     for environment in ({"MALLOC_TOP_PAD_": "0"}, {"GLIBC_TUNABLES": "glibc.malloc.arena_max=2"},
                         {"ALIGNRL_MALLOC": "System"}):  # fmt: skip
         assert _run(REUSED, **environment)[0] == "False", environment
+
+
+@pytest.mark.parametrize("value", ["potato", "systme", "0", "x" * 5000])
+def test_an_unknown_malloc_choice_is_refused_naming_the_variable_and_the_values(
+    monkeypatch: pytest.MonkeyPatch, value: str
+) -> None:
+    monkeypatch.setenv("ALIGNRL_MALLOC", value)
+    with pytest.raises(ValueError, match="ALIGNRL_MALLOC") as caught:
+        check_malloc_choice()
+    message = str(caught.value)
+    assert value[:40] in message and "tuned" in message and "system" in message
+    assert len(message) < 300 and "\n" not in message
+
+
+@pytest.mark.parametrize(
+    ("value", "choice"),
+    [("system", "system"), (" System ", "system"), ("SYSTEM", "system"), ("tuned", "tuned"),
+     ("Tuned", "tuned"), ("", "tuned")],
+)  # fmt: skip
+def test_the_malloc_choices_are_read_in_any_case(
+    monkeypatch: pytest.MonkeyPatch, value: str, choice: str
+) -> None:
+    monkeypatch.setenv("ALIGNRL_MALLOC", value)
+    assert check_malloc_choice() == choice
+
+
+def test_keep_freed_memory_raises_for_an_unknown_choice_and_tunes_nothing() -> None:
+    script = REUSED.replace("print(keep_freed_memory())", "keep_freed_memory()")
+    result = subprocess.run(
+        [sys.executable, "-c", script],
+        env={**without_malloc_choices(os.environ), "ALIGNRL_MALLOC": "potato"},
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert result.returncode != 0
+    assert "ValueError: environment variable ALIGNRL_MALLOC='potato'" in result.stderr

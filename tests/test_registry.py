@@ -32,7 +32,8 @@ from alignrl.apparatus import (
 from alignrl.apparatus.recorder import sweep, sweep_plan
 from alignrl.apparatus.registry import build_apparatus
 from alignrl.apparatus.scenarios import ScenarioWriter
-from alignrl.apparatus.shield import ShieldOptions, TrainingShield, shield_apparatus
+from alignrl.apparatus.shield import ShieldOptions
+from alignrl.apparatus.training_shield import TrainingShield, shield_apparatus
 
 
 def test_presets_are_listed_and_built() -> None:

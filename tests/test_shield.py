@@ -587,7 +587,7 @@ def test_a_family_column_brings_its_own_interval_at_every_reset_and_the_shield_f
     family wrote into the first column's interval before, and died at the first new one),
     and still refuses every write outside the interval of the column now in place."""
     from alignrl.apparatus.limits import ShieldOptions
-    from alignrl.apparatus.shield import shield_apparatus
+    from alignrl.apparatus.training_shield import shield_apparatus
 
     column = make_apparatus("family:focus", {"analytic": True})
     shielded = shield_apparatus(column, ShieldOptions(simulators=True, max_step={"defocus": 5.0}))
@@ -610,7 +610,7 @@ def test_a_family_column_brings_its_own_interval_at_every_reset_and_the_shield_f
 
 def test_site_limits_that_a_new_column_does_not_hold_stop_before_any_write() -> None:
     from alignrl.apparatus.limits import ShieldOptions
-    from alignrl.apparatus.shield import shield_apparatus
+    from alignrl.apparatus.training_shield import shield_apparatus
 
     column = make_apparatus("family:focus", {"analytic": True})
     column.reset(0)

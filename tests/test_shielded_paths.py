@@ -27,7 +27,7 @@ from test_align import tiny_member
 from test_shield import constant
 
 import alignrl.deploy.policy as policy_module
-from alignrl.apparatus.shield import TrainingShield
+from alignrl.apparatus.training_shield import TrainingShield
 from alignrl.envs.task import get_task
 from alignrl.league.ray_backend import MatchWorker
 

@@ -34,6 +34,7 @@ LAYERS = {
     "alignrl.envs": 2,
     "alignrl.agents": 3,
     "alignrl.plots": 3,
+    "alignrl.config_reading": 0,  # how a config file is read: bounded YAML, strict models
     "alignrl.config": 4,  # the experiment models: they build tasks, limits and learners
     "alignrl.runs": 4,
     "alignrl.evaluation": 5,

@@ -41,6 +41,7 @@ __all__ = [
     "SimulatedApparatus",
     "answers_batched",
     "check_write",
+    "draws_column_at_reset",
     "knows_best_quality",
     "knows_optimum",
     "offers_directional",
@@ -192,6 +193,13 @@ def offers_directional(unit: object) -> TypeGuard[MeasuresDirectional]:
 def offers_wobble(unit: object) -> TypeGuard[MeasuresWobble]:
     """Whether `unit` measures a wobble itself (MeasuresWobble)."""
     return callable(getattr(unit, "measure_wobble", None))
+
+
+def draws_column_at_reset(unit: object) -> bool:
+    """Whether `unit` is an instrument family: a new column, with intervals of its own, at
+    every reset. It says so with a class attribute `draws_column_at_reset = True`; for any
+    other apparatus a change of its intervals is a fault (alignrl/apparatus/shield.py)."""
+    return getattr(unit, "draws_column_at_reset", False) is True
 
 
 def answers_batched(units: Sequence[object]) -> TypeGuard[Sequence[BatchedQueries]]:

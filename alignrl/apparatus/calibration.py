@@ -24,6 +24,13 @@ not written in a file) then walks and ends the champion's alignments (Task.poste
   during the alignments: calibrate again after changing them), and far from focus trusted
   less (`CALIBRATED`, with which the calibrated posterior reads too): the fitted noise is
   then what the model does not explain near focus, where the verification is taken.
+* What it believes (issue 60): a width below MIN_READING_PX is no reading; a search is
+  bounded by the memory it states (`search_memory`, MAX_SEARCH_BYTES); readings support a
+  column only where their widths follow the setting (`support_p`) and each alignment's
+  fitted focus lies inside the limits it was read within (`check_support`:
+  UncalibratedError otherwise); a calibrated column, and every posterior setting a card
+  gives, lies within the physical ranges of an instrument family (`column_bound_problem`,
+  `posterior_options_problem`: alignrl/apparatus/family_box.py, PHYSICAL).
 
 Every reading but an alignment's first must have been approached from below
 (Task.approach_from_below, PosteriorFocus), so that backlash shifts them all alike; the first
@@ -39,12 +46,14 @@ without it: a floor of 1.23 px and a flat bottom of 0.8 % of the interval, where
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
-from alignrl.apparatus.family import PAIR_FIELDS, FocusFamily, even_fractions
+from alignrl.apparatus.family import PAIR_FIELDS, PHYSICAL, FocusFamily, even_fractions
 from alignrl.apparatus.family_posterior import (
     _FAMILY_NAMES,
     ColumnModels,
@@ -52,6 +61,7 @@ from alignrl.apparatus.family_posterior import (
     focus_box,
     widened,
 )
+from alignrl.apparatus.guard import MIN_EDGE_WIDTH_PX
 
 __all__ = [
     "ALIGNMENTS",
@@ -61,16 +71,26 @@ __all__ = [
     "COLUMN_FIELDS",
     "FAR_NOISE_SEARCHED",
     "FROM_ABOVE",
+    "MAX_SEARCH_BYTES",
+    "MIN_READING_PX",
+    "SUPPORT_P",
     "Calibration",
     "ColumnEvidence",
+    "UncalibratedError",
     "calibrate",
     "calibrated_posterior",
     "check_far_noise",
     "check_search",
+    "check_support",
+    "column_bound_problem",
     "column_evidence",
     "column_family",
     "column_problem",
     "column_values",
+    "measured_sweeps",
+    "posterior_options_problem",
+    "search_memory",
+    "support_p",
     "sweeps_of",
 ]
 
@@ -125,11 +145,39 @@ ALIGNMENTS = 10
 # twenty-second session; with the seventeenth session's champion they aligned one more).
 FROM_ABOVE, BACKLASH_SEARCHED = 2, 0.03
 MIN_SPREAD = 0.005  # the least spread of the search's normal, a share of the widened box
+# A width narrower than this (px) is no reading: an unmeasured frame, as a NaN is (the
+# shield's floor of a driver's width: no detector resolves a tenth of a pixel).
+MIN_READING_PX = MIN_EDGE_WIDTH_PX
+# What the search may hold: each column's evidence keeps about SEARCH_ARRAYS arrays of the
+# posterior's shape (specimen scales x optimum grid points, float64) alive at its peak
+# (measured with tracemalloc: 9.7; 0.93 MB per column of the widened box, whose grid is
+# 3 x 4,007), so the default 256 columns take about 250 MB; at most MAX_SEARCH_BYTES (4 GiB:
+# some 4,400 columns), where a machine of a few GiB would otherwise swap or be killed.
+SEARCH_ARRAYS, MAX_SEARCH_BYTES = 10, 4 << 30
+# Readings support a calibration where, in each alignment, the widths grow with the distance
+# from its narrowest reading (a frame without edges the widest) more than the same widths
+# shuffled among its settings do: Kendall's concordance of distance and width, summed over the
+# alignments, beyond all but a share SUPPORT_P of SUPPORT_SHUFFLES shuffles (the narrowest
+# found again in each). Not the fitted column's likelihood: a small search (8 columns, one
+# round) fits a column that explains a lens's clean curve little better than shuffled widths,
+# and the question is the readings'. A lens's readings reach the smallest p there is (1 / 1000)
+# in three alignments; random widths, one width everywhere or widths that shrink away from
+# focus do not (tests/test_calibrate_checks.py).
+SUPPORT_SHUFFLES, SUPPORT_P = 999, 0.01
+# An alignment's fitted focus within this share of the interval of a limit (or half the
+# column's spec half-width, if less) is at it: where the limit is the interval's own end, a
+# focus beyond it piles there (near-bound's, at 94-98 % of its interval, stays clear).
+FOCUS_GUARD = 0.01
 
 # One alignment's readings: (setting as a fraction of the knob's interval, width in px (NaN
 # or inf: a frame without edges), the side it was approached from: +1 below, -1 above, 0
 # unknown)
 Sweep = Sequence[tuple[float, float, float]]
+
+
+class UncalibratedError(ValueError):
+    """Readings that support no calibration: too few measured, widths that do not follow the
+    setting as a focus column's do, or a focus the limits keep out of reach."""
 
 
 @dataclass
@@ -204,13 +252,30 @@ class Calibration:
         return self.log_evidence / max(self.readings, 1)
 
 
+def search_memory(population: int, reach: float = CALIBRATION_REACH) -> tuple[int, int]:
+    """(bytes, bytes per column) the search over the focus box widened by `reach` holds at
+    its peak with `population` columns (SEARCH_ARRAYS arrays of the posterior's shape each)."""
+    probe = ColumnEvidence(widened(focus_box(0.0), reach), draws=1, **CALIBRATED)
+    per_column = int(probe._prior[0].size) * 8 * SEARCH_ARRAYS
+    return population * per_column, per_column
+
+
 def check_search(population: int, rounds: int, elite: float = ELITE) -> None:
     """ValueError for a search `calibrate` cannot run: a population below 8, rounds below 1,
-    an elite share outside (0, 1)."""
+    an elite share outside (0, 1), or a population whose arrays would take more than
+    MAX_SEARCH_BYTES."""
     if population < 8 or rounds < 1 or not 0.0 < elite < 1.0:
         raise ValueError(
             f"a calibration's population must be at least 8, its rounds at least 1 and its "
             f"elite a share in (0, 1); got {population}, {rounds}, {elite}"
+        )
+    total, per_column = search_memory(population)
+    if total > MAX_SEARCH_BYTES:
+        raise ValueError(
+            f"a calibration's population of {population} columns would take about "
+            f"{total / 2**30:.3g} GiB ({per_column / 1e6:.2g} MB per column: the posterior's "
+            f"grid, {SEARCH_ARRAYS} arrays of it), more than the {MAX_SEARCH_BYTES / 2**30:g} "
+            f"GiB a calibration may take: give at most {MAX_SEARCH_BYTES // per_column} columns"
         )
 
 
@@ -219,6 +284,18 @@ def check_far_noise(far_noise: float | None) -> None:
     (None: searched)."""
     if far_noise is not None and not (math.isfinite(far_noise) and 0.0 <= far_noise <= 1.0):
         raise ValueError(f"a calibration's far noise is a share in [0, 1], got {far_noise}")
+
+
+def measured_sweeps(sweeps: Sequence[Sweep]) -> list[list[tuple[float, float, float]]]:
+    """`sweeps` with every width below MIN_READING_PX (or not finite) a frame without edges
+    (NaN): no detector resolves a tenth of a pixel, so such a width is no reading."""
+    return [
+        [
+            (float(u), float(w) if math.isfinite(w) and w >= MIN_READING_PX else math.nan, side)
+            for u, w, side in sweep
+        ]
+        for sweep in sweeps
+    ]
 
 
 def calibrate(
@@ -239,13 +316,18 @@ def calibrate(
     approached from above, backlash up to BACKLASH_SEARCHED at least. `on_round(done, steps,
     best log evidence)` after each round and after the far noise's (steps: `rounds`, one
     more where the far noise is searched).
-    ValueError for no reading in focus's sense (fewer than two measured widths in all), a
-    population below 8, rounds below 1, an elite share outside (0, 1) or a far noise
-    outside [0, 1]."""
+    A width below MIN_READING_PX is read as a frame without edges (`measured_sweeps`).
+    UncalibratedError (a ValueError) for no reading in focus's sense (fewer than two
+    measured widths in all); ValueError for a population below 8 or beyond MAX_SEARCH_BYTES,
+    rounds below 1, an elite share outside (0, 1) or a far noise outside [0, 1]."""
+    sweeps = measured_sweeps(sweeps)
     measured = sum(1 for sweep in sweeps for _, width, _ in sweep if math.isfinite(width))
     if measured < 2:
-        raise ValueError(
-            f"a calibration needs measured readings: {len(sweeps)} alignments hold {measured}"
+        total = sum(len(sweep) for sweep in sweeps)
+        raise UncalibratedError(
+            f"a calibration needs measured readings: {len(sweeps)} alignments hold {measured} "
+            f"of {total} (a frame without edges, or a width below {MIN_READING_PX:g} px, is "
+            "none)"
         )
     check_search(population, rounds, elite)
     check_far_noise(far_noise)
@@ -262,7 +344,9 @@ def calibrate(
     # say nothing of the readings and stay in the box's middle
     searched = [PAIR_FIELDS.index(name) for name in COLUMN_FIELDS]
     rows = np.full((population, len(PAIR_FIELDS)), 0.5)
-    rows[:, searched] = even_fractions(len(searched), population, seed)
+    with warnings.catch_warnings():  # any population: Sobol' balance is not needed here
+        warnings.filterwarnings("ignore", message=".*balance properties.*")
+        rows[:, searched] = even_fractions(len(searched), population, seed)
     kept_rows, kept_log = rows[:0], np.zeros(0)
     keep = max(2, round(elite * population))
     progress = []
@@ -311,19 +395,71 @@ def calibrate(
     )
 
 
-def column_problem(column: Mapping[str, float]) -> str | None:
-    """What is wrong with a calibrated column (a mapping of COLUMN_FIELDS), or None."""
+def column_bound_problem(column: Mapping[str, Any]) -> tuple[str, str] | None:
+    """The first parameter of a calibrated column (a mapping of COLUMN_FIELDS) that is not a
+    number within the physical range an instrument family may give it (`PHYSICAL`, the
+    family box's: blur and probe of 0.1 px to 10,000 px, say), and what is wrong with it in
+    words; None where every one is."""
+    for name in COLUMN_FIELDS:
+        if name not in column:
+            continue
+        value = column[name]
+        lowest, highest, unit = PHYSICAL[name]
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            return name, f"is {str(value)[:40]!r}, not a number"
+        try:
+            number = float(value)
+        except OverflowError:  # an integer of hundreds of digits
+            return name, f"is a number of {len(str(value))} digits, beyond any column's"
+        if not (math.isfinite(number) and lowest <= number <= highest):
+            return name, (
+                f"is {number:g}, outside the physical range of a focus column, "
+                f"[{lowest:g}, {highest:g}] {unit}"
+            )
+    return None
+
+
+def posterior_options_problem(options: Mapping[str, Any]) -> tuple[str, str] | None:
+    """The first posterior setting of task options (as a file gives them: a card's) beyond
+    what an instrument family can give it (`PHYSICAL`): a calibrated column's parameter
+    (`posterior_column.NAME`), or where its readings level off (`posterior_saturation_px[i]`),
+    with what is wrong in words; None where none is, or where the value is of another type
+    (the options' own model names that). The far noise, draws and chances: TaskOptions."""
+    column = options.get("posterior_column")
+    if isinstance(column, Mapping):
+        bound = column_bound_problem(column)
+        if bound is not None:
+            return f"posterior_column.{bound[0]}", bound[1]
+    saturation = options.get("posterior_saturation_px")
+    if isinstance(saturation, list | tuple):
+        for index, value in enumerate(saturation):
+            bound = column_bound_problem({"saturation_px": value})
+            if bound is not None:
+                return f"posterior_saturation_px[{index}]", bound[1].replace(
+                    "a focus column", "where a focus column's readings level off"
+                )
+    return None
+
+
+def column_problem(column: Mapping[str, Any]) -> str | None:
+    """What is wrong with a calibrated column (a mapping of COLUMN_FIELDS), in one line, or
+    None."""
     missing = [name for name in COLUMN_FIELDS if name not in column]
-    unknown = [name for name in column if name not in COLUMN_FIELDS]
+    unknown = [str(name)[:40] for name in column if name not in COLUMN_FIELDS]
     if missing or unknown:
         return (
             f"a calibrated column names {', '.join(COLUMN_FIELDS)}; "
-            f"missing: {', '.join(missing) or 'none'}, unknown: {', '.join(unknown) or 'none'}"
+            f"missing: {', '.join(missing) or 'none'}, unknown: {', '.join(unknown[:8]) or 'none'}"
         )
+    bound = column_bound_problem(column)
+    if bound is not None:
+        return f"a calibrated column outside what a focus column may be: {bound[0]} {bound[1]}"
     try:
         column_family(column)
-    except ValueError as error:
-        return f"a calibrated column outside what a focus column may be: {error}"
+    except ValueError as error:  # pydantic's ValidationError: its first message alone
+        errors = getattr(error, "errors", None)
+        problem = errors()[0]["msg"] if callable(errors) else str(error)
+        return f"a calibrated column outside what a focus column may be: {problem[:300]}"
     return None
 
 
@@ -355,6 +491,89 @@ def calibrated_posterior(
     family = column_family(column)
     reads = CALIBRATED if far_noise is None else {**CALIBRATED, "far_noise": far_noise}
     return FamilyPosterior(family, spec_relative=spec_relative, relative_stop=True, **reads)
+
+
+def _concordance(settings: np.ndarray, widths: np.ndarray) -> np.ndarray:
+    """Per row of `widths` (R, n: one alignment's widths in some order, a frame without edges
+    inf), Kendall's concordance of each reading's distance from the row's narrowest and its
+    width: the pairs ordered alike less those ordered otherwise (R,)."""
+    nearest = settings[np.argmin(widths, axis=1)]
+    distance = np.abs(settings[None, :] - nearest[:, None])
+    wider = (widths[:, :, None] > widths[:, None, :]).astype(np.int8)
+    wider -= widths[:, :, None] < widths[:, None, :]
+    further = (distance[:, :, None] > distance[:, None, :]).astype(np.int8)
+    further -= distance[:, :, None] < distance[:, None, :]
+    return (wider * further).sum(axis=(1, 2)) // 2
+
+
+def support_p(sweeps: Sequence[Sweep], seed: int = 0) -> float:
+    """The share of SUPPORT_SHUFFLES shuffles of each alignment's widths among its settings
+    (and the readings as read) whose widths grow away from the alignment's narrowest reading
+    as much as the readings' do (`_concordance` summed over the alignments): small where the
+    widths follow a focus curve, near 1/2 where they do not depend on the setting."""
+    rng = np.random.default_rng(seed)
+    total = np.zeros(SUPPORT_SHUFFLES + 1, np.int64)
+    for sweep in measured_sweeps(sweeps):
+        settings = np.array([u for u, _, _ in sweep], float)
+        widths = np.array([w for _, w, _ in sweep], float)
+        widths[np.isnan(widths)] = math.inf  # no edges: wider than any measured
+        if settings.size < 3 or not np.isfinite(widths).any():
+            continue
+        orders = rng.permuted(np.tile(np.arange(settings.size), (SUPPORT_SHUFFLES, 1)), axis=1)
+        total += _concordance(settings, np.vstack([widths, widths[orders]]))
+    return float((1 + np.sum(total[1:] >= total[0])) / (SUPPORT_SHUFFLES + 1))
+
+
+def check_support(
+    sweeps: Sequence[Sweep],
+    calibration: Calibration,
+    interval: tuple[float, float] = (0.0, 1.0),
+    limits: tuple[float, float] | None = None,
+    knob: str = "defocus",
+    spec_relative: float = 1.15,
+    seed: int = 0,
+) -> None:
+    """UncalibratedError where `sweeps` (settings as fractions of `interval`, the knob's in
+    its units) do not support `calibration`: their widths do not follow the setting as a
+    focus curve's do (`support_p` above SUPPORT_P), or an alignment's fitted focus (the
+    median of its optimum under the calibrated column) lies at or beyond the `limits`
+    written within (its units; default: the interval): past one, or within half the
+    column's spec half-width of it (at most FOCUS_GUARD of the interval). Its readings then
+    saw one flank of the curve."""
+    share = support_p(sweeps, seed)
+    if share > SUPPORT_P:
+        raise UncalibratedError(
+            f"the readings do not follow a focus curve: their widths grow away from each "
+            f"alignment's narrowest reading no more than the same widths shuffled among its "
+            f"settings do in {100 * share:.3g} % of {SUPPORT_SHUFFLES} shuffles (a column's: "
+            f"at most {100 * SUPPORT_P:g} %); the widths do not depend on the {knob} setting "
+            "as a focus column's do, so no calibrated policy was written"
+        )
+    low, high = interval
+    lowest, highest = limits if limits is not None else interval
+    posterior = calibrated_posterior(calibration.column, spec_relative, calibration.far_noise)
+    half_width = float(posterior.models.spec_half_width(spec_relative).min())
+    guard = min(0.5 * half_width, FOCUS_GUARD)
+    inside = ((lowest - low) / (high - low) + guard, (highest - low) / (high - low) - guard)
+    outside = []
+    for index, sweep in enumerate(measured_sweeps(sweeps)):
+        if not any(math.isfinite(width) for _, width, _ in sweep):
+            continue  # nothing measured: it tells no focus
+        posterior.begin()
+        for setting, width, side in sweep:
+            posterior.observe(setting, width, side)
+        mass = posterior._posterior.sum(axis=(0, 1))
+        median = float(posterior._grid[np.searchsorted(np.cumsum(mass), 0.5 * mass.sum())])
+        if not inside[0] < median < inside[1]:
+            outside.append((index, low + median * (high - low)))
+    if outside:
+        index, focus = outside[0]
+        raise UncalibratedError(
+            f"the fitted focus of {len(outside)} of {len(sweeps)} alignments lies at or "
+            f"beyond the limits [{lowest:g}, {highest:g}] of {knob} (alignment {index + 1}: "
+            f"at {focus:.4g}): their readings saw one flank of the focus curve, which tells "
+            "no column, so no calibrated policy was written; widen the limits to hold focus"
+        )
 
 
 def sweeps_of(records: Sequence, low: float, high: float) -> list[list[tuple[float, ...]]]:

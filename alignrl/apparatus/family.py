@@ -1,9 +1,10 @@
 """The instrument family: a parametric focus column that can be any of the columns real
 microscopes are, drawn anew for every episode (docs/physics.md, "The instrument family").
 
-A `FocusFamily` is a box: every parameter is a point or a [low, high] range, read strictly
-from YAML (alignrl/apparatus/families/*.yaml for the boxes training samples,
-alignrl/apparatus/instruments/<set>/*.yaml for the single instruments judged on). A
+A `FocusFamily` is a box: every parameter is a point or a [low, high] range within its
+physical range, read strictly from YAML (alignrl/apparatus/families/*.yaml for the boxes
+training samples, alignrl/apparatus/instruments/<set>/*.yaml for the single instruments
+judged on; the box, its ranges and its files: alignrl/apparatus/family_box.py). A
 `FamilyColumn` draws one column from the box at each `reset(seed)` (`ColumnDraw`, seeded:
 the same seed, the same column) and is an Apparatus with one knob, `defocus`, in whatever
 units and interval the draw gave.
@@ -38,21 +39,28 @@ the stigmator and aperture parameters will come as kinds of their own.
 from __future__ import annotations
 
 import copy
-import hashlib
-import json
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
-from pathlib import Path
-from typing import Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from alignrl.apparatus.base import NoEdgesError, check_write
+from alignrl.apparatus.family_box import (  # noqa: F401 (re-exported: the box of the columns)
+    BOUNDED,
+    FAMILY_DIR,
+    FAMILY_KINDS,
+    LOG_SCALE,
+    PAIR_FIELDS,
+    PHYSICAL,
+    FocusFamily,
+    family_digest,
+    family_names,
+    family_path,
+    load_family,
+)
 from alignrl.apparatus.probe import focus_sigma_px, logistic
 from alignrl.apparatus.quality import TEN_NINETY_PER_SIGMA, edge_width
-from alignrl.yaml_io import read_yaml_file
 
 __all__ = [
     "FAMILY_DIR",
@@ -72,164 +80,9 @@ __all__ = [
     "load_family",
 ]
 
-FAMILY_DIR = Path(__file__).with_name("families")
-Pair = tuple[float, float]
 SAMPLINGS = ("uniform", "edges")  # how a family column draws from its box (draw_fractions)
 NO_EDGES_SPREAD = 0.1  # logistic spread of the no-edges limit, as a share of it
 BEST_QUALITY_FRAMES = 3  # frames in focus whose median reading is best_quality() (images)
-SHOWN_PROBLEMS = 8
-
-
-def _pair(value: Any) -> Any:
-    """A point x means the range [x, x]."""
-    if isinstance(value, int | float) and not isinstance(value, bool):
-        return (float(value), float(value))
-    return value
-
-
-# Parameters drawn on a log scale (positive, spanning decades); the rest uniformly.
-LOG_SCALE = (
-    "interval_width",
-    "blur_px_per_interval",
-    "floor_sigma_px",
-    "asymmetry",
-    "saturation_px",
-    "no_edges_px",
-    "dose_electrons_per_px",
-)
-
-
-PAIR_FIELDS = (
-    "interval_width",
-    "interval_centre",
-    "optimum_fraction",
-    "blur_px_per_interval",
-    "floor_sigma_px",
-    "curve_power",
-    "flat_fraction",
-    "asymmetry",
-    "reading_noise_rel",
-    "reading_noise_px",
-    "specimen_rel",
-    "saturation_px",
-    "no_edges_px",
-    "drift_fraction",
-    "hysteresis_fraction",
-    "dose_electrons_per_px",
-    "detector_noise",
-)
-BOUNDED = {
-    "optimum_fraction": (0.0, 1.0),
-    "curve_power": (1.0, 8.0),
-    "flat_fraction": (0.0, 0.2),
-    "reading_noise_rel": (0.0, 0.5),
-    "specimen_rel": (0.0, 0.5),
-    "drift_fraction": (0.0, 0.05),
-    "hysteresis_fraction": (0.0, 0.1),
-}
-
-
-class FocusFamily(BaseModel):
-    """A box of focus columns. Each parameter is a point or [low, high]; `LOG_SCALE` ones are
-    drawn log-uniformly, the others uniformly. Units: the knob's own (`unit`), px, or a
-    fraction of the knob's interval width W."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    kind: Literal["focus"] = Field("focus", description="which knobs the family moves")
-    name: str = Field("family", min_length=1, description="shown in sessions and reports")
-    description: str = Field("", description="what this box or instrument is, in words")
-    unit: str = Field("V", min_length=1, description="the defocus knob's unit, for people")
-    image_size_px: int = Field(256, ge=64, le=1024, description="square frame (image path), px")
-    interval_width: Pair = Field(
-        (40.0, 4000.0), description="W: width of the defocus interval, the knob's units"
-    )
-    interval_centre: Pair = Field(
-        (-2000.0, 2000.0), description="centre of the defocus interval, the knob's units"
-    )
-    optimum_fraction: Pair = Field(
-        (0.15, 0.85), description="where the optimum lies in the interval, 0 low .. 1 high"
-    )
-    blur_px_per_interval: Pair = Field(
-        (10.0, 100.0), description="probe sigma growth over a focus error of W, px (the gain)"
-    )
-    floor_sigma_px: Pair = Field((0.8, 2.5), description="sigma0: the probe in focus, px")
-    curve_power: Pair = Field(
-        (1.5, 3.0), description="q of the focus curve (2: hyperbola; 1: a V; high: a U)"
-    )
-    flat_fraction: Pair = Field(
-        (0.0, 0.01), description="half-width of the curve's flat bottom, fraction of W"
-    )
-    asymmetry: Pair = Field(
-        (0.67, 1.5), description="gain above focus / gain below focus (1: symmetric)"
-    )
-    reading_noise_rel: Pair = Field(
-        (0.005, 0.04), description="multiplicative noise: std of log(reading) (analytic)"
-    )
-    reading_noise_px: Pair = Field(
-        (0.0, 0.1), description="additive noise of a reading, px (analytic)"
-    )
-    specimen_rel: Pair = Field(
-        (0.0, 0.05), description="std of log(reading) between episodes: the specimen (analytic)"
-    )
-    saturation_px: Pair = Field(
-        (20.0, 80.0), description="w_sat: readings level off at the features' size, px (analytic)"
-    )
-    no_edges_px: Pair = Field(
-        (40.0, 150.0),
-        description="true width at which half the frames show no edges, px (analytic)",
-    )
-    drift_fraction: Pair = Field(
-        (0.0, 0.0005), description="std of the optimum's walk per acquisition, fraction of W"
-    )
-    hysteresis_fraction: Pair = Field(
-        (0.0, 0.005), description="backlash: V_eff lags V by this x W against the last change"
-    )
-    specimens: tuple[str, ...] = Field(
-        ("particles",), min_length=1, description="specimen kinds drawn from (image path)"
-    )
-    dose_electrons_per_px: Pair = Field(
-        (100.0, 400.0), description="primary electrons per pixel (image path)"
-    )
-    detector_noise: Pair = Field(
-        (0.005, 0.02), description="Gaussian detector noise, yield units (image path)"
-    )
-
-    @field_validator(*PAIR_FIELDS, mode="before")
-    @classmethod
-    def _points_are_ranges(cls, value: Any) -> Any:
-        return _pair(value)
-
-    @model_validator(mode="after")
-    def _check(self) -> FocusFamily:
-        from alignrl.apparatus.specimens import SPECIMENS
-
-        problems = []
-        for name in PAIR_FIELDS:
-            low, high = getattr(self, name)
-            if not (math.isfinite(low) and math.isfinite(high) and low <= high):
-                problems.append(f"{name}: need finite low <= high, got [{low:g}, {high:g}]")
-            elif name in LOG_SCALE and low <= 0:
-                problems.append(f"{name}: must be > 0, got [{low:g}, {high:g}]")
-            elif name not in ("interval_centre",) and low < 0:
-                problems.append(f"{name}: must be >= 0, got [{low:g}, {high:g}]")
-        for name, (lowest, highest) in BOUNDED.items():
-            low, high = getattr(self, name)
-            if low < lowest or high > highest:
-                problems.append(
-                    f"{name}: must lie in [{lowest:g}, {highest:g}], got [{low:g}, {high:g}]"
-                )
-        unknown = [kind for kind in self.specimens if kind not in SPECIMENS]
-        if unknown:
-            problems.append(
-                f"specimens: unknown {', '.join(unknown)} (known: {', '.join(SPECIMENS)})"
-            )
-        if problems:
-            raise ValueError("; ".join(problems))
-        return self
-
-
-FAMILY_KINDS: dict[str, type[FocusFamily]] = {"focus": FocusFamily}
 
 
 @dataclass(frozen=True)
@@ -337,6 +190,8 @@ class FamilyColumn:
     """A focus column drawn from `family` at every reset (module docstring). `analytic`:
     readings from the probe (fast, no images); otherwise rendered frames measured by
     edge_width."""
+
+    draws_column_at_reset = True  # a new interval with every column (apparatus/base.py)
 
     def __init__(
         self,
@@ -559,59 +414,3 @@ class FamilyColumn:
             self.draw.detector_noise,
             rng,
         )
-
-
-# --- presets ------------------------------------------------------------------------------
-
-
-def family_names() -> list[str]:
-    """The shipped boxes: alignrl/apparatus/families/*.yaml."""
-    return sorted(path.stem for path in FAMILY_DIR.glob("*.yaml"))
-
-
-def family_path(target: str) -> Path:
-    """The file a family is named by: a shipped box's name (families/NAME.yaml), or a path
-    (ending in .yaml or .yml, or with a folder in it); ValueError for an unknown name."""
-    if target.endswith((".yaml", ".yml")) or "/" in target:
-        return Path(target)
-    if target not in family_names():
-        raise ValueError(
-            f"no instrument family {target!r}; the shipped families are: "
-            f"{', '.join(family_names())} (or give family:PATH.yaml)"
-        )
-    return FAMILY_DIR / f"{target}.yaml"
-
-
-def load_family(path: str | Path, **overrides: Any) -> FocusFamily:
-    """Read a family or instrument YAML file strictly (an unknown key, a bad range: a
-    ValueError naming the file and the keys)."""
-    path = Path(path)
-    try:
-        data = read_yaml_file(path)
-    except FileNotFoundError:
-        raise FileNotFoundError(f"instrument family {path} does not exist") from None
-    if not isinstance(data, dict):
-        raise ValueError(f"{path}: expected a mapping of family parameters")
-    data.update(overrides)
-    kind = data.get("kind", "focus")
-    model = FAMILY_KINDS.get(kind) if isinstance(kind, str) else None
-    if model is None:
-        raise ValueError(f"{path}: kind {kind!r} is not a family kind ({', '.join(FAMILY_KINDS)})")
-    try:
-        return model(**data)
-    except ValidationError as error:
-        problems = []
-        for item in error.errors():
-            key = ".".join(str(part) for part in item["loc"]) or "(top)"
-            problems.append(f"{key[:200]}: {item['msg'][:400]}")
-        if len(problems) > SHOWN_PROBLEMS:
-            problems = [*problems[:SHOWN_PROBLEMS], f"and {len(problems) - SHOWN_PROBLEMS} more"]
-        raise ValueError(f"{path}: {'; '.join(problems)}") from None
-
-
-def family_digest(family: FocusFamily) -> str:
-    """A fingerprint of what a family simulates (its name and words left out): two files
-    that describe the same columns have the same digest, however they are named."""
-    data = family.model_dump(exclude={"name", "description"})
-    text = json.dumps(data, sort_keys=True, default=list)
-    return hashlib.sha256(text.encode()).hexdigest()

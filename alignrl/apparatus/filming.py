@@ -25,10 +25,29 @@ import numpy as np
 
 from alignrl.animation import Reading
 from alignrl.apparatus.base import Apparatus, ApparatusError, knows_optimum
+from alignrl.apparatus.guard import ShieldStop
 
-__all__ = ["Film", "FilmedApparatus", "take_reading"]
+__all__ = ["MAX_IMAGE_PIXELS", "Film", "FilmedApparatus", "drawable_image", "take_reading"]
 
 NOT_FILMED = frozenset({"batch_key", "measure_batch"})  # they would measure around the film
+MAX_IMAGE_PIXELS = 8192 * 8192  # the largest frame a film keeps (a 16k scan is not filmed)
+
+
+def drawable_image(image: Any) -> np.ndarray | None:
+    """`image` (what a driver's image() answered) as a frame a film can draw: a finite real
+    2-D array of at most MAX_IMAGE_PIXELS; None for anything else (no image, a stack, NaN)."""
+    if image is None:
+        return None
+    frame = np.asarray(image)
+    if (
+        frame.ndim != 2
+        or frame.size == 0
+        or frame.size > MAX_IMAGE_PIXELS
+        or not (np.issubdtype(frame.dtype, np.integer) or np.issubdtype(frame.dtype, np.floating))
+        or not np.all(np.isfinite(frame))
+    ):
+        return None
+    return frame
 
 
 @dataclass
@@ -56,11 +75,18 @@ class Film:
 class FilmedApparatus:
     """`apparatus`, its acquisitions kept in `film` (see the module docstring)."""
 
-    def __init__(self, apparatus: Apparatus, film: Film | None = None) -> None:
+    def __init__(
+        self,
+        apparatus: Apparatus,
+        film: Film | None = None,
+        knobs: Mapping[str, tuple[float, float]] | None = None,
+    ) -> None:
+        """`knobs`: the apparatus's intervals as already read (a driver's getter is read
+        within a time limit by the caller); None: read them here."""
         self.inner = apparatus
         self.film = film if film is not None else Film()
         if self.film.scenario_seed is None:  # align: the column as found is the scenario
-            self.film.start(None, apparatus.knobs)
+            self.film.start(None, apparatus.knobs if knobs is None else knobs)
         self._settings: dict[str, float] = {}  # as last read and written through the film
 
     @property
@@ -139,10 +165,13 @@ def take_reading(
     images: int = 1,
 ) -> Reading:
     """The acquisition `unit` just made, at `settings`: its image and (a simulator's) optimum
-    asked for now. A driver that fails to give them spoils the frame, never the alignment."""
+    asked for now. A driver that fails to give them, or gives an image that is none (not a
+    finite 2-D array of at most MAX_IMAGE_PIXELS), spoils the frame, never the alignment."""
     try:
-        image = unit.image()
-    except ApparatusError:
+        image = drawable_image(unit.image())
+    except ShieldStop:  # a hung image() ended the work: that is not the film's to hide
+        raise
+    except Exception:  # any other failure of a driver's image() spoils this frame alone
         image = None
     try:
         optimum = unit.optimum() if knows_optimum(unit) else None

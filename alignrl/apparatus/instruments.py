@@ -8,7 +8,8 @@ parameters are points (only the optimum, the start and the noise vary between ep
   ships (`eval_apparatus: set:validation`);
 * `heldout`: for reporting generalization only. No training run, league or checkpoint choice
   may reach it: `held_out_reason` names how a spec would (the set, one of its instruments by
-  name, a copy of one under another name or path, or a training box that contains one whole),
+  name, a copy of one under another name or path, or a training box that contains one whole,
+  compared by what they simulate: every parameter within SAME_WITHIN, never byte by byte),
   and the run configs refuse such a spec (alignrl/config.py).
 
 Specs (alignrl/apparatus/registry.py): `instrument:NAME` one instrument, `set:NAME` a whole set
@@ -28,7 +29,6 @@ from alignrl.apparatus.family import (
     PAIR_FIELDS,
     FamilyColumn,
     FocusFamily,
-    family_digest,
     family_path,
     load_family,
 )
@@ -102,6 +102,8 @@ class InstrumentSet:
     """A whole set as one apparatus: reset(seed) moves to instrument seed mod n of the set
     and draws its episode; everything else is that instrument's (FamilyColumn)."""
 
+    draws_column_at_reset = True  # each instrument has its own interval (apparatus/base.py)
+
     def __init__(
         self,
         instruments: Sequence[FocusFamily],
@@ -151,31 +153,69 @@ class InstrumentSet:
 # --- the wall around the held-out set ------------------------------------------------------
 
 
+# A copy of a held-out instrument with a parameter moved by a hair is the same instrument:
+# the wall compares what the files simulate, every parameter within SAME_WITHIN of the
+# held-out instrument's value (relative; of 1 for a value below 1, whose parameters are
+# shares and px; of the interval's width for its centre), never byte by byte. A change a
+# millionth of a parameter's size changes no reading a column gives.
+SAME_WITHIN = 1e-6
+
+
+def _slack(instrument: FocusFamily, name: str, value: float) -> float:
+    """How far from `value` (an end of the held-out `instrument`'s `name`) a training box's
+    end may lie and still be that instrument's (SAME_WITHIN)."""
+    scale = max(abs(value), 1.0)
+    if name == "interval_centre":
+        scale = max(scale, instrument.interval_width[1])
+    return SAME_WITHIN * scale
+
+
 def _contains(box: FocusFamily, instrument: FocusFamily) -> bool:
-    """Whether every column of `instrument` is a column of `box` too."""
+    """Whether every column of `instrument` is a column of `box` too (within `_slack`)."""
     if box.kind != instrument.kind or not set(instrument.specimens) <= set(box.specimens):
         return False
     for name in PAIR_FIELDS:
         low, high = getattr(box, name)
         inner_low, inner_high = getattr(instrument, name)
-        if inner_low < low or inner_high > high:
+        if inner_low < low - _slack(instrument, name, inner_low):
+            return False
+        if inner_high > high + _slack(instrument, name, inner_high):
             return False
     return True
 
 
+def _same(family: FocusFamily, instrument: FocusFamily) -> bool:
+    """Whether `family` simulates the columns of `instrument`: the same specimens, every
+    parameter's ends within `_slack` of the instrument's (its name, words, unit and frame size
+    aside)."""
+    if family.kind != instrument.kind or set(family.specimens) != set(instrument.specimens):
+        return False
+    return all(
+        abs(mine - theirs) <= _slack(instrument, name, theirs)
+        for name in PAIR_FIELDS
+        for mine, theirs in zip(getattr(family, name), getattr(instrument, name), strict=True)
+    )
+
+
 def _family_of(spec: str, args: Mapping[str, Any] | None) -> tuple[FocusFamily, Path] | None:
-    """The family a `family:` or `instrument:` spec simulates, with its file; None for
-    other specs or a file that cannot be read (the registry reports that when it opens)."""
+    """The family a `family:` or `instrument:` spec simulates, or a `csv:` recording draws
+    its columns from (`randomize.family`), with its file; None for other specs or a file
+    that cannot be read (the registry reports that when it opens)."""
     # The reading path and how a family samples its box change no parameter of the box.
     overrides = {
         key: value for key, value in (args or {}).items() if key not in ("analytic", "sampling")
     }
     form, _, target = spec.partition(":")
+    randomize = (args or {}).get("randomize")
     try:
         if form == "family":
             path = family_path(target)
         elif form == "instrument":
             path = find_instrument(target)
+        elif form == "csv" and isinstance(randomize, Mapping):
+            if not isinstance(randomize.get("family"), str):
+                return None
+            path, overrides = family_path(randomize["family"]), {}
         else:
             return None
     except ValueError:  # names nothing: the registry says so when it opens the spec
@@ -199,10 +239,12 @@ def held_out_reason(spec: str, args: Mapping[str, Any] | None = None) -> str | N
     held_out = load_set(HELD_OUT_SET)
     if path.resolve().parent == (INSTRUMENT_DIR / HELD_OUT_SET).resolve():
         return f"{spec} is the held-out instrument {path.stem!r}"
-    digest = family_digest(family)
     for name, instrument in held_out:
-        if family_digest(instrument) == digest:
-            return f"{spec} simulates the held-out instrument {name!r} (the same parameters)"
+        if _same(family, instrument):
+            return (
+                f"{spec} simulates the held-out instrument {name!r} (the same parameters, "
+                f"each within {SAME_WITHIN:g} of its own)"
+            )
     for name, instrument in held_out:
         if _contains(family, instrument):
             return f"{spec} contains the held-out instrument {name!r} whole (every parameter)"

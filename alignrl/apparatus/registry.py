@@ -35,20 +35,24 @@ from __future__ import annotations
 import dataclasses
 import importlib
 import inspect
-import math
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 from alignrl.apparatus.base import APPARATUS_METHODS, Apparatus
 from alignrl.apparatus.family import SAMPLINGS, FamilyColumn, family_path, load_family
-from alignrl.apparatus.guard import DEFAULT_CALL_TIMEOUT_S, construct_within
+from alignrl.apparatus.guard import (
+    DEFAULT_CALL_TIMEOUT_S,
+    checked_intervals,
+    construct_within,
+    within,
+)
 from alignrl.apparatus.instruments import InstrumentSet, find_instrument, load_set
 from alignrl.apparatus.limits import ShieldOptions
 from alignrl.apparatus.sem_config import PRESET_DIR, load_sem_config
-from alignrl.apparatus.shield import shield_apparatus
 from alignrl.apparatus.simulator import ScenarioSimulator, default_scenarios_path
 from alignrl.apparatus.synthetic import SyntheticSEM
+from alignrl.apparatus.training_shield import shield_apparatus
 
 __all__ = [
     "build_apparatus",
@@ -65,26 +69,18 @@ def preset_names() -> list[str]:
 
 
 def _check_protocol(obj: object, spec: str) -> Apparatus:
+    """`obj` if it implements the protocol with intervals that are intervals; a ValueError
+    naming what is missing or wrong. Runs on the thread that constructed it (`within`): a
+    getter that hangs or raises is bounded there like the constructor."""
     missing = [name for name in (*APPARATUS_METHODS, "knobs") if not hasattr(obj, name)]
     if missing:
         raise ValueError(
             f"apparatus {spec!r} does not implement the Apparatus protocol: missing "
             f"{', '.join(missing)} (see docs/apparatus.md)"
         )
-    knobs = obj.knobs  # type: ignore[attr-defined]
-    if not isinstance(knobs, Mapping) or not knobs:
-        raise ValueError(
-            f"apparatus {spec!r}: knobs must be a non-empty mapping name -> (low, high)"
-        )
-    for name, interval in knobs.items():
-        try:
-            low, high = (float(v) for v in interval)
-        except (TypeError, ValueError):
-            raise ValueError(
-                f"apparatus {spec!r}: knob {name!r} needs (low, high), got {interval!r}"
-            ) from None
-        if not (math.isfinite(low) and math.isfinite(high) and low < high):
-            raise ValueError(f"apparatus {spec!r}: knob {name!r} has an empty or infinite interval")
+    _, wrong = checked_intervals(obj.knobs)  # type: ignore[attr-defined]
+    if wrong is not None:
+        raise ValueError(f"apparatus {spec!r}: {wrong}")
     return obj  # type: ignore[return-value]
 
 
@@ -117,7 +113,13 @@ def _import_driver(
 ) -> Apparatus:
     module_name, _, attribute = spec.partition(":")
     try:
-        module = importlib.import_module(module_name)
+        # Bounded as the driver's calls are: a module may connect to its microscope on import.
+        module = within(
+            f"apparatus {spec!r}: importing module {module_name!r}",
+            lambda: importlib.import_module(module_name),
+            call_timeout_s,
+            passes=(ImportError,),
+        )
     except ImportError as error:
         raise ValueError(
             f"apparatus {spec!r}: cannot import module {module_name!r}: {error}"
@@ -130,12 +132,11 @@ def _import_driver(
         ) from None
     if not callable(target):
         raise ValueError(f"apparatus {spec!r}: {attribute!r} is not a class or factory")
-    driver = construct_within(
-        f"apparatus {spec!r}: the driver's constructor",
-        lambda: _construct(target, spec, args),
+    return construct_within(
+        f"apparatus {spec!r}: opening the driver (its constructor, its knobs)",
+        lambda: _check_protocol(_construct(target, spec, args), spec),
         call_timeout_s,
     )
-    return _check_protocol(driver, spec)
 
 
 def spec_form(spec: str) -> str:

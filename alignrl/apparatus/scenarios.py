@@ -556,7 +556,11 @@ class ScenarioWriter:
                 f"scenario {record.scenario}: {len(record.voltages)} pairs exceed the header's "
                 f"{self.max_pairs}"
             )
-        self._write_line(record.to_cells())
+        cells = record.to_cells()
+        # The row as `alignrl scenarios validate` will read it: a recording never writes a
+        # file its own validation rejects (a driver's interval beyond any lens, say).
+        _parse_row(cells, self.rows + 1, _Where(self.path, header(self.max_pairs)), self.max_pairs)
+        self._write_line(cells)
         self.rows += 1
         if self._pending is not None:
             # The open handle follows the file across the rename: later rows land in place.

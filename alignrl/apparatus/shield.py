@@ -2,28 +2,36 @@
 
 `ShieldedApparatus` wraps an apparatus and implements the Apparatus protocol itself, so the
 alignment loop of the environments (alignrl/envs/core.py) runs over it unchanged and the
-policy sees exactly the history features it was trained on. `TrainingShield` is the same
-shield for work of many episodes: training and adaptation, evaluation sessions, baselines and
-recordings. `make_apparatus` (alignrl/apparatus/registry.py) wraps every driver loaded by
-import path in one, so no command can reach a real instrument around it. Its rules, in order,
+policy sees exactly the history features it was trained on. `TrainingShield`
+(alignrl/apparatus/training_shield.py) is the same shield for work of many episodes: training
+and adaptation, evaluation sessions, baselines and recordings. `make_apparatus`
+(alignrl/apparatus/registry.py) wraps every driver loaded by import path in one, so no command
+can reach a real instrument around it. Its rules, in order,
 before any write reaches the driver:
 
 1. after an abort nothing is written (the one exception: `restore()`, at most once, and never
-   after a driver call was abandoned or failed);
+   after a driver call was abandoned, interrupted or failed);
 2. the watchdog: past the time limit, or with all acquisitions spent, the alignment ends;
 3. a non-finite value or an unknown knob is refused;
 4. each knob is clamped into the tighter of the apparatus's interval and the site limits,
    then its change from the current setting to at most the knob's maximum step;
-5. a write that changes nothing is not sent; in a dry run, no write is sent.
+5. a write that changes nothing is not sent; in a dry run, no write is sent;
+6. before a write is sent, the driver's intervals are read again (a bounded call): where they
+   are not those the limits were resolved against, the driver changed its mind inside the
+   alignment (a real column changes its allowed range with its mode, its high voltage, a
+   lens' current limit), and that is a driver fault: audited, nothing more written. Only a
+   driver that declares itself a family (`draws_column_at_reset`, alignrl/apparatus/base.py)
+   may bring other intervals, and only with a new scenario (`TrainingShield.reset`).
 
 Every driver call is bounded in time (`BoundedDriver`): it runs on one worker thread of the
 shield's, and the caller waits at most the call limit (default DEFAULT_CALL_TIMEOUT_S) or
 what is left of the watchdog's time, whichever is less. A call that does not return is
 abandoned, the abort is audited, and nothing more is sent to that driver. A driver that lies
-is caught where it answers: a reading outside the knob's interval or not finite is a driver
-failure; an edge width that is not a positive finite number is an unmeasured image. Any
-exception a driver raises other than ApparatusError (a vendor SDK's RuntimeError, say) is a
-driver failure naming the call.
+is caught where it answers: a reading outside the knob's interval or not finite, an optimum
+outside it or a best width that is no edge width is a driver failure; an edge width outside
+[MIN_EDGE_WIDTH_PX, MAX_EDGE_WIDTH_PX) is an unmeasured image. Any exception a driver raises
+other than ApparatusError (a vendor SDK's RuntimeError, a SystemExit) is a driver failure
+naming the call.
 
 Every call to the driver, and every decision, is one record in the audit log (`AuditSink`),
 with the wall time (ISO 8601, UTC) and the monotonic clock of the watchdog, in seconds. Values
@@ -46,19 +54,18 @@ from __future__ import annotations
 
 import contextlib
 import math
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Iterator, Mapping
 from datetime import UTC, datetime
-from typing import Any
+from typing import Any, NoReturn
 
 import numpy as np
 
-from alignrl.apparatus.audit import MEMORY_AUDIT_RECORDS, AuditSink, JsonLinesAudit, MemoryAudit
+from alignrl.apparatus.audit import AuditFailure, AuditSink, JsonLinesAudit, MemoryAudit
 from alignrl.apparatus.base import (
     Apparatus,
     ApparatusError,
     MeasurementError,
     knows_best_quality,
-    knows_optimum,
 )
 from alignrl.apparatus.guard import (
     DEFAULT_CALL_TIMEOUT_S,
@@ -70,6 +77,8 @@ from alignrl.apparatus.guard import (
     ShieldStop,
     StartOutsideLimits,
     WatchdogExpired,
+    checked_best_quality,
+    checked_intervals,
     checked_reading,
     checked_width,
 )
@@ -100,13 +109,11 @@ __all__ = [
     "ShieldStop",
     "ShieldedApparatus",
     "StartOutsideLimits",
-    "TrainingShield",
     "Watchdog",
     "WatchdogExpired",
     "WriteDecision",
     "clamp_write",
     "resolve_limits",
-    "shield_apparatus",
 ]
 
 OPERATOR_ABORT = "operator abort (Ctrl-C or SIGTERM)"
@@ -140,21 +147,22 @@ class ShieldedApparatus:
             )
         self.driver = apparatus  # the driver itself: only ever called through `inner`
         self.call_timeout_s = call_timeout_s
-        self.inner: Any = BoundedDriver(apparatus, self._call_limit, self._driver_fault)
-        self.knobs: Mapping[str, tuple[float, float]] = dict(apparatus.knobs)
-        self.limits = dict(limits)
         self.audit = audit
         self.watchdog = watchdog or Watchdog()
         self.dry_run = dry_run
-        self.start: dict[str, float] | None = None
+        self.abort_reason: str | None = None
+        self.failed = False  # a driver call failed or was abandoned: no restore either
         self.setting: dict[str, float] | None = None  # the column as the shield last left it
+        self.inner: Any = BoundedDriver(apparatus, self._call_limit, self._driver_fault)
+        self.knobs: Mapping[str, tuple[float, float]] = self._declared_intervals()
+        self.limits = dict(limits)
+        self._limits_inside()
+        self.start: dict[str, float] | None = None
         self.acquisitions = 0  # alignment images that reached the driver
         self.writes = 0  # writes that reached the driver
         self.clamped = 0  # writes clamped (in a dry run: that would have been)
         self.refused = 0  # writes not made, other than in a dry run
-        self.abort_reason: str | None = None
         self.restored = False  # the start was written back after an abort
-        self.failed = False  # a driver call failed or was abandoned: no restore either
         self._restore_tried = False
         self._final = False  # inside final_measures()
 
@@ -174,6 +182,47 @@ class ShieldedApparatus:
         self.log("driver-fault", call=call, sent=True, error=reason)
         self.abort(reason)
 
+    def _fault(self, call: str, reason: str) -> NoReturn:
+        """The driver answered what cannot be: audited, the end, nothing more written."""
+        self._driver_fault(call, reason)
+        raise DriverFailure(reason)
+
+    def _declared_intervals(self) -> dict[str, tuple[float, float]]:
+        """The intervals the driver declares now (a bounded call), checked."""
+        knobs, wrong = checked_intervals(self.inner.knobs)
+        if wrong is not None:
+            self._fault("knobs", f"the driver's knobs: {wrong}")
+        return knobs
+
+    def _limits_inside(self) -> None:
+        """Every limit lies inside its knob's interval (they were resolved from a reading of
+        the intervals a moment before: a driver that moved them since is at fault)."""
+        for name, knob in self.limits.items():
+            low, high = self.knobs.get(name, (math.nan, math.nan))
+            if not low <= knob.low < knob.high <= high:
+                self._fault(
+                    "knobs",
+                    f"the driver's interval of {name} is [{low:g}, {high:g}] now, which does "
+                    f"not hold the limits [{knob.low:g}, {knob.high:g}] resolved from it",
+                )
+
+    def _intervals_hold(self) -> None:
+        """Rule 6, before a write is sent: the driver declares the intervals it declared when
+        the limits were resolved; otherwise a driver fault (nothing more is written)."""
+        now = self._declared_intervals()
+        if now == self.knobs:
+            return
+        changes = [
+            f"{name} {list(self.knobs.get(name, ()))} -> {list(now.get(name, ()))}"
+            for name in sorted(set(now) | set(self.knobs))
+            if now.get(name) != self.knobs.get(name)
+        ]
+        self._fault(
+            "knobs",
+            f"the driver's intervals changed during the alignment ({'; '.join(changes)}): "
+            "it is not the column the limits were set for",
+        )
+
     @property
     def aborted(self) -> bool:
         return self.abort_reason is not None
@@ -189,7 +238,14 @@ class ShieldedApparatus:
             "elapsed_s": self.watchdog.elapsed_s(),
             **fields,
         }
-        self.audit.record(entry)
+        try:
+            self.audit.record(entry)
+        except AuditFailure as error:
+            # Nothing is sent that is not on record: the end, without a restore either.
+            self.failed = True
+            if self.abort_reason is None:
+                self.abort_reason = str(error)
+            raise
 
     def _stop_if_due(self, event: str, acquisitions: int | None, **fields: Any) -> None:
         """Rules 1 and 2: after an abort, or when the watchdog fires, the call is logged as
@@ -273,6 +329,7 @@ class ShieldedApparatus:
         if self.dry_run:
             self.log("write", decision="dry-run", would_be=verdict, sent=False, **record)
             return
+        self._intervals_hold()
         # Logged before it is sent: a crash during the driver call leaves it on record.
         self.log("write", decision=verdict, sent=True, **record)
         self.writes += 1
@@ -382,6 +439,7 @@ class ShieldedApparatus:
             )
             raise MeasurementError("wobble refused: the defocus sits on a limit")
         decision = "clamped" if safe < amplitude_v else "allowed"
+        self._intervals_hold()
         self.log(
             "wobble",
             decision=decision,
@@ -403,6 +461,16 @@ class ShieldedApparatus:
 
     def image(self) -> np.ndarray | None:
         return self.inner.image()
+
+    def best_width(self) -> float | None:
+        """The apparatus's best edge width in px (a simulator's `best_quality()`), checked:
+        a width that is none is a driver fault. None where it cannot tell (a real column)."""
+        if not knows_best_quality(self.inner):
+            return None
+        width, wrong = checked_best_quality(self.inner.best_quality())
+        if wrong is not None:
+            self._fault("best_quality", wrong)
+        return width
 
     def applied_setting(self) -> dict[str, float]:
         """Where the column is after the last write: the clamped value, or (dry run, or a
@@ -431,13 +499,23 @@ class ShieldedApparatus:
         if self._restore_tried or self.start is None:
             return False
         self._restore_tried = True
-        if self.failed:
-            self.log("restore", sent=False, reason="a driver call failed or hung", value=self.start)
+        if self.failed or self.inner.abandoned is not None:
+            why = (
+                f"the driver's {self.inner.abandoned}() had not returned"
+                if self.inner.abandoned is not None
+                else "a driver call failed or hung"
+            )
+            self.log("restore", sent=False, reason=why, value=self.start)
             return False
         if self.dry_run or self.setting == self.start:
             why = "dry run: nothing was written" if self.dry_run else "the column is at its start"
             self.log("restore", sent=False, reason=why, value=self.start)
             return False
+        try:
+            self._intervals_hold()
+        except DriverFailure:
+            self.log("restore", sent=False, reason="the driver's intervals changed")
+            raise
         self.log("restore", sent=True, value=self.start)
         self.writes += 1
         try:
@@ -451,129 +529,3 @@ class ShieldedApparatus:
         self.setting = dict(self.start)
         self.restored = True
         return True
-
-
-class TrainingShield(ShieldedApparatus):
-    """The shield for work of many episodes on an instrument: training and adaptation,
-    evaluation sessions, baselines, recordings.
-
-    `reset(seed)` starts a new scenario on the instrument (a new specimen area, a new state
-    of the column) and reads where the column is. The writes after it, up to the episode's
-    first acquisition, set up the scenario's start (the misalignment, the knobs a stage does
-    not align): clamped into the limits like every write, but exempt from the maximum step,
-    as a scenario's start is a jump by design. Every later write is the aligner's and obeys
-    every rule. No watchdog: the episode's step limit and the run's budget end the work; each
-    driver call is still bounded by the call limit.
-    """
-
-    def __init__(
-        self,
-        apparatus: Apparatus,
-        limits: Mapping[str, KnobLimits],
-        audit: AuditSink,
-        unit: str = "0",
-        call_timeout_s: float | None = DEFAULT_CALL_TIMEOUT_S,
-        options: ShieldOptions | None = None,
-    ) -> None:
-        super().__init__(apparatus, limits, audit, call_timeout_s=call_timeout_s)
-        self.unit = unit  # which apparatus of the run: every record names it
-        # The site limits and maximum steps the limits were resolved from: a new scenario
-        # may bring a new interval (an instrument family draws a column per reset), and the
-        # limits are then resolved again against it.
-        self._options = options or ShieldOptions()
-        self._start_limits = self._without_max_step(self.limits)
-        self._starting = False
-        # A simulated instrument's secret (the optimum, the best edge width) passes through,
-        # bounded like every call, for the critics and for relative success thresholds; so do
-        # a scenario simulator's rows (`indices`), which evaluation sessions walk in order with
-        # `reset_to`. A real column has none of them, and then neither has its shield.
-        if knows_optimum(apparatus):
-            self.optimum: Callable[[], dict[str, float]] = self.inner.optimum
-        if knows_best_quality(apparatus):
-            self.best_quality: Callable[[], float] = self.inner.best_quality
-        if getattr(apparatus, "indices", None) is not None:
-            self.indices = self.inner.indices
-
-    def log(self, event: str, **fields: Any) -> None:
-        super().log(event, unit=self.unit, **fields)
-
-    def reset(self, seed: int | None = None) -> None:
-        self._new_scenario(lambda: self.inner.reset(seed), seed=seed)
-
-    def reset_to(self, row: int, seed: int | None = None) -> None:
-        """A scenario simulator's recorded scenario `row` (evaluation sessions)."""
-        self._new_scenario(lambda: self.inner.reset_to(row, seed), seed=seed, row=row)  # type: ignore[attr-defined]
-
-    @staticmethod
-    def _without_max_step(limits: Mapping[str, KnobLimits]) -> dict[str, KnobLimits]:
-        """The limits a scenario's start obeys: the same intervals, no maximum step."""
-        return {
-            name: KnobLimits(knob.low, knob.high, knob.low_rule, knob.high_rule, None)
-            for name, knob in limits.items()
-        }
-
-    def _new_scenario(self, start: Callable[[], None], **fields: Any) -> None:
-        self._stop_if_due("reset", None, **fields)
-        try:
-            start()
-        except ApparatusError as error:
-            self.log("reset", sent=True, error=str(error), **fields)
-            raise DriverFailure(f"the driver failed to start a new scenario: {error}") from None
-        self.log("reset", sent=True, **fields)
-        self._follow_intervals()
-        self.watchdog.start()
-        self.start = self.read()
-        self.setting = dict(self.start)
-        self._starting = True
-
-    def _follow_intervals(self) -> None:
-        """After a reset: where the apparatus now gives other intervals (an instrument
-        family's new column), resolve the limits again against them, site limits and maximum
-        steps as given; a site limit the new interval does not hold stops the work
-        (ShieldConfigError), before anything is written to the new column."""
-        knobs = {name: (float(low), float(high)) for name, (low, high) in self.inner.knobs.items()}
-        if knobs == dict(self.knobs):
-            return
-        try:
-            limits = resolve_limits(knobs, self._options.site_limits, self._options.max_step)
-        except ShieldConfigError as error:
-            self.log("limits", sent=False, error=str(error))
-            self.abort_reason = f"the new scenario's intervals do not fit the limits: {error}"
-            raise ShieldConfigError(self.abort_reason) from None
-        self.knobs, self.limits = knobs, limits
-        self._start_limits = self._without_max_step(limits)
-        self.log("limits", intervals={name: list(bounds) for name, bounds in knobs.items()})
-
-    def write(self, values: Mapping[str, float]) -> None:
-        if self.setting is None and not self.aborted:
-            # Written to before any reset (a driver used as it stands): start from its reading.
-            self.start = self.read()
-            self.setting = dict(self.start)
-        if not self._starting:
-            super().write(values)
-            return
-        aligner_limits, self.limits = self.limits, self._start_limits
-        try:
-            super().write(values)
-        finally:
-            self.limits = aligner_limits
-
-    def _count(self, event: str, images: int, count: bool = True, **fields: Any) -> str:
-        self._starting = False  # the episode's first acquisition: its start is set
-        return super()._count(event, images, count, **fields)
-
-
-def shield_apparatus(apparatus: Apparatus, options: ShieldOptions | None = None) -> Apparatus:
-    """`apparatus` behind a TrainingShield with `options`' limits: ShieldConfigError for
-    limits that do not fit it, before anything is sent."""
-    options = options or ShieldOptions()
-    limits = resolve_limits(apparatus.knobs, options.site_limits, options.max_step)
-    audit = options.audit if options.audit is not None else MemoryAudit(MEMORY_AUDIT_RECORDS)
-    return TrainingShield(  # type: ignore[return-value]
-        apparatus,
-        limits,
-        audit,
-        unit=options.unit,
-        call_timeout_s=options.call_timeout_s,
-        options=options,
-    )

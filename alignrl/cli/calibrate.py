@@ -9,16 +9,23 @@ import sys
 from typing import Any
 
 from alignrl.cli.common import (
+    EXIT_INTERRUPTED,
     _add_apparatus_options,
     _add_shield_options,
     _at_least_one,
     _at_least_zero,
     _emit,
     _json_object,
+    _message,
     _seed,
     _share,
     _shield_options,
 )
+
+# The alignments ran, but their readings support no calibration (a driver whose widths do not
+# follow the setting, or limits that keep focus out of reach): nothing written, as `alignrl
+# align` exits 1 for "not aligned".
+EXIT_NOT_CALIBRATED = 1
 
 
 def column_lines(column: dict[str, float]) -> list[str]:
@@ -37,12 +44,43 @@ def column_lines(column: dict[str, float]) -> list[str]:
     ]
 
 
+def _interrupted(out: Any) -> int:
+    print(
+        f"\ninterrupted: no calibrated policy written ({out} left as it was: a calibration "
+        "counts only when complete)",
+        file=sys.stderr,
+    )
+    return EXIT_INTERRUPTED
+
+
 def cmd_calibrate(args: argparse.Namespace) -> int:
+    from alignrl.deploy.align import operator_signals
+
+    try:
+        with operator_signals():  # SIGTERM ends it as Ctrl-C does
+            return _calibrate(args)
+    except KeyboardInterrupt:
+        return _interrupted(args.out)
+
+
+def _calibrate(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
+    from alignrl.apparatus.calibration import UncalibratedError
     from alignrl.apparatus.registry import make_apparatus
-    from alignrl.deploy.calibrate import CALIBRATION_FILE, calibrate_policy
+    from alignrl.deploy.calibrate import CALIBRATION_FILE, plan_calibration, run_calibration
 
+    # Everything that can be checked without the apparatus, before it is opened
+    plan = plan_calibration(
+        args.policy,
+        args.out,
+        alignments=args.alignments,
+        population=args.population,
+        rounds=args.rounds,
+        from_above=args.from_above,
+        far_noise=args.far_noise,
+        force=args.force,
+    )
     apparatus = make_apparatus(
         args.apparatus,
         _json_object(args.apparatus_args, "--apparatus-args"),
@@ -71,23 +109,19 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
     command = shlex.join(["alignrl", *args.argv])
     try:
-        result = calibrate_policy(
-            args.policy,
+        result = run_calibration(
+            plan,
             apparatus,
-            args.out,
-            alignments=args.alignments,
             seed=args.seed,
             spec_px=args.spec_px,
             budget=args.budget,
-            population=args.population,
-            rounds=args.rounds,
-            force=args.force,
             command=command,
-            from_above=args.from_above,
             on_alignment=alignment,
             on_round=calibrated_round,
-            far_noise=args.far_noise,
         )
+    except UncalibratedError as error:
+        print(f"alignrl: not calibrated: {_message(error)}", file=sys.stderr)
+        return EXIT_NOT_CALIBRATED
     finally:
         for bar in bars.values():
             bar.close()
@@ -158,7 +192,8 @@ def add_calibrate_parser(verbs: argparse._SubParsersAction[argparse.ArgumentPars
         "--population",
         type=_at_least_one,
         default=256,
-        help="columns the search weighs per round (default: 256; at least 8)",
+        help="columns the search weighs per round (default: 256; at least 8, at most what "
+        "4 GiB holds: about 4,400, 0.96 MB each)",
     )
     calibrate.add_argument(
         "--rounds", type=_at_least_one, default=8, help="rounds of the search (default: 8)"

@@ -70,6 +70,17 @@ def _at_least_one(text: str) -> int:
     return value
 
 
+def _scenarios(text: str) -> int:
+    """--scenarios: an integer of at most MAX_SCENARIOS (a session of days, not of years);
+    the verb says what the fewest are."""
+    from alignrl.config_reading import MAX_SCENARIOS
+
+    value = _parsed(text, int)
+    if value > MAX_SCENARIOS:
+        raise argparse.ArgumentTypeError(f"{text[:40]} scenarios: at most {MAX_SCENARIOS:,}")
+    return value
+
+
 def _at_least_zero(text: str) -> int:
     """A count that may be none: an integer of at least 0."""
     value = _parsed(text, int)
@@ -206,7 +217,10 @@ def _add_session_options(parser: argparse.ArgumentParser, apparatus_required: bo
         "trained aligner, its own task)",
     )
     parser.add_argument(
-        "--scenarios", type=int, default=100, help="alignments in the session (default: 100)"
+        "--scenarios",
+        type=_scenarios,
+        default=100,
+        help="alignments in the session (default: 100)",
     )
     parser.add_argument("--seed", type=_seed, default=0, help="seed of the scenarios and starts")
     parser.add_argument(

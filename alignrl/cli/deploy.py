@@ -36,6 +36,7 @@ def cmd_align(args: argparse.Namespace) -> int:
     """One alignment through the safety shield; the exit code says how it ended
     (alignrl/deploy/align.py: 0 aligned, 1 not, 2 config, 3 aborted, 4 driver failure)."""
     from alignrl.apparatus.filming import Film, FilmedApparatus
+    from alignrl.apparatus.guard import declared_intervals
     from alignrl.apparatus.registry import build_apparatus
     from alignrl.apparatus.shield import JsonLinesAudit, MemoryAudit, resolve_limits
     from alignrl.deploy.align import (
@@ -80,7 +81,8 @@ def cmd_align(args: argparse.Namespace) -> int:
             except ApparatusError as error:
                 print(f"alignrl: apparatus error: {error}", file=sys.stderr)
                 return EXIT_DRIVER
-            limits = resolve_limits(apparatus.knobs, site_limits, max_step)
+            knobs = declared_intervals(apparatus, args.apparatus, args.call_timeout)
+            limits = resolve_limits(knobs, site_limits, max_step)
         except KeyboardInterrupt:
             print("\ninterrupted before the alignment started: nothing written", file=sys.stderr)
             return EXIT_ABORTED
@@ -88,7 +90,7 @@ def cmd_align(args: argparse.Namespace) -> int:
         try:
             result = align(
                 policies,
-                apparatus if film is None else FilmedApparatus(apparatus, film),
+                apparatus if film is None else FilmedApparatus(apparatus, film, knobs),
                 limits,
                 audit,
                 task=judged,

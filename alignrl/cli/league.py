@@ -9,8 +9,9 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from alignrl.apparatus.shield import ShieldStop
 from alignrl.cli.common import (
@@ -23,6 +24,9 @@ from alignrl.cli.common import (
     _renamed,
     _replace_run,
 )
+
+if TYPE_CHECKING:
+    from alignrl.runs.lock import RunLock
 
 
 def _leaderboard_lines(rows: list[dict[str, Any]]) -> list[str]:
@@ -80,7 +84,19 @@ def _emit_with_league_report(
     )
 
 
-def _run_league(league: Any, args: argparse.Namespace) -> int:
+def _run_league(
+    start: Callable[[RunLock], Any], args: argparse.Namespace, run_dir: Path, new: bool
+) -> int:
+    """The one way of every league that plays (league run and resume): lock `run_dir` (a
+    second process on the same run is refused at once, before either reads or writes a file
+    of it), `start` the League under the lock, play it to its schedule and report it."""
+    from alignrl.runs.lock import RunLock
+
+    with RunLock(run_dir, create=new) as lock:
+        return _played(start(lock), args)
+
+
+def _played(league: Any, args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from alignrl.agents.sac import NonFiniteError
@@ -134,16 +150,25 @@ def cmd_league_run(args: argparse.Namespace) -> int:
     if args.name is not None:
         config = _renamed(config, args.name)
     from alignrl.runs.state import with_provenance
+    from alignrl.training import check_evaluation_apparatus
 
     config = with_provenance(config, overrides, args.argv)
-    _replace_run(Path(args.runs_dir) / config.name, args.force, "alignrl league resume")
-    return _run_league(League.create(config, aligners, misaligners, args.runs_dir), args)
+    check_evaluation_apparatus(config)  # before the run directory exists (or --force takes it)
+    run_dir = Path(args.runs_dir) / config.name
+
+    def created(lock: RunLock) -> Any:
+        if not lock.only_the_lock():  # (a folder with nothing else in it holds no run)
+            _replace_run(run_dir, args.force, "alignrl league resume")
+            lock.renew()
+        return League.create(config, aligners, misaligners, args.runs_dir)
+
+    return _run_league(created, args, run_dir, new=True)
 
 
 def cmd_league_resume(args: argparse.Namespace) -> int:
     from alignrl.league.loop import League
 
-    return _run_league(League.resume(args.run), args)
+    return _run_league(lambda _: League.resume(args.run), args, Path(args.run), new=False)
 
 
 def cmd_league_status(args: argparse.Namespace) -> int:

@@ -17,6 +17,7 @@ from alignrl.cli.calibrate import add_calibrate_parser
 from alignrl.cli.common import (
     EXIT_DRIVER_FAILURE,
     EXIT_INTERNAL,
+    EXIT_INTERRUPTED,
     EXIT_SHIELD_STOP,
     EXIT_USAGE,
     CommandError,
@@ -46,15 +47,28 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _terminated(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    keep_freed_memory()  # large arrays freed at every step are reused (alignrl/memory.py)
+    try:
+        keep_freed_memory()  # large arrays freed at every step are reused (alignrl/memory.py)
+    except ValueError as error:  # ALIGNRL_MALLOC set to a value it does not take
+        print(f"alignrl: error: {error}", file=sys.stderr)
+        return EXIT_USAGE
     parser = build_parser()
     args = parser.parse_args(argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)  # recorded in a run's config
-    # Ctrl-C must reach the recorder's handler as KeyboardInterrupt, also under `make`.
+    # Ctrl-C must reach the recorder's handler as KeyboardInterrupt, also under `make`, and
+    # SIGTERM (a `kill`, a service stop) ends every verb as Ctrl-C does, never a silent 143.
     signal.signal(signal.SIGINT, signal.default_int_handler)
+    terminate = signal.signal(signal.SIGTERM, _terminated)
     try:
         return int(args.handler(args))
+    except KeyboardInterrupt:  # a verb that keeps nothing half-done says so itself first
+        print("\nalignrl: interrupted (Ctrl-C or SIGTERM)", file=sys.stderr)
+        return EXIT_INTERRUPTED
     except ShieldStop as error:  # the shield ended work on an instrument: nothing more sent
         failure = isinstance(error, DriverFailure)
         print(
@@ -79,3 +93,5 @@ def main(argv: Sequence[str] | None = None) -> int:
             file=sys.stderr,
         )
         return EXIT_INTERNAL
+    finally:
+        signal.signal(signal.SIGTERM, terminate)

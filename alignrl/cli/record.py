@@ -29,6 +29,7 @@ from alignrl.cli.common import (
     _at_least_one,
     _emit,
     _json_object,
+    _scenarios,
     _seed,
     _shield_options,
 )
@@ -237,7 +238,9 @@ def add_record_parsers(verbs: argparse._SubParsersAction[argparse.ArgumentParser
         "record", help="sweep an apparatus into a scenario CSV (seed section 4.3)"
     )
     _add_apparatus_options(record)
-    record.add_argument("--scenarios", type=int, required=True, help="total scenarios wanted")
+    record.add_argument(
+        "--scenarios", type=_scenarios, required=True, help="total scenarios wanted"
+    )
     record.add_argument("--out", required=True, help="output CSV (.csv or .csv.gz)")
     record.add_argument("--seed", type=_seed, default=0, help="base seed of the scenarios")
     record.add_argument("--step", choices=("constant", "adaptive"), default="adaptive")

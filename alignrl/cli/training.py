@@ -7,9 +7,10 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from alignrl.apparatus.shield import ShieldStop
 from alignrl.cli.common import (
@@ -28,10 +29,13 @@ from alignrl.cli.common import (
     _updates_per_step,
 )
 
+if TYPE_CHECKING:
+    from alignrl.runs.lock import RunLock
+
 
 def cmd_train(args: argparse.Namespace) -> int:
     from alignrl.config import load_experiment
-    from alignrl.training import Trainer
+    from alignrl.training import Trainer, check_evaluation_apparatus
 
     overrides = _overrides(args)
     if args.resume:
@@ -50,35 +54,51 @@ def cmd_train(args: argparse.Namespace) -> int:
                 f"--resume RUN continues RUN with its own config and name: give {given[0]} or "
                 "--resume, not both (--steps N gives it a new budget)"
             )
-        trainer = _resumed(args)
-    else:
-        if not args.config:
-            raise CommandError("give an experiment config (experiments/X.yaml) or --resume RUN")
-        if args.steps is not None:
-            overrides.append(f"budget.env_steps={args.steps}")
-        config = load_experiment(args.config, overrides)
-        if args.name is not None:
-            config = _renamed(config, args.name)
-        from alignrl.runs.state import with_provenance
+        return _train_to_the_end(
+            lambda _: _resumed(args), args, "alignrl train --resume", Path(args.resume), new=False
+        )
+    if not args.config:
+        raise CommandError("give an experiment config (experiments/X.yaml) or --resume RUN")
+    if args.steps is not None:
+        overrides.append(f"budget.env_steps={args.steps}")
+    config = load_experiment(args.config, overrides)
+    if args.name is not None:
+        config = _renamed(config, args.name)
+    from alignrl.runs.state import with_provenance
 
-        config = with_provenance(config, overrides, args.argv)
-        _replace_run(Path(args.runs_dir) / config.name, args.force, "alignrl train --resume")
-        if config.adaptation is not None:
-            # An adaptation written as a YAML (e.g. a copy of a run's config.yaml with other
-            # settings): it starts from its source, as `alignrl adapt` does, never from scratch.
-            from alignrl.adaptation import check_adaptable
-            from alignrl.runs.sources import ExportError, resolve_source
-            from alignrl.training import start_adaptation
+    config = with_provenance(config, overrides, args.argv)
+    check_evaluation_apparatus(config)  # before the run directory exists (or --force takes it)
+    run_dir = Path(args.runs_dir) / config.name
 
-            try:
-                source = resolve_source(config.adaptation.source)
-                check_adaptable(source, config.adaptation.source)
-            except ExportError as error:
-                raise CommandError(f"{args.config}: adaptation.source: {error}") from None
-            trainer = start_adaptation(config, source, args.runs_dir)
-            return _train_to_the_end(trainer, args, "alignrl adapt --resume")
-        trainer = Trainer.create(config, args.runs_dir)
-    return _train_to_the_end(trainer, args, "alignrl train --resume")
+    def replaced(lock: RunLock) -> None:
+        if not lock.only_the_lock():  # (a folder with nothing else in it holds no run)
+            _replace_run(run_dir, args.force, "alignrl train --resume")
+            lock.renew()
+
+    if config.adaptation is not None:
+        # An adaptation written as a YAML (e.g. a copy of a run's config.yaml with other
+        # settings): it starts from its source, as `alignrl adapt` does, never from scratch.
+        from alignrl.adaptation import check_adaptable
+        from alignrl.runs.sources import ExportError, resolve_source
+        from alignrl.training import start_adaptation
+
+        try:
+            source = resolve_source(config.adaptation.source)
+            check_adaptable(source, config.adaptation.source)
+        except ExportError as error:
+            raise CommandError(f"{args.config}: adaptation.source: {error}") from None
+
+        def adaptation(lock: RunLock) -> Any:
+            replaced(lock)
+            return start_adaptation(config, source, args.runs_dir)
+
+        return _train_to_the_end(adaptation, args, "alignrl adapt --resume", run_dir)
+
+    def training(lock: RunLock) -> Any:
+        replaced(lock)
+        return Trainer.create(config, args.runs_dir)
+
+    return _train_to_the_end(training, args, "alignrl train --resume", run_dir)
 
 
 def _resumed(args: argparse.Namespace) -> Any:
@@ -88,7 +108,23 @@ def _resumed(args: argparse.Namespace) -> Any:
     return Trainer.resume(args.resume, env_steps=args.steps)
 
 
-def _train_to_the_end(trainer: Any, args: argparse.Namespace, resume: str) -> int:
+def _train_to_the_end(
+    start: Callable[[RunLock], Any],
+    args: argparse.Namespace,
+    resume: str,
+    run_dir: Path,
+    new: bool = True,
+) -> int:
+    """The one way of every training run (alignrl train and adapt, new or resumed): lock
+    `run_dir` (a second process on the same run is refused at once, before either reads or
+    writes a file of it), `start` its Trainer under the lock, and run it to its budget."""
+    from alignrl.runs.lock import RunLock
+
+    with RunLock(run_dir, create=new) as lock:
+        return _trained(start(lock), args, resume)
+
+
+def _trained(trainer: Any, args: argparse.Namespace, resume: str) -> int:
     """Run a Trainer (alignrl train or adapt) to its budget; one summary at the end. SIGTERM
     (a `kill`, a job scheduler) stops it as Ctrl-C does."""
     from alignrl.agents.sac import NonFiniteError
@@ -154,13 +190,18 @@ def _train_to_the_end(trainer: Any, args: argparse.Namespace, resume: str) -> in
 def cmd_adapt(args: argparse.Namespace) -> int:
 
     if args.resume:
-        trainer = _resumed(args)
-        if trainer.config.adaptation is None:
-            raise CommandError(f"{args.resume} is a training run, not an adaptation: use train")
-        return _train_to_the_end(trainer, args, "alignrl adapt --resume")
+
+        def resumed(_: RunLock) -> Any:
+            trainer = _resumed(args)
+            if trainer.config.adaptation is None:
+                raise CommandError(f"{args.resume} is a training run, not an adaptation: use train")
+            return trainer
+
+        resume = "alignrl adapt --resume"
+        return _train_to_the_end(resumed, args, resume, Path(args.resume), new=False)
     from alignrl.adaptation import adaptation_config, check_adaptable
     from alignrl.runs.sources import ExportError, resolve_source
-    from alignrl.training import start_adaptation
+    from alignrl.training import check_evaluation_apparatus, start_adaptation
 
     if not (args.source and args.apparatus and args.steps):
         raise CommandError("give --from RUN_OR_POLICY, --apparatus SPEC and --steps N")
@@ -206,16 +247,20 @@ def cmd_adapt(args: argparse.Namespace) -> int:
     from alignrl.runs.state import with_provenance
 
     config = with_provenance(config, overrides, args.argv)
-    try:
-        trainer = start_adaptation(config, source, args.runs_dir)
-    except ShieldStop as error:
-        run_dir = Path(args.runs_dir) / config.name
-        raise type(error)(
-            f"{error}; the adaptation stopped in its zero-shot session, before its first "
-            f"checkpoint: {run_dir} keeps only its audit log; run the same command again once "
-            "the instrument answers"
-        ) from None
-    return _train_to_the_end(trainer, args, "alignrl adapt --resume")
+    check_evaluation_apparatus(config)  # before the run directory exists
+    run_dir = Path(args.runs_dir) / config.name
+
+    def started(_: RunLock) -> Any:
+        try:
+            return start_adaptation(config, source, args.runs_dir)
+        except ShieldStop as error:
+            raise type(error)(
+                f"{error}; the adaptation stopped in its zero-shot session, before its first "
+                f"checkpoint: {run_dir} keeps only its audit log; run the same command again "
+                "once the instrument answers"
+            ) from None
+
+    return _train_to_the_end(started, args, "alignrl adapt --resume", run_dir)
 
 
 def cmd_report(args: argparse.Namespace) -> int:

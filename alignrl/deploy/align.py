@@ -34,7 +34,7 @@ import numpy as np
 
 from alignrl.animation import Scene
 from alignrl.apparatus.audit import plain
-from alignrl.apparatus.base import Apparatus, ApparatusError, knows_best_quality
+from alignrl.apparatus.base import Apparatus, ApparatusError
 from alignrl.apparatus.shield import (
     DEFAULT_CALL_TIMEOUT_S,
     OPERATOR_ABORT,
@@ -148,9 +148,20 @@ class AlignResult:
 # --- the alignment ------------------------------------------------------------------------
 
 
-def _spec_threshold(
-    task: Task, apparatus: Apparatus, spec_px: float | None, shield: Any
-) -> float | None:
+def _best_width(shield: ShieldedApparatus, **fields: Any) -> float | None:
+    """The apparatus's best edge width (simulated apparatus; None: it cannot tell), logged
+    with `fields`."""
+    try:
+        best_px = shield.best_width()
+    except ApparatusError as error:
+        shield.log("reference", sent=True, error=str(error))
+        raise DriverFailure(f"the apparatus failed to say its best edge width: {error}") from None
+    if best_px is not None:
+        shield.log("reference", sent=True, best_width_px=best_px, **fields)
+    return best_px
+
+
+def _spec_threshold(task: Task, spec_px: float | None, shield: ShieldedApparatus) -> float | None:
     """--spec-px, else the task's absolute spec, else its relative rule with the apparatus's
     best_quality() (simulated apparatus); None where none of them is possible."""
     rule = task.success
@@ -158,15 +169,8 @@ def _spec_threshold(
         return float(spec_px)
     if rule.absolute_px is not None:
         return float(rule.absolute_px)
-    if not knows_best_quality(apparatus):
-        return None
-    try:
-        best_px = float(apparatus.best_quality())
-    except ApparatusError as error:
-        shield.log("reference", sent=True, error=str(error))
-        raise DriverFailure(f"the apparatus failed to say its best edge width: {error}") from None
-    shield.log("reference", sent=True, best_width_px=best_px, relative=rule.relative)
-    return rule.threshold_px(best_px) if math.isfinite(best_px) else None
+    best_px = _best_width(shield, relative=rule.relative)
+    return None if best_px is None else rule.threshold_px(best_px)
 
 
 def _check_policy_shape(policy: DeployablePolicy, episodes: AlignmentEpisodes) -> None:
@@ -317,7 +321,7 @@ def align(
     threshold: float | None = None
     try:
         shield.begin()
-        threshold = _spec_threshold(task, shield.inner, spec_px, shield)
+        threshold = _spec_threshold(task, spec_px, shield)
         reasons = []
         for one, episodes in stages:
             if len(stages) > 1:
@@ -332,6 +336,8 @@ def align(
         )
         with shield.final_measures():
             final_width, directional, shift = verify_task(shield, task)
+        # Directional widths are judged against the best width (asked again: it may drift).
+        best_px = _best_width(shield) if task.judges("directional") else None
     except StartOutsideLimits as error:
         return result("config-error", str(error))
     except DriverFailure as error:
@@ -373,7 +379,7 @@ def align(
             final_width_px=final_width,
             **measured,
         )
-    criteria = _judge(task, final_width, threshold, directional, shift, apparatus)
+    criteria = _judge(task, final_width, threshold, directional, shift, best_px)
     return result(
         "aligned" if all(criterion.met[0] for criterion in criteria) else "not-aligned",
         f"{reason}; " + "; ".join(criterion.words() for criterion in criteria),
@@ -405,15 +411,14 @@ def _judge(
     threshold: float,
     directional: np.ndarray | None,
     shift: np.ndarray | None,
-    apparatus: Apparatus,
+    best_px: float | None,
 ) -> list[Criterion]:
     """The final measurement judged as sessions and training judge it (Task.judge); a judged
-    measure that failed is not met. Only a task that judges the directional widths asks the
-    apparatus for its best width again (their spec is relative to it)."""
+    measure that failed is not met. The directional widths are judged against `best_px`, the
+    apparatus's best width (their spec is relative to it)."""
     limit = None
     if task.judges("directional"):
-        best = float(apparatus.best_quality()) if knows_best_quality(apparatus) else None
-        limit = task.directional_threshold_px(threshold, best)
+        limit = task.directional_threshold_px(threshold, best_px)
     return task.judge(
         np.array([width]),
         np.array([threshold]),

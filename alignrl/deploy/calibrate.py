@@ -19,6 +19,15 @@ cannot tell the column's backlash. After each alignment `from_above` more readin
 FROM_ABOVE: two) are taken approached from above, at settings the alignment read from
 below on the curve's flank (the widths nearest twice the alignment's narrowest): the same
 settings on the other branch, whose shift says the backlash.
+
+Nothing is written to the column before everything that can be checked without it is
+(`plan_calibration`: the counts, the search's memory, the output folder, the policy, its
+card against its learner state and the knob intervals its export will carry; the session
+then checks the apparatus's knob and the spec before its first write). Nothing calibrated
+is written from readings that do not support a column (alignrl/apparatus/calibration.py,
+`check_support`: widths that do not follow the setting, or a focus the limits keep out of
+reach): an UncalibratedError says why. The export and calibration.json are published
+together, whole or not at all: an interrupted calibration leaves nothing.
 """
 
 from __future__ import annotations
@@ -44,16 +53,20 @@ from alignrl.apparatus.calibration import (
     calibrate,
     check_far_noise,
     check_search,
+    check_support,
+    measured_sweeps,
     sweeps_of,
 )
-from alignrl.checkpoints import atomic_write_text
 
 __all__ = [
     "CALIBRATION_FILE",
     "Calibrated",
+    "CalibrationPlan",
     "calibrate_policy",
     "calibrated_overrides",
+    "plan_calibration",
     "read_from_above",
+    "run_calibration",
 ]
 
 CALIBRATION_FILE = "calibration.json"
@@ -69,6 +82,25 @@ class Calibrated:
     calibration: Calibration
     seconds: float
     from_above: int = 0
+
+
+@dataclass(frozen=True)
+class CalibrationPlan:
+    """A calibration checked before anything touches a column (`plan_calibration`): the
+    policy to run, its source (learner state loaded and checked against its card), where
+    it goes, and the search."""
+
+    spec: str
+    policy: Any  # alignrl.deploy.policy.DeployablePolicy
+    source: Any  # alignrl.runs.sources.PolicySource
+    out: Path
+    alignments: int = ALIGNMENTS
+    population: int = POPULATION
+    rounds: int = ROUNDS
+    from_above: int = FROM_ABOVE
+    far_noise: float | None = None
+    force: bool = False
+    started: float = 0.0
 
 
 def calibrated_overrides(
@@ -96,6 +128,45 @@ def _check_policy(spec: str, task: Any) -> None:
         )
 
 
+def plan_calibration(
+    spec: str,
+    out: str | Path,
+    alignments: int = ALIGNMENTS,
+    population: int = POPULATION,
+    rounds: int = ROUNDS,
+    from_above: int = FROM_ABOVE,
+    far_noise: float | None = None,
+    force: bool = False,
+) -> CalibrationPlan:
+    """Everything a calibration can check before it opens the apparatus: the counts, the
+    search (its memory too: MAX_SEARCH_BYTES), the far noise, the output folder (a folder
+    that can be written, empty unless `force`), the policy (one that can be calibrated), its
+    card against its learner state and its recorded knob intervals (what the export will
+    read). ValueError (ExportError, PolicySpecError) naming what is wrong."""
+    from alignrl.deploy.export import check_out_folder, check_within_recorded, knob_limits
+    from alignrl.deploy.policy import load_deployable
+    from alignrl.runs.sources import resolve_source
+
+    started = time.perf_counter()
+    if alignments < 1:
+        raise ValueError(f"a calibration runs at least one alignment, got {alignments}")
+    if from_above < 0:
+        raise ValueError(f"from_above counts readings per alignment, got {from_above}")
+    check_search(population, rounds)
+    check_far_noise(far_noise)
+    out = Path(out)
+    check_out_folder(out, force)
+    policy = load_deployable(spec)
+    _check_policy(spec, policy.task)
+    source = resolve_source(spec)  # its learner state, where it has one, against its card
+    # the intervals the export will carry: recorded, no wider than its run's, or refused now
+    check_within_recorded(source, knob_limits(source), str(source.config_file or spec))
+    return CalibrationPlan(
+        spec, policy, source, out, alignments, population, rounds, from_above, far_noise,
+        force, started,
+    )  # fmt: skip
+
+
 def calibrate_policy(
     spec: str,
     apparatus: Apparatus,
@@ -115,35 +186,53 @@ def calibrate_policy(
 ) -> Calibrated:
     """Calibrate policy `spec` on `apparatus` and export it to `out` (module docstring):
     the far noise searched with the column, or `far_noise` where given. ValueError (before
-    any alignment) for a policy that cannot be calibrated, an `out` that holds something
-    without `force`, fewer than one alignment, a negative `from_above`, a far noise outside
-    [0, 1]; whatever run_session, the apparatus and the export refuse."""
-    from alignrl.deploy.export import _refuse_to_overwrite, export_policy, with_acting_options
-    from alignrl.deploy.policy import load_deployable
+    any alignment) for whatever `plan_calibration` refuses; UncalibratedError (after the
+    alignments, nothing written) for readings that support no calibration; whatever
+    run_session, the apparatus and the export refuse."""
+    plan = plan_calibration(spec, out, alignments, population, rounds, from_above, far_noise, force)
+    return run_calibration(plan, apparatus, seed, spec_px, budget, command, on_alignment,
+                           on_round)  # fmt: skip
+
+
+def _limits(apparatus: Apparatus, knob: str) -> tuple[float, float]:
+    """Where the shield lets `knob` go: its site limits within the interval (the interval
+    where the apparatus is not shielded)."""
+    limits = getattr(apparatus, "limits", None)
+    if isinstance(limits, dict) and knob in limits:
+        return float(limits[knob].low), float(limits[knob].high)
+    low, high = apparatus.knobs[knob]
+    return float(low), float(high)
+
+
+def run_calibration(
+    plan: CalibrationPlan,
+    apparatus: Apparatus,
+    seed: int = 0,
+    spec_px: float | None = None,
+    budget: int | None = None,
+    command: str | None = None,
+    on_alignment: Callable[[Any], None] | None = None,
+    on_round: Callable[[int, int, float], None] | None = None,
+) -> Calibrated:
+    """The calibration `plan` checked: its alignments on `apparatus`, the search, the check
+    that the readings support the column found (check_support: UncalibratedError, nothing
+    written), and the export with calibration.json, published whole or not at all."""
+    from alignrl.deploy.export import export_policy, with_acting_options
     from alignrl.evaluation.controllers import PolicyController
     from alignrl.evaluation.session import run_session
-    from alignrl.runs.sources import resolve_source
 
-    started = time.perf_counter()
-    if alignments < 1:
-        raise ValueError(f"a calibration runs at least one alignment, got {alignments}")
-    if from_above < 0:
-        raise ValueError(f"from_above counts readings per alignment, got {from_above}")
-    check_search(population, rounds)
-    check_far_noise(far_noise)
-    policy = load_deployable(spec)
-    _check_policy(spec, policy.task)
-    out = Path(out)
-    _refuse_to_overwrite(out, force)  # before any alignment: nothing is spent on a refusal
+    policy = plan.policy
     controller = PolicyController(
-        name=spec, act=policy.act, task=policy.task, history=policy.history
+        name=plan.spec, act=policy.act, task=policy.task, history=policy.history
     )
     knob = policy.task.knobs[0]
     overshoot = policy.task.backlash_overshoot
     above: list[list[tuple[float, float, float]]] = []
 
     def after(record: Any) -> None:
-        above.append(read_from_above(apparatus, knob, record.trajectory, from_above, overshoot))
+        above.append(
+            read_from_above(apparatus, knob, record.trajectory, plan.from_above, overshoot)
+        )
         if on_alignment is not None:
             on_alignment(record)
 
@@ -151,44 +240,45 @@ def calibrate_policy(
         controller,
         apparatus,
         policy.task,
-        scenarios=alignments,
+        scenarios=plan.alignments,
         seed=seed,
         spec_px=spec_px,
         budget=budget,
         on_scenario=after,
     )
     low, high = (float(value) for value in apparatus.knobs[knob])
-    sweeps = [
-        [*sweep, *(((v - low) / (high - low), width, side) for v, width, side in extra)]
-        for sweep, extra in zip(sweeps_of(session.records, low, high), above, strict=True)
-    ]
+    sweeps = measured_sweeps(
+        [
+            [*sweep, *(((v - low) / (high - low), width, side) for v, width, side in extra)]
+            for sweep, extra in zip(sweeps_of(session.records, low, high), above, strict=True)
+        ]
+    )
     calibration = calibrate(
         sweeps,
-        population=population,
-        rounds=rounds,
+        population=plan.population,
+        rounds=plan.rounds,
         seed=seed,
         on_round=on_round,
-        far_noise=far_noise,
+        far_noise=plan.far_noise,
     )
-    source = resolve_source(spec)
+    check_support(
+        sweeps,
+        calibration,
+        (low, high),
+        _limits(apparatus, knob),
+        knob,
+        policy.task.success.relative,
+        seed,
+    )
     overrides = calibrated_overrides(calibration.column, calibration.far_noise)
-    source = with_acting_options(source, overrides)
-    export_policy(
-        source,
-        out,
-        "safetensors",
-        force=force,
-        command=command,
-        learner_state=source.learner_state,
-        named=spec,
-    )
+    source = with_acting_options(plan.source, overrides)
     record = {
         "format": "alignrl-calibration-1",
-        "policy": spec,
+        "policy": plan.spec,
         "command": command,
         "seed": seed,
-        "alignments": alignments,
-        "from_above": from_above,
+        "alignments": plan.alignments,
+        "from_above": plan.from_above,
         "session": {
             "successes": session.successes,
             "median_acquisitions": session.median_acquisitions,
@@ -209,9 +299,19 @@ def calibrate_policy(
             for sweep in sweeps
         ],
     }
-    atomic_write_text(out / CALIBRATION_FILE, json.dumps(record, indent=2) + "\n")
+    export_policy(  # calibration.json in the same folder, published with it
+        source,
+        plan.out,
+        "safetensors",
+        force=plan.force,
+        command=command,
+        learner_state=source.learner_state,
+        named=plan.spec,
+        extra_files={CALIBRATION_FILE: json.dumps(record, indent=2) + "\n"},
+    )
     took = sum(len(readings) for readings in above)
-    return Calibrated(out, session, calibration, time.perf_counter() - started, took)
+    seconds = time.perf_counter() - plan.started
+    return Calibrated(plan.out, session, calibration, seconds, took)
 
 
 def read_from_above(
@@ -232,6 +332,7 @@ def read_from_above(
     if count == 0:
         return []
     low, high = (float(value) for value in apparatus.knobs[knob])
+    high = min(high, _limits(apparatus, knob)[1])  # the shield's: site limits within
     measured = {
         float(setting): float(width)
         for setting, width in list(trajectory)[1:]

@@ -21,14 +21,23 @@ from pathlib import Path
 from typing import Any
 
 from alignrl.agents.agent import MemberSpec
+from alignrl.apparatus.family import PHYSICAL
 from alignrl.deploy.formats import EXPORT_FORMATS, ONNX_OPSET
 from alignrl.deploy.graph import graph_signature
 from alignrl.envs.core import feature_layout
 from alignrl.envs.task import Task
 from alignrl.evaluation.report import SESSION_KINDS
-from alignrl.runs.sources import ExportError
+from alignrl.runs.sources import MAX_CARD_BYTES, ExportError, read_card_file
 
-__all__ = ["CARD_FORMAT", "CARD_KEYS", "card_action", "card_feature_layout", "check_card"]
+__all__ = [
+    "CARD_FORMAT",
+    "CARD_KEYS",
+    "MAX_CARD_BYTES",
+    "card_action",
+    "card_feature_layout",
+    "check_card",
+    "read_card",
+]
 
 CARD_FORMAT = "alignrl-policy-card-1"  # card.json's "format": which keys it has and means
 
@@ -101,6 +110,9 @@ MAX_STEP_FRACTION = 1.0  # one action moves a knob at most across its whole inte
 # 2.56 px, a frame without edges counts as 25 px (Task.no_edges_px).
 MAX_ABSOLUTE_SPEC_PX = 10.0
 STEP_AGREEMENT = 1e-6  # relative: a card's max_step is its task's rule on its interval
+# Knob values a card may name: an instrument family's interval centres and widths
+# (PHYSICAL), an interval of the widest width at the farthest centre.
+MAX_KNOB_VALUE = PHYSICAL["interval_centre"][1] + 0.5 * PHYSICAL["interval_width"][1]
 # Task options that set a judged spec, and the Task field each one sets: a card may make
 # them stricter than the task's own values, never looser.
 JUDGED_OPTIONS = {
@@ -150,6 +162,10 @@ class _CardReader:
     ) -> float:
         if isinstance(value, bool) or not isinstance(value, int | float):
             raise self.fail(field, f"is {_shown(value)}, not a number")
+        try:
+            value = float(value)
+        except OverflowError:  # an integer of hundreds of digits
+            raise self.fail(field, f"is a number of {len(str(value))} digits") from None
         if not math.isfinite(value):
             raise self.fail(field, f"is {value}, not a finite number")
         if above is not None and not value > above:
@@ -263,6 +279,16 @@ def check_card(card: Any, path: Path) -> Task:
     return task
 
 
+def read_card(path: Path) -> tuple[dict[str, Any], Task]:
+    """card.json at `path` as every reader reads it (alignrl.runs.sources.read_card_file: at
+    most MAX_CARD_BYTES, refused by its size before it is parsed; no key twice in one object;
+    no deeper than a card nests; posterior settings within physical bounds), then checked
+    field by field (`check_card`): the card and the Task it describes. ExportError naming the
+    file and what is wrong."""
+    card = read_card_file(path)
+    return card, check_card(card, path)
+
+
 def _evaluations(read: _CardReader, evaluations: dict[str, Any]) -> None:
     """What the evaluations claim, where the card says it (older cards do not): the kind of
     session, the interval's confidence, and each row's interval (rates, low <= high), the
@@ -321,6 +347,7 @@ def _task(read: _CardReader, entry: Any) -> Task:
         raise read.fail("task.name", f"names no task: {error}") from None
     if not isinstance(entry["options"], dict):
         raise read.fail("task.options", f"is a {type(entry['options']).__name__}, not a mapping")
+    _posterior_options(read, entry["options"])
     try:
         options = TaskOptions(**entry["options"])
         task = options.apply(own)
@@ -358,6 +385,18 @@ def _task(read: _CardReader, entry: Any) -> Task:
     return task
 
 
+def _posterior_options(read: _CardReader, options: dict[str, Any]) -> None:
+    """The posterior settings of a card's task options inside what an instrument family can
+    give them (alignrl.apparatus.calibration.posterior_options_problem: a calibrated column's
+    every parameter, where its readings level off); the far noise, draws and chances are
+    bounded by TaskOptions itself."""
+    from alignrl.apparatus.calibration import posterior_options_problem
+
+    bound = posterior_options_problem(options)
+    if bound is not None:
+        raise read.fail(f"task.options.{bound[0]}", bound[1])
+
+
 def _knobs(read: _CardReader, knobs: Any, task: Task) -> None:
     """Each knob's interval (what it was trained on) and max_step, which must be the task's
     step on that interval and not more than the interval's width."""
@@ -368,9 +407,15 @@ def _knobs(read: _CardReader, knobs: Any, task: Task) -> None:
         field = f"knobs[{index}]"
         read.mapping(knob, field, KNOB_CARD_KEYS)
         read.equal(knob["name"], name, f"{field}.name", f"task {task.name!r}")
-        low = read.number(knob["low"], f"{field}.low")
-        high = read.number(knob["high"], f"{field}.high", above=low)
+        low = read.number(knob["low"], f"{field}.low", at_least=-MAX_KNOB_VALUE)
+        high = read.number(knob["high"], f"{field}.high", above=low, at_most=MAX_KNOB_VALUE)
         width = high - low
+        if width > PHYSICAL["interval_width"][1]:
+            raise read.fail(
+                field,
+                f"({name}) is [{low:g}, {high:g}], {width:g} wide: wider than any "
+                f"instrument's, at most {PHYSICAL['interval_width'][1]:g} knob units",
+            )
         step = read.number(knob["max_step"], f"{field}.max_step", above=0)
         if step > width:
             raise read.fail(

@@ -33,10 +33,11 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import shlex
 import shutil
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -53,12 +54,14 @@ from alignrl.deploy.graph import PolicyGraph, PolicyInterface, move_floors
 from alignrl.deploy.learner_state import write_checked
 from alignrl.deploy.parity import PARITY_HISTORIES, PARITY_TOLERANCE, Parity, check_parity
 from alignrl.runs.sources import CHAMPION_PREFIX, ExportError, PolicySource
-from alignrl.runs.state import KNOBS_FILE
+from alignrl.runs.state import KNOBS_FILE, recorded_knobs
 from alignrl.runs.state import knob_limits as limits_on
 
 __all__ = [
     "EXPORTS_FOLDER",
     "ExportResult",
+    "check_out_folder",
+    "check_within_recorded",
     "default_out",
     "export_command",
     "export_policy",
@@ -120,7 +123,9 @@ def _limits_of_apparatus(config: Any, task: Any) -> list[dict[str, Any]]:
         ) from None
 
 
-def _refuse_to_overwrite(out: Path, force: bool) -> None:
+def check_out_folder(out: Path, force: bool) -> None:
+    """ExportError unless `out` can take an export: a name of a folder, not a file, empty
+    unless `force`, in a folder this process may write (the nearest one that exists)."""
     if out.name in ("", ".", ".."):
         raise ExportError(f"--out {out}: name a new folder for the policy, e.g. exports/champion")
     if out.exists() and not out.is_dir():
@@ -129,6 +134,49 @@ def _refuse_to_overwrite(out: Path, force: bool) -> None:
         raise ExportError(
             f"{out} is not empty: choose another --out, or add --force to replace what is there"
         )
+    parent = out.absolute().parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        raise ExportError(f"--out {out}: {parent} is a file, not a folder to write into")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise ExportError(f"--out {out}: cannot write in {parent} (permission denied)")
+
+
+def check_within_recorded(
+    source: PolicySource, knobs: list[dict[str, Any]], where: str = "the export"
+) -> None:
+    """ExportError where `knobs` (what an export is about to carry) has an interval or a
+    max_step wider than the run `source` came from recorded in its knobs.json when it
+    started: its own run's, or for an export or champion the run its card names, where that
+    folder is here. A run that recorded none, or is not here, has nothing to hold them to."""
+    run = source.run_dir
+    if run is None and source.card is not None:
+        named = (source.card.get("source") or {}).get("run")
+        run = Path(named) if isinstance(named, str) and named else None
+    path = run / KNOBS_FILE if run is not None else None
+    if path is None or not path.is_file():
+        return
+    try:
+        recorded = recorded_knobs(run, source.task) or []
+    except ValueError as error:
+        raise ExportError(str(error)) from None
+    for index, (mine, theirs) in enumerate(zip(knobs, recorded, strict=False)):
+        slack = 1e-9 * max(abs(theirs["low"]), abs(theirs["high"]), 1.0)
+        wider = (
+            ("low", mine["low"] < theirs["low"] - slack),
+            ("high", mine["high"] > theirs["high"] + slack),
+            ("max_step", mine["max_step"] > theirs["max_step"] * (1 + 1e-9) + slack),
+        )
+        for key, beyond in wider:
+            if beyond:
+                raise ExportError(
+                    f"{where}: knobs[{index}].{key} ({mine['name']}) is {mine[key]:g}, wider "
+                    f"than the {theirs[key]:g} its run recorded in {path} (interval "
+                    f"[{theirs['low']:g}, {theirs['high']:g}], max_step "
+                    f"{theirs['max_step']:g}): an export never carries an interval or a step "
+                    "beyond what its policy trained on"
+                )
 
 
 @dataclass(frozen=True)
@@ -171,6 +219,7 @@ def export_policy(
     note: Callable[[str], None] | None = None,
     learner_state: bool = False,
     named: str | None = None,
+    extra_files: Mapping[str, str] | None = None,
 ) -> ExportResult:
     """Write `source`'s policy to the folder `out` as `export_format` (onnx, torchscript,
     safetensors) with its model card. The written file is loaded back and checked against
@@ -179,7 +228,9 @@ def export_policy(
     training apparatus (default: standard error). `learner_state` (safetensors only): the
     member's critics, optimizers and entropy coefficient too (learner.safetensors,
     learner.json), for a source that holds them; `named`: the source as the user gave it,
-    for the messages."""
+    for the messages; `extra_files`: more files (name: text) published in the same folder,
+    all at once (alignrl calibrate's calibration.json). Knob intervals and steps wider
+    than its run recorded (knobs.json) are refused (`check_within_recorded`)."""
     from alignrl.deploy.card import build_card, check_card, render_model_card
 
     if export_format not in EXPORT_FORMATS:
@@ -191,8 +242,9 @@ def export_policy(
     if export_format == "onnx":
         import_onnxruntime()  # before any work: the parity check needs it
     out = Path(out)
-    _refuse_to_overwrite(out, force)
+    check_out_folder(out, force)
     knobs = knob_limits(source, note)
+    check_within_recorded(source, knobs, str(source.config_file if source.card else out))
     power, floor = source.task.action_power, move_floors(source.task.move_floor, knobs)
     graph = PolicyGraph(source.agent, [knob["max_step"] for knob in knobs], power, floor)
     staging = staging_folder(out)
@@ -229,6 +281,10 @@ def export_policy(
         atomic_write_text(staging / "card.json", json.dumps(card, indent=2) + "\n")
         atomic_write_text(staging / "model_card.md", render_model_card(card))
         learner_file = write_checked(source, staging, knobs, card) if learner_state else None
+        for name, text in (extra_files or {}).items():
+            if Path(name).name != name or (staging / name).exists():
+                raise ExportError(f"{name!r} is no file an export may add beside its own")
+            atomic_write_text(staging / name, text)
         publish_folder(staging, out)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)

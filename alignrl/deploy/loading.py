@@ -10,7 +10,6 @@ tensors, by its outputs on a few histories and by its SHA-256 where the card has
 from __future__ import annotations
 
 import dataclasses
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -18,11 +17,12 @@ from typing import Any
 import numpy as np
 
 from alignrl.agents.agent import MemberSpec
-from alignrl.deploy.card_schema import check_card
+from alignrl.deploy.card_schema import read_card
 from alignrl.deploy.formats import load_runner, sha256_of
 from alignrl.deploy.graph import PolicyInterface, Runner, move_floors, random_histories
 from alignrl.deploy.parity import PARITY_TOLERANCE
 from alignrl.envs.task import Task, knob_change
+from alignrl.runs.learner_state import LearnerStateError, has_learner_state, learner_record
 from alignrl.runs.sources import ExportError
 
 __all__ = ["ExportedPolicy", "load_exported"]
@@ -155,7 +155,8 @@ def load_exported(path: str | Path) -> ExportedPolicy:
     TorchScript through torch.jit.load, safetensors weights in the member rebuilt from the
     card (Agent.act). The card is checked field by field (alignrl.deploy.card_schema),
     the policy file against it (its tensors, its outputs on a few histories, its SHA-256
-    where the card has one): a missing, corrupt or tampered card or policy file is an
+    where the card has one), and learner.json, where the export ships one, against the
+    card: a missing, corrupt or tampered card, policy file or learner record is an
     ExportError naming the file and what is wrong; ONNX without onnxruntime installed is an
     ImportError."""
     path = Path(path)
@@ -166,11 +167,12 @@ def load_exported(path: str | Path) -> ExportedPolicy:
             f"{card_path} is missing: {folder} is not an exported policy "
             "(`alignrl export` writes card.json beside the policy file)"
         )
-    try:
-        card = json.loads(card_path.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as error:
-        raise ExportError(f"{card_path} is not valid JSON ({error})") from None
-    task = check_card(card, card_path)
+    card, task = read_card(card_path)
+    if has_learner_state(folder):  # its learner state tells the run its card does
+        try:
+            learner_record(folder, card, _card_spec(card["member"]).to_dict())
+        except LearnerStateError as error:
+            raise ExportError(str(error)) from None
     export_format = card["export_format"]
     policy_path = folder / card["policy_file"]
     max_step = np.array([knob["max_step"] for knob in card["knobs"]], np.float64)

@@ -22,8 +22,10 @@ from alignrl.config import (
     SEED_LIMIT,
     ConfigError,
     Count,
+    EnvSteps,
     LearnerConfig,
     RunConfig,
+    Scenarios,
     _Strict,
     check_file_name,
     overridden,
@@ -45,6 +47,14 @@ __all__ = [
 ]
 
 TEAMS = ("aligner", "misaligner")
+# The upper bounds of a league's counts (as alignrl/config_reading.py bounds env steps and
+# alignments): the shipped leagues run 600 iterations of 64 matches at most, a team of a few
+# members; an iteration takes seconds at least, so 10^6 of them are weeks.
+MAX_ITERATIONS = 10**6  # league iterations, and iterations between snapshots, steps, saves
+MAX_MATCHES = 10**5  # matches (alignment episodes) of one iteration
+MAX_MEMBERS = 1000  # members of a team: in its roster, kept best, frozen snapshots kept
+Iterations = Annotated[Count, Field(le=MAX_ITERATIONS)]
+Members = Annotated[Count, Field(le=MAX_MEMBERS)]
 
 
 class MemberConfig(_Strict):
@@ -77,7 +87,9 @@ class MemberConfig(_Strict):
 
 class Roster(_Strict):
     team: Literal["aligner", "misaligner"] = Field(description="which side these members play")
-    members: list[MemberConfig] = Field(min_length=1, description="the team's starting members")
+    members: list[MemberConfig] = Field(
+        min_length=1, max_length=MAX_MEMBERS, description="the team's starting members"
+    )
 
     @model_validator(mode="after")
     def _unique_ids(self) -> Roster:
@@ -96,20 +108,24 @@ class Roster(_Strict):
 
 
 class ScheduleConfig(_Strict):
-    iterations: Count = Field(200, ge=1, description="league iterations to run")
-    aligner_steps: Count | None = Field(
+    iterations: Iterations = Field(200, ge=1, description="league iterations to run")
+    aligner_steps: EnvSteps | None = Field(
         None,
         ge=1,
         description="also stop after the iteration in which an active aligner has taken this "
         "many steps (comparisons at equal aligner env steps); null: iterations alone",
     )
-    matches: Count = Field(32, ge=1, description="matches (alignment episodes) per iteration")
-    snapshot_every: Count = Field(25, ge=1, description="iterations between frozen snapshots")
-    pbt_every: Count = Field(50, ge=1, description="iterations between exploit/explore steps")
-    evaluate_every: Count = Field(50, ge=1, description="iterations between evaluation sessions")
-    eval_scenarios: Count = Field(100, ge=1, description="alignments per evaluation session")
-    checkpoint_every: Count = Field(10, ge=1, description="iterations between checkpoints")
-    keep_best: Count = Field(3, ge=1, description="best members kept per team")
+    matches: Count = Field(
+        32, ge=1, le=MAX_MATCHES, description="matches (alignment episodes) per iteration"
+    )
+    snapshot_every: Iterations = Field(25, ge=1, description="iterations between frozen snapshots")
+    pbt_every: Iterations = Field(50, ge=1, description="iterations between exploit/explore steps")
+    evaluate_every: Iterations = Field(
+        50, ge=1, description="iterations between evaluation sessions"
+    )
+    eval_scenarios: Scenarios = Field(100, ge=1, description="alignments per evaluation session")
+    checkpoint_every: Iterations = Field(10, ge=1, description="iterations between checkpoints")
+    keep_best: Members = Field(3, ge=1, description="best members kept per team")
     uniform_starts: float = Field(
         0.0,
         ge=0,
@@ -126,7 +142,7 @@ class MatchmakingConfig(_Strict):
     weighting: Literal["hard", "variance", "linear"] = Field(
         "hard", description="PFSP weight of an opponent beaten at rate p: (1-p)^2, p(1-p), 1-p"
     )
-    max_snapshots: Count = Field(8, ge=0, description="frozen snapshots kept per team")
+    max_snapshots: Members = Field(8, ge=0, description="frozen snapshots kept per team")
 
     @model_validator(mode="after")
     def _some_weight(self) -> MatchmakingConfig:
@@ -178,7 +194,7 @@ class SessionsConfig(_Strict):
         description="seed of the test session that reports the champion at the end: never "
         "used for a choice; must differ from validation_seed",
     )
-    test_scenarios: Count | None = Field(
+    test_scenarios: Scenarios | None = Field(
         None, ge=1, description="alignments of the test session; null: schedule.eval_scenarios"
     )
     test_classical: list[str] | None = Field(

@@ -20,6 +20,7 @@ the champion (the best by validation) is reported on a test session of its own
 A run lives in runs/<name>/:
 
     config.yaml, aligners.yaml, misaligners.yaml   the resolved experiment and rosters
+    .lock                                           while a process works on the run
     knobs.json                                      the knobs' intervals and steps, for export
     checkpoints/LATEST                              names the newest complete checkpoint
     checkpoints/iteration-NNNNNN/                   league.pt + members/<id>.pt (atomic)

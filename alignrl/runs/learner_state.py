@@ -39,6 +39,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import os
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -61,7 +62,9 @@ __all__ = [
     "file_sha256",
     "has_learner_state",
     "join_state",
+    "learner_record",
     "load_learner_state",
+    "read_json_file",
     "split_state",
     "state_difference",
 ]
@@ -73,6 +76,10 @@ POLICY_FILE = "policy.safetensors"  # the only policy file a learner state goes 
 TENSOR, TUPLE, INT_KEYS = "$tensor", "$tuple", "$int_keys"
 MARKERS = (TENSOR, TUPLE, INT_KEYS)
 HEX = set("0123456789abcdef")
+# How deep a card.json or learner.json may nest (theirs: 4 and 7) and how large learner.json
+# may be (an export's: 20 kB; its tensors are in learner.safetensors)
+MAX_JSON_DEPTH = 64
+MAX_LEARNER_RECORD_BYTES = 16 << 20
 LEARNER_KEYS = (  # learner.json, in the order it is written
     "format",
     "learner_file",
@@ -265,16 +272,90 @@ def state_difference(held: Any, wanted: Any, where: str = "learner") -> str | No
 # --- reading --------------------------------------------------------------------------------
 
 
-def _strict_json(path: Path) -> Any:
+class _TwiceNamed(Exception):
+    """A key named twice in one JSON object (read_json_file's hook)."""
+
+
+def _once(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    seen: set[str] = set()
+    for key, _ in pairs:
+        if key in seen:
+            raise _TwiceNamed(key)
+        seen.add(key)
+    return dict(pairs)
+
+
+def _depth(value: Any) -> int:
+    """How deep mappings and lists nest in `value` (0: a plain value), without recursion."""
+    deepest, stack = 0, [(value, 0)]
+    while stack:
+        node, depth = stack.pop()
+        if isinstance(node, dict | list):
+            deepest = max(deepest, depth + 1)
+            stack.extend(
+                (item, depth + 1) for item in (node.values() if isinstance(node, dict) else node)
+            )
+    return deepest
+
+
+def read_json_file(
+    path: Path,
+    limit: int,
+    error: type[ValueError],
+    what: str,
+    finite: bool = False,
+) -> Any:
+    """The JSON of an export's file (card.json, learner.json), read strictly: refused by its
+    size before it is parsed (more than `limit` bytes), a key named twice in one object
+    (named), nesting deeper than MAX_JSON_DEPTH (Python's own limit too: no RecursionError
+    escapes), text that is not UTF-8 JSON, and with `finite`, NaN and Infinity. Each refusal
+    is an `error` naming the file; `what` says what the file is ("a card")."""
+
     def refuse(constant: str) -> None:
         raise ValueError(f"{constant} is not a JSON number")
 
     try:
-        return json.loads(path.read_text(encoding="utf-8"), parse_constant=refuse)
-    except (UnicodeDecodeError, ValueError, RecursionError) as error:  # JSONDecodeError too
-        raise LearnerStateError(f"{path} is not valid JSON ({error}); export it again") from None
-    except OSError as error:
-        raise LearnerStateError(f"{path} cannot be read ({error})") from None
+        with path.open("rb") as handle:  # a FIFO or /dev/zero named card.json: read no more
+            size = os.fstat(handle.fileno()).st_size
+            data = handle.read(limit + 1) if size <= limit else b""
+    except OSError as problem:
+        raise error(f"{path} cannot be read ({problem.strerror or problem})") from None
+    if size > limit or len(data) > limit:
+        shown = f"{size:,} bytes" if size > limit else f"more than {limit:,} bytes"
+        raise error(
+            f"{path} is {shown}, more than the {limit:,} bytes {what} may take: it is not "
+            "one alignrl wrote; export it again"
+        )
+    try:
+        value = json.loads(
+            data.decode("utf-8"),
+            object_pairs_hook=_once,
+            **({"parse_constant": refuse} if finite else {}),
+        )
+    except _TwiceNamed as twice:
+        key = str(twice.args[0])
+        raise error(
+            f"{path}: key {key[:80]!r} is named twice in one object (JSON readers differ on "
+            "which one counts); export it again"
+        ) from None
+    except RecursionError:
+        raise error(
+            f"{path} nests too deeply to read (more than {MAX_JSON_DEPTH} levels): it is not "
+            f"{what} alignrl wrote; export it again"
+        ) from None
+    except (UnicodeDecodeError, ValueError) as problem:  # JSONDecodeError, 5,000-digit ints
+        raise error(f"{path} is not valid JSON ({str(problem)[:300]}); export it again") from None
+    if _depth(value) > MAX_JSON_DEPTH:
+        raise error(
+            f"{path} nests more than {MAX_JSON_DEPTH} levels deep: it is not {what} alignrl "
+            "wrote; export it again"
+        )
+    return value
+
+
+def _strict_json(path: Path) -> Any:
+    return read_json_file(path, MAX_LEARNER_RECORD_BYTES, LearnerStateError, "a learner record",
+                          finite=True)  # fmt: skip
 
 
 def _read_record(record_path: Path) -> dict[str, Any]:
@@ -324,40 +405,64 @@ def _plain(value: Any) -> Any:
     return json.loads(json.dumps(value))
 
 
+def _shown(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 80 else text[:77] + "..."
+
+
+def _first_difference(mine: Any, theirs: Any, where: str) -> tuple[str, Any, Any] | None:
+    """Where two JSON values first differ: (dotted path, value, value), the innermost
+    mapping key or list index that does; None where they are equal."""
+    if isinstance(mine, dict) and isinstance(theirs, dict):
+        for key in sorted(set(map(str, mine)) | set(map(str, theirs))):
+            if key not in mine or key not in theirs:
+                return f"{where}.{key}", mine.get(key, "nothing"), theirs.get(key, "nothing")
+            found = _first_difference(mine[key], theirs[key], f"{where}.{key}")
+            if found:
+                return found
+        return None
+    if isinstance(mine, list) and isinstance(theirs, list) and len(mine) == len(theirs):
+        for index, (one, other) in enumerate(zip(mine, theirs, strict=True)):
+            found = _first_difference(one, other, f"{where}[{index}]")
+            if found:
+                return found
+        return None
+    alike = type(mine) is type(theirs) or (is_number(mine) and is_number(theirs))
+    same = alike and mine == theirs
+    return None if same else (where, mine, theirs)
+
+
 def _agrees_with_card(
-    record: dict[str, Any], card: Mapping[str, Any], agent: Agent, record_path: Path
+    record: dict[str, Any], card: Mapping[str, Any], spec: dict[str, Any], record_path: Path
 ) -> None:
-    """learner.json describes the member (`agent`, rebuilt from card.json's member spec)
-    and the run that card.json does."""
-
-    def differ(key: str, mine: Any, theirs: Any, field: str) -> LearnerStateError:
-        return LearnerStateError(
-            f"{record_path}: {key} is {mine!r}, but card.json's {field} is {theirs!r}: the "
-            "learner state and the policy are not of one export; export it again"
-        )
-
-    spec = agent.spec.to_dict()
-    for name in sorted(set(spec) | set(record["member"])):
-        mine, theirs = record["member"].get(name), spec.get(name)
-        if name not in record["member"] or _plain(mine) != _plain(theirs):
-            raise differ(f"member.{name}", mine, theirs, f"member.{name}")
-    member = card["member"]
-    for key in ("steps_seen", "updates"):
-        if record[key] != member[key]:
-            raise differ(key, record[key], member[key], f"member.{key}")
-    run, task = record["run"], card["task"]
-    checks = (
-        ("task", task["name"], "task.name"),
-        ("task_options", task["options"], "task.options"),
-        ("history", card["history"], "history"),
-    )
-    for key, theirs, field in checks:
-        if key not in run:
-            raise LearnerStateError(f"{record_path}: run has no {key}")
-        if _plain(run[key]) != _plain(theirs):
-            raise differ(f"run.{key}", run[key], theirs, field)
-    if _plain(record["knobs"]) != _plain(card["knobs"]):
-        raise differ("knobs", record["knobs"], card["knobs"], "knobs")
+    """learner.json describes the member (`spec`, card.json's member spec as a record),
+    the run (task, task options, history, training and evaluation apparatus), the knob
+    intervals and steps, and the source that card.json does: a LearnerStateError naming both
+    files and the first field where they differ."""
+    run, task, training = record["run"], card["task"], card.get("training") or {}
+    pairs = [
+        *((f"member.{name}", record["member"].get(name), spec.get(name), f"member.{name}")
+          for name in sorted(set(spec) | set(record["member"]))),
+        *((key, record[key], card["member"][key], f"member.{key}")
+          for key in ("steps_seen", "updates")),
+        ("run.task", run.get("task"), task["name"], "task.name"),
+        ("run.task_options", run.get("task_options"), task["options"], "task.options"),
+        ("run.history", run.get("history"), card["history"], "history"),
+        *((f"run.{key}", run.get(key), training.get(key), f"training.{key}")
+          for key in ("apparatus", "apparatus_args", "eval_apparatus", "eval_apparatus_args")),
+        ("knobs", record["knobs"], card["knobs"], "knobs"),
+        ("source", record["source"], card["source"], "source"),
+    ]  # fmt: skip
+    for key, mine, theirs, field in pairs:
+        found = _first_difference(_plain(mine), _plain(theirs), key)
+        if found:
+            where, one, other = found
+            field += where[len(key) :]
+            raise LearnerStateError(
+                f"{record_path}: {where} is {_shown(one)}, but card.json's {field} is "
+                f"{_shown(other)}: the learner state and the policy are not of one export; "
+                "export it again"
+            )
 
 
 def _read_tensors(path: Path, what: str) -> dict[str, Tensor]:
@@ -378,6 +483,24 @@ def _read_tensors(path: Path, what: str) -> dict[str, Tensor]:
     return tensors
 
 
+def learner_record(folder: Path, card: Mapping[str, Any], spec: dict[str, Any]) -> dict[str, Any]:
+    """learner.json of the export `folder`, read strictly and checked against its card.json
+    (`card`, whose member spec is `spec`): the same member, run, knob intervals and source
+    (what `alignrl align` and `evaluate` check too, where they run an export that ships a
+    learner state). LearnerStateError naming both files and the first field that differs, or
+    where one of the pair is missing."""
+    record_path, weights = folder / LEARNER_RECORD, folder / LEARNER_FILE
+    for present, absent in ((record_path, weights), (weights, record_path)):
+        if present.exists() and not absent.exists():
+            raise LearnerStateError(
+                f"{folder} holds {present.name} but no {absent.name}: its learner state is "
+                "incomplete; export it again with --with-learner-state"
+            )
+    record = _read_record(record_path)
+    _agrees_with_card(record, card, spec, record_path)
+    return record
+
+
 def load_learner_state(folder: Path, agent: Agent, card: Mapping[str, Any]) -> dict[str, Any]:
     """Load the learner state of the export `folder` into `agent` (the member its card.json,
     `card`, describes): critics, target critics, entropy coefficient, optimizers, counters,
@@ -386,14 +509,7 @@ def load_learner_state(folder: Path, agent: Agent, card: Mapping[str, Any]) -> d
     left as it was."""
     record_path, weights = folder / LEARNER_RECORD, folder / LEARNER_FILE
     policy_path = folder / POLICY_FILE
-    for present, absent in ((record_path, weights), (weights, record_path)):
-        if present.exists() and not absent.exists():
-            raise LearnerStateError(
-                f"{folder} holds {present.name} but no {absent.name}: its learner state is "
-                "incomplete; export it again with --with-learner-state"
-            )
-    record = _read_record(record_path)
-    _agrees_with_card(record, card, agent, record_path)
+    record = learner_record(folder, card, agent.spec.to_dict())
     tensors = _read_tensors(weights, "the learner state")
     learner = join_state(record["state"], tensors, record_path, weights)
     if len(tensors) != record["tensors"]:

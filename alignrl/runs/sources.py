@@ -44,11 +44,13 @@ from alignrl.runs.learner_state import (
     file_sha256,
     has_learner_state,
     load_learner_state,
+    read_json_file,
 )
 from alignrl.runs.state import CONFIG_FILE, checked_knobs, recorded_knobs, run_config_data
 
 __all__ = [
     "CHAMPION_PREFIX",
+    "MAX_CARD_BYTES",
     "EvaluationSchedule",
     "ExportError",
     "Location",
@@ -57,6 +59,7 @@ __all__ = [
     "PolicySpecError",
     "champion_folder",
     "locate_source",
+    "read_card_file",
     "require_learner_state",
     "resolve_source",
     "shipped_champions",
@@ -69,6 +72,9 @@ EXPORTED_KINDS = ("export", "champion")  # locations whose policy is a folder wi
 # Files of a safetensors export that name their folder when given as a spec (none of them
 # is a torch checkpoint).
 EXPORT_FILES = ("card.json", "policy.safetensors", "learner.safetensors", "learner.json")
+# The largest card.json read (refused by its size before it is parsed): an export's is 7-8 kB,
+# a league member's with a thousand evaluation sessions some 300 kB.
+MAX_CARD_BYTES = 8 << 20
 
 
 class ExportError(ValueError):
@@ -456,6 +462,27 @@ def _file_source(path: Path) -> PolicySource:
 # --- exports and champions ----------------------------------------------------------------
 
 
+def read_card_file(card_path: Path) -> dict[str, Any]:
+    """card.json, as every reader of a card reads it (here and alignrl.deploy.card_schema's
+    read_card, which checks it field by field): at most MAX_CARD_BYTES, refused by its size
+    before it is parsed; no key twice in one object; no deeper than a card nests; a mapping;
+    and its posterior settings within what an instrument family can give them
+    (alignrl.apparatus.calibration.posterior_options_problem). ExportError naming the file."""
+    from alignrl.apparatus.calibration import posterior_options_problem
+
+    if not card_path.is_file():
+        raise ExportError(f"{card_path} is missing: {card_path.parent} is not an exported policy")
+    card = read_json_file(card_path, MAX_CARD_BYTES, ExportError, "a card")
+    if not isinstance(card, dict):
+        raise ExportError(f"{card_path} holds a {type(card).__name__}, not a policy card")
+    task = card.get("task")
+    options = task.get("options") if isinstance(task, dict) else None
+    bound = posterior_options_problem(options) if isinstance(options, dict) else None
+    if bound is not None:
+        raise ExportError(f"{card_path}: task.options.{bound[0]} {bound[1]}")
+    return card
+
+
 def _card_field(card: Any, card_path: Path, *keys: str) -> Any:
     """card[keys[0]][keys[1]]...; an ExportError naming the field where it is missing."""
     value = card
@@ -474,12 +501,7 @@ def _exported_source(location: Location) -> PolicySource:
     folder = location.path
     card_path = folder / "card.json"
     what = f"champion:{folder.name}" if location.kind == "champion" else f"the export {folder}"
-    try:
-        card = json.loads(card_path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise ExportError(f"{card_path} is missing: {folder} is not an exported policy") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as error:
-        raise ExportError(f"{card_path} is not valid JSON ({error})") from None
+    card = read_card_file(card_path)
     export_format = _card_field(card, card_path, "export_format")
     if export_format != "safetensors":
         origin = (card.get("source") or {}).get("member_file") if isinstance(card, dict) else None

@@ -247,7 +247,8 @@ def flat_hparams(settings: Mapping[str, Any], prefix: str = "") -> dict[str, flo
         if isinstance(value, Mapping):
             flat.update(flat_hparams(value, f"{name}."))
         elif isinstance(value, bool | int | float):
-            flat[name] = float(value)
+            # An integer too large for a float (a driver's argument of 400 digits) as text.
+            flat[name] = float(value) if abs(value) < 2.0**1023 else str(value)
         elif isinstance(value, str):
             flat[name] = value
         elif isinstance(value, list | tuple) and value:
