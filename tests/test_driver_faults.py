@@ -19,6 +19,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 from fake_drivers import HostileLens
 from hostile import Outcome, assert_refused, run_cli
@@ -433,3 +434,44 @@ def test_a_driver_fault_ends_a_calibration_with_the_driver_code_and_nothing_outs
     assert not out.exists()
     _nothing_outside_what_was_declared()
     _ends_on_record(_audit("calibrate", log, tmp_path))
+
+
+class NarrowingWobbleLens:
+    """A lens with images (a wobble by frames needs them) that narrows its defocus interval
+    once it has received its first write."""
+
+    def __init__(self) -> None:
+        self.intervals = {"defocus": (0.0, 100.0)}
+        self.voltage, self.received = 50.0, []
+        self.frame = np.random.default_rng(0).random((32, 32))
+
+    @property
+    def knobs(self) -> dict[str, tuple[float, float]]:
+        return dict(self.intervals)
+
+    def reset(self, seed: int | None = None) -> None: ...
+
+    def read(self) -> dict[str, float]:
+        return {"defocus": self.voltage}
+
+    def write(self, values: dict[str, float]) -> None:
+        self.received.append(dict(values))
+        self.voltage = values["defocus"]
+        self.intervals = {"defocus": (45.0, 55.0)}
+
+    def measure(self) -> float:
+        return 3.0
+
+    def image(self) -> np.ndarray:
+        return self.frame
+
+
+def test_each_write_of_a_wobble_is_checked_against_the_interval_declared_then() -> None:
+    from alignrl.apparatus.shield import ShieldedApparatus, resolve_limits
+
+    lens = NarrowingWobbleLens()
+    shield = ShieldedApparatus(lens, resolve_limits(lens.knobs), MemoryAudit())
+    shield.begin()
+    with pytest.raises(DriverFailure, match=r"defocus \[0.0, 100.0\] -> \[45.0, 55.0\]"):
+        shield.measure_wobble(10.0)
+    assert lens.received == [{"defocus": 60.0}]  # the swing out; nothing after the change

@@ -449,7 +449,7 @@ class ShieldedApparatus:
         )
         self.acquisitions += 2 if purpose == "alignment" else 0
         try:
-            shift = measure_wobble(self.inner, safe)
+            shift = measure_wobble(_IntervalsHeld(self), safe)
         except KeyboardInterrupt:
             self.log("wobble-error", error="interrupted by the operator")
             raise
@@ -529,3 +529,23 @@ class ShieldedApparatus:
         self.setting = dict(self.start)
         self.restored = True
         return True
+
+
+class _IntervalsHeld:
+    """The shield's bounded driver for a wobble made of frames (alignrl/apparatus/measures.py):
+    before each of its writes (the swing out, the swing back, the return) the driver must still
+    declare the intervals the limits were resolved against (rule 6)."""
+
+    def __init__(self, shield: ShieldedApparatus) -> None:
+        self._shield = shield
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._shield.inner, name)
+
+    @property
+    def knobs(self) -> Mapping[str, tuple[float, float]]:
+        return self._shield.knobs
+
+    def write(self, values: Mapping[str, float]) -> None:
+        self._shield._intervals_hold()
+        self._shield.inner.write(values)
