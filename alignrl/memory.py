@@ -33,8 +33,13 @@ import ctypes
 import os
 from collections.abc import Mapping
 
-__all__ = ["KEPT_BYTES", "MALLOC_CHOICES", "check_malloc_choice", "keep_freed_memory",
-           "without_malloc_choices"]  # fmt: skip
+__all__ = [
+    "KEPT_BYTES",
+    "MALLOC_CHOICES",
+    "check_malloc_choice",
+    "keep_freed_memory",
+    "without_malloc_choices",
+]
 
 KEPT_BYTES = 1 << 30  # blocks up to this come from the heap; this much free is kept
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3  # glibc's mallopt parameters (malloc.h)
@@ -44,8 +49,7 @@ _applied: bool | None = None  # what the first call did (a process tunes once)
 MALLOC_VARIABLE = "ALIGNRL_MALLOC"
 # Its values (any case, spaces around ignored): the tuning, or glibc's defaults; unset or
 # empty is the tuning.
-MALLOC_CHOICES = {"tuned": "freed memory kept for reuse, the default",
-                  "system": "glibc's defaults"}  # fmt: skip
+MALLOC_CHOICES = {"tuned": "freed memory kept for reuse, the default", "system": "glibc's defaults"}
 SHOWN_VALUE = 40  # characters of an unknown value echoed in the message
 
 

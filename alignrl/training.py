@@ -128,8 +128,8 @@ def check_evaluation_apparatus(config: RunConfig) -> None:
     run directory exists, not a failure at the first validation session once training has
     started. (A driver is constructed once more for it, behind the shield its sessions
     have: an adaptation's limits and time limit, the audit in memory.)"""
-    from alignrl.apparatus.base import ApparatusError, knows_best_quality, offers_wobble
-    from alignrl.apparatus.measures import WOBBLE_KNOB
+    from alignrl.apparatus.base import ApparatusError
+    from alignrl.evaluation.session import check_session_apparatus
 
     spec, task = config.eval_apparatus, config.resolved_task()
     shield, adaptation = None, getattr(config, "adaptation", None)
@@ -139,15 +139,9 @@ def check_evaluation_apparatus(config: RunConfig) -> None:
         shield = adaptation_shield(adaptation, Path(os.devnull))  # a file opened on first use:
         shield = dataclasses.replace(shield, audit=None, unit="evaluation")  # never here
     try:
-        unit = make_apparatus(spec, config.eval_apparatus_args, shield=shield)
-        task.check_apparatus(unit.knobs)
-        if task.wobble and not (WOBBLE_KNOB in unit.knobs or offers_wobble(unit)):
-            raise ValueError(f"task {task.name!r} measures the wobble, and it has neither the "
-                             f"knob {WOBBLE_KNOB!r} nor a measure_wobble()")  # fmt: skip
-        if task.success.absolute_px is None and not knows_best_quality(unit):
-            raise ValueError("it cannot tell the best edge width it can reach (no "
-                             "best_quality()), so the task needs an absolute spec "
-                             "(task_options.success_absolute_px)")  # fmt: skip
+        check_session_apparatus(
+            make_apparatus(spec, config.eval_apparatus_args, shield=shield), task
+        )
     except (ApparatusError, ValueError, OSError) as error:
         raise ConfigError(
             f"eval_apparatus {spec!r} (the apparatus of the evaluation sessions) cannot be "

@@ -23,8 +23,10 @@ from alignrl.deploy.export import export_policy
 from alignrl.deploy.loading import load_exported
 from alignrl.runs.sources import ExportError, resolve_source
 
-READERS: dict[str, Callable[[Path], Any]] = {"load_exported": load_exported,
-                                             "resolve_source": resolve_source}  # fmt: skip
+READERS: dict[str, Callable[[Path], Any]] = {
+    "load_exported": load_exported,
+    "resolve_source": resolve_source,
+}
 
 
 def _edited(light: Path, tmp_path: Path, change: Callable[[dict[str, Any]], None]) -> Path:
@@ -155,10 +157,18 @@ FILES = {
 VERBS = {
     "export": lambda folder, tmp: ["export", folder, "--format", "safetensors", "--out", tmp / "x"],
     "evaluate": lambda folder, tmp: [
-        "evaluate", "--policy", folder, "--apparatus", "fake_drivers:ParabolicLens",
-        "--spec-px", "3", "--scenarios", "1", "--quiet",
+        "evaluate",
+        "--policy",
+        folder,
+        "--apparatus",
+        "fake_drivers:ParabolicLens",
+        "--spec-px",
+        "3",
+        "--scenarios",
+        "1",
+        "--quiet",
     ],
-}  # fmt: skip
+}
 
 
 @pytest.mark.parametrize("verb", list(VERBS))

@@ -55,8 +55,17 @@ def _league(tmp_path: Path, aligners: Path | None = None) -> Path:
 
 
 def _evaluate_on(spec: str, *extra: str) -> list[str]:
-    return ["evaluate", "--policy", "hyperbola", "--apparatus", spec, "--scenarios", "2",
-            "--quiet", *extra]  # fmt: skip
+    return [
+        "evaluate",
+        "--policy",
+        "hyperbola",
+        "--apparatus",
+        spec,
+        "--scenarios",
+        "2",
+        "--quiet",
+        *extra,
+    ]
 
 
 def _with_nul(source: Path, target: Path, line: int) -> Path:
@@ -218,8 +227,15 @@ def test_family_parameters_beyond_their_physical_range_are_refused(
 ) -> None:
     outcome = run_cli(_evaluate_on(spec, "--apparatus-args", arguments), capsys)
     file = "focus.yaml" if spec.startswith("family") else "val-mid.yaml"
-    assert_refused(outcome, 2, file, f"apparatus arguments {name}", f"{name} {value}",
-                   "physical range", shown_range)  # fmt: skip
+    assert_refused(
+        outcome,
+        2,
+        file,
+        f"apparatus arguments {name}",
+        f"{name} {value}",
+        "physical range",
+        shown_range,
+    )
 
 
 def test_a_family_file_beyond_the_physical_range_is_refused_naming_it(
@@ -306,11 +322,18 @@ def test_a_held_out_instrument_nudged_by_a_hair_is_still_held_out(
 ) -> None:
     copy = _copy_of(name, tmp_path, **changes)
     assert name in str(held_out_reason(f"family:{copy}"))
-    config = write_experiment(tmp_path, {
-        "name": "nudged", "apparatus": f"family:{copy}", "apparatus_args": {"analytic": True},
-        "eval_apparatus": "set:validation", "eval_apparatus_args": {"analytic": True},
-        "learner": SMALL_SAC, "budget": {"env_steps": 64, "eval_every": 64, "eval_scenarios": 2},
-    })  # fmt: skip
+    config = write_experiment(
+        tmp_path,
+        {
+            "name": "nudged",
+            "apparatus": f"family:{copy}",
+            "apparatus_args": {"analytic": True},
+            "eval_apparatus": "set:validation",
+            "eval_apparatus_args": {"analytic": True},
+            "learner": SMALL_SAC,
+            "budget": {"env_steps": 64, "eval_every": 64, "eval_scenarios": 2},
+        },
+    )
     outcome = run_cli(_train(config, tmp_path), capsys)
     assert_refused(outcome, 2, str(config), "apparatus", repr(name), "held-out")
     assert not (tmp_path / "runs").exists()
@@ -320,8 +343,11 @@ def test_the_wall_sees_a_held_out_instrument_given_as_arguments_or_a_randomizing
     tmp_path: Path,
 ) -> None:
     held_out = yaml.safe_load((INSTRUMENT_DIR / HELD_OUT_SET / "fast-drift.yaml").read_text())
-    arguments = {key: value for key, value in held_out.items()
-                 if key not in ("kind", "name", "description", "unit")}  # fmt: skip
+    arguments = {
+        key: value
+        for key, value in held_out.items()
+        if key not in ("kind", "name", "description", "unit")
+    }
     arguments["interval_width"] += 1e-7
     assert "fast-drift" in str(held_out_reason("instrument:val-mid", arguments))
     copy = _copy_of("fast-drift", tmp_path, interval_width=200.0 + 1e-7)

@@ -99,9 +99,15 @@ def test_an_unknown_malloc_choice_is_refused_naming_the_variable_and_the_values(
 
 @pytest.mark.parametrize(
     ("value", "choice"),
-    [("system", "system"), (" System ", "system"), ("SYSTEM", "system"), ("tuned", "tuned"),
-     ("Tuned", "tuned"), ("", "tuned")],
-)  # fmt: skip
+    [
+        ("system", "system"),
+        (" System ", "system"),
+        ("SYSTEM", "system"),
+        ("tuned", "tuned"),
+        ("Tuned", "tuned"),
+        ("", "tuned"),
+    ],
+)
 def test_the_malloc_choices_are_read_in_any_case(
     monkeypatch: pytest.MonkeyPatch, value: str, choice: str
 ) -> None:

@@ -162,9 +162,18 @@ def plan_calibration(
     # the intervals the export will carry: recorded, no wider than its run's, or refused now
     check_within_recorded(source, knob_limits(source), str(source.config_file or spec))
     return CalibrationPlan(
-        spec, policy, source, out, alignments, population, rounds, from_above, far_noise,
-        force, started,
-    )  # fmt: skip
+        spec,
+        policy,
+        source,
+        out,
+        alignments,
+        population,
+        rounds,
+        from_above,
+        far_noise,
+        force,
+        started,
+    )
 
 
 def calibrate_policy(
@@ -190,8 +199,7 @@ def calibrate_policy(
     alignments, nothing written) for readings that support no calibration; whatever
     run_session, the apparatus and the export refuse."""
     plan = plan_calibration(spec, out, alignments, population, rounds, from_above, far_noise, force)
-    return run_calibration(plan, apparatus, seed, spec_px, budget, command, on_alignment,
-                           on_round)  # fmt: skip
+    return run_calibration(plan, apparatus, seed, spec_px, budget, command, on_alignment, on_round)
 
 
 def _limits(apparatus: Apparatus, knob: str) -> tuple[float, float]:

@@ -59,6 +59,7 @@ __all__ = [
     "VALIDATION_SEED",
     "ScenarioResult",
     "SessionResult",
+    "check_session_apparatus",
     "default_budget",
     "reset_scenario",
     "run_session",
@@ -330,6 +331,25 @@ def _best_quality(apparatus: Apparatus) -> Callable[[], float] | None:
     return apparatus.best_quality if knows_best_quality(apparatus) else None
 
 
+def check_session_apparatus(apparatus: Apparatus, task: Task, spec_px: float | None = None) -> None:
+    """ValueError where a session of `task` cannot run on `apparatus`: a task knob it lacks, a
+    wobble it cannot take, or no spec (`spec_px` or the task's absolute one) on an apparatus
+    that cannot say its best edge width. A session checks this before its first alignment; a
+    training run, before it starts (alignrl/training.py)."""
+    task.check_apparatus(apparatus.knobs)
+    if task.wobble and not (WOBBLE_KNOB in apparatus.knobs or offers_wobble(apparatus)):
+        raise ValueError(
+            f"task {task.name!r} measures the wobble, which swings {WOBBLE_KNOB!r}: this "
+            "apparatus has neither that knob nor a measure_wobble() of its own"
+        )
+    if spec_px is None and task.success.absolute_px is None and _best_quality(apparatus) is None:
+        raise ValueError(
+            "this apparatus cannot tell the best edge width it can reach (it has no "
+            "best_quality()), so a relative success threshold is impossible: give an "
+            "absolute spec with --spec-px (edge width in px, e.g. from the datasheet)"
+        )
+
+
 def _check_spec_reachable(apparatus: Apparatus, seed: int, scenarios: int, spec_px: float) -> None:
     """Refuse an absolute spec sharper than the apparatus can focus in some scenario.
 
@@ -373,12 +393,7 @@ def run_session(
     a task of several), scenarios or budget below 1, spec_px not positive or sharper than the
     apparatus can focus, and no spec_px on an apparatus that cannot say its best edge width.
     """
-    task.check_apparatus(apparatus.knobs)
-    if task.wobble and not (WOBBLE_KNOB in apparatus.knobs or offers_wobble(apparatus)):
-        raise ValueError(
-            f"task {task.name!r} measures the wobble, which swings {WOBBLE_KNOB!r}: this "
-            "apparatus has neither that knob nor a measure_wobble() of its own"
-        )
+    check_session_apparatus(apparatus, task, spec_px)
     check_controller(controller, task)
     if scenarios < 1:
         raise ValueError(f"an evaluation session needs at least 1 scenario, got {scenarios}")
@@ -391,12 +406,6 @@ def run_session(
             raise ValueError(f"--spec-px must be a positive edge width in px, got {spec_px}")
         rule = dataclasses.replace(rule, absolute_px=float(spec_px))
         _check_spec_reachable(apparatus, seed, scenarios, float(spec_px))
-    elif rule.absolute_px is None and _best_quality(apparatus) is None:
-        raise ValueError(
-            "this apparatus cannot tell the best edge width it can reach (it has no "
-            "best_quality()), so a relative success threshold is impossible: give an "
-            "absolute spec with --spec-px (edge width in px, e.g. from the datasheet)"
-        )
     started = time.perf_counter()
     records = []
     for index in range(scenarios):

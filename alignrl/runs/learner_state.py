@@ -354,8 +354,9 @@ def read_json_file(
 
 
 def _strict_json(path: Path) -> Any:
-    return read_json_file(path, MAX_LEARNER_RECORD_BYTES, LearnerStateError, "a learner record",
-                          finite=True)  # fmt: skip
+    return read_json_file(
+        path, MAX_LEARNER_RECORD_BYTES, LearnerStateError, "a learner record", finite=True
+    )
 
 
 def _read_record(record_path: Path) -> dict[str, Any]:
