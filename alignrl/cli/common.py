@@ -270,15 +270,15 @@ def _overrides(args: argparse.Namespace) -> list[str]:
     return given
 
 
-def _replace_run(run_dir: Any, force: bool, resume: str) -> None:
-    """With --force, remove the run already in `run_dir` (only a run: a folder with a
-    config.yaml or checkpoints), saying so; without it, leave it to the create step, which
-    refuses it."""
+def _replace_run(lock: Any, force: bool, resume: str) -> None:
+    """With --force, remove the run already in the folder `lock` holds (only a run: a folder
+    with a config.yaml or checkpoints), saying so, and hold the new folder; without it, leave
+    it to the create step, which refuses it. A folder holding nothing but the lock holds no
+    run."""
     import shutil
-    from pathlib import Path
 
-    run_dir = Path(run_dir)
-    if not force or not run_dir.exists():
+    run_dir = lock.run_dir
+    if not force or lock.only_the_lock():
         return
     if not ((run_dir / "config.yaml").exists() or (run_dir / "checkpoints").is_dir()):
         raise CommandError(
@@ -286,4 +286,5 @@ def _replace_run(run_dir: Any, force: bool, resume: str) -> None:
             "checkpoints/): choose another --name or remove it yourself"
         )
     shutil.rmtree(run_dir)
+    lock.renew()
     print(f"--force: removed the run in {run_dir} (not resumed with `{resume}`)", file=sys.stderr)

@@ -157,9 +157,7 @@ def cmd_league_run(args: argparse.Namespace) -> int:
     run_dir = Path(args.runs_dir) / config.name
 
     def created(lock: RunLock) -> Any:
-        if not lock.only_the_lock():  # (a folder with nothing else in it holds no run)
-            _replace_run(run_dir, args.force, "alignrl league resume")
-            lock.renew()
+        _replace_run(lock, args.force, "alignrl league resume")
         return League.create(config, aligners, misaligners, args.runs_dir)
 
     return _run_league(created, args, run_dir, new=True)

@@ -71,9 +71,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     run_dir = Path(args.runs_dir) / config.name
 
     def replaced(lock: RunLock) -> None:
-        if not lock.only_the_lock():  # (a folder with nothing else in it holds no run)
-            _replace_run(run_dir, args.force, "alignrl train --resume")
-            lock.renew()
+        _replace_run(lock, args.force, "alignrl train --resume")
 
     if config.adaptation is not None:
         # An adaptation written as a YAML (e.g. a copy of a run's config.yaml with other
