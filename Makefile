@@ -4,8 +4,8 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: install run test test-all test-fast docs-check crash-check report-check lint format bench \
-	scenarios clean
+.PHONY: install run test test-all test-fast learning-check docs-check crash-check report-check \
+	lint format bench scenarios clean
 
 $(STAMP): pyproject.toml
 	test -d $(VENV) || $(PYTHON) -m venv $(VENV)
@@ -39,12 +39,17 @@ run: $(STAMP)
 # (--dist loadfile), so a file's module fixtures are built once. The tests marked long
 # (minutes of one worker each: `make run` with the commands that read its league, the
 # README's held-out table of the champion, the crash windows' kills at every other write) run in `make docs-check`, `make crash-check` and
-# `make test-all` instead.
+# `make test-all` instead; the two marked learning (a whole training run and an adaptation that
+# must end well above an untrained learner, about 40 s each) in `make learning-check`.
 PYTEST := $(BIN)/pytest -n 2 --dist loadfile
 test: $(STAMP)
 	$(BIN)/ruff check alignrl tests benchmarks docs/examples docs/gen_configs.py
 	$(BIN)/ruff format --check alignrl tests benchmarks docs/examples docs/gen_configs.py
-	$(PYTEST) -m "not long"
+	$(PYTEST) -m "not long and not learning"
+
+# The learning checks `make test` leaves out (tests marked learning).
+learning-check: $(STAMP)
+	$(PYTEST) -m learning
 
 # Every test, the long ones included.
 test-all: $(STAMP)
@@ -53,7 +58,7 @@ test-all: $(STAMP)
 # Everything but the tests marked slow or long (over about 15 s each: the crash windows, the
 # docs commands that train a league), for the edit-test loop.
 test-fast: $(STAMP)
-	$(PYTEST) -m "not slow and not long"
+	$(PYTEST) -m "not slow and not long and not learning"
 
 # Every command and example the README and docs/ show, run and compared with what they show.
 docs-check: $(STAMP)

@@ -387,6 +387,7 @@ def _near_focus_successes(agent: Agent, gain: float, scenarios: int = 40) -> int
     return successes
 
 
+@pytest.mark.learning
 def test_adaptation_lifts_success_on_a_new_lens(tmp_path: Path) -> None:
     """An aligner pre-trained briefly on the recordings (near focus, as in test_training)
     meets an analytic lens with another focus curve; 3000 shielded steps there lift it."""

@@ -182,6 +182,7 @@ def test_kill_minus_nine_then_resume_loses_nothing(tmp_path: Path) -> None:
     )
 
 
+@pytest.mark.learning
 def test_a_learner_lifts_its_success_rate_well_above_an_untrained_one(tmp_path: Path) -> None:
     """A tiny focus problem (starts within 20 % of the interval around focus): 8000 env
     steps take SAC from chance to aligning most held-out scenarios. (At 3000 steps it aligned
