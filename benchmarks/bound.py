@@ -38,7 +38,7 @@ import json
 from pathlib import Path
 
 from alignrl.apparatus.base import Apparatus
-from alignrl.apparatus.family import family_path, load_family
+from alignrl.apparatus.family_box import family_path, load_family
 from alignrl.apparatus.family_posterior import PROBE_RULES
 from alignrl.apparatus.instruments import load_set
 from alignrl.evaluation.instrument_sets import set_table

@@ -21,7 +21,8 @@ import numpy as np
 
 from alignrl.apparatus.base import NoEdgesError
 from alignrl.apparatus.edge_profiles import TEN_NINETY_PER_SIGMA
-from alignrl.apparatus.family import NO_EDGES_SPREAD, FamilyColumn, load_family
+from alignrl.apparatus.family import NO_EDGES_SPREAD, FamilyColumn
+from alignrl.apparatus.family_box import load_family
 from alignrl.apparatus.instruments import VALIDATION_SET, diagnosis_problem, instrument_names
 from alignrl.apparatus.probe import levelled_px, logistic
 from alignrl.apparatus.quality import edge_width

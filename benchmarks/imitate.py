@@ -28,7 +28,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from alignrl.apparatus.family import family_path, load_family
+from alignrl.apparatus.family_box import family_path, load_family
 from alignrl.apparatus.registry import make_apparatus_copies
 from alignrl.config import load_experiment
 from alignrl.envs.core import feature_layout

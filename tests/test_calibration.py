@@ -30,7 +30,7 @@ from alignrl.apparatus.calibration import (
     column_problem,
     sweeps_of,
 )
-from alignrl.apparatus.family import PAIR_FIELDS
+from alignrl.apparatus.family_box import PAIR_FIELDS
 from alignrl.apparatus.family_posterior import ColumnModels, FamilyPosterior, focus_box
 from alignrl.cli import main
 from alignrl.config import ConfigError, RunConfig, TaskOptions, parse_config

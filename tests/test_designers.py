@@ -20,13 +20,8 @@ from pettingzoo.test import api_test
 
 from alignrl.agents.agent import MemberSpec
 from alignrl.apparatus.base import NoEdgesError
-from alignrl.apparatus.family import (
-    LOG_SCALE,
-    FamilyColumn,
-    design_names,
-    family_path,
-    load_family,
-)
+from alignrl.apparatus.family import FamilyColumn, design_names
+from alignrl.apparatus.family_box import LOG_SCALE, family_path, load_family
 from alignrl.apparatus.registry import make_apparatus_copies
 from alignrl.config import ConfigError
 from alignrl.envs.core import AlignmentEpisodes

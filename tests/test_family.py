@@ -16,13 +16,12 @@ from conftest import SMALL_SAC, write_experiment, write_league
 from hostile import run_cli
 
 from alignrl.apparatus.base import NoEdgesError
-from alignrl.apparatus.family import (
+from alignrl.apparatus.family import FamilyColumn, draw_column
+from alignrl.apparatus.family_box import (
     FAMILY_DIR,
     LOG_SCALE,
     PAIR_FIELDS,
-    FamilyColumn,
     FocusFamily,
-    draw_column,
     family_names,
     load_family,
 )
@@ -439,7 +438,7 @@ def test_edge_sampling_stays_in_the_box_and_meets_its_edges_more_often() -> None
 
 def test_every_parameter_has_a_physical_range_that_every_shipped_column_lies_in() -> None:
     from alignrl.apparatus.calibration import CALIBRATION_REACH
-    from alignrl.apparatus.family import PHYSICAL
+    from alignrl.apparatus.family_box import PHYSICAL
     from alignrl.apparatus.family_posterior import focus_box
 
     assert set(PHYSICAL) == set(PAIR_FIELDS)

@@ -14,7 +14,8 @@ import yaml
 from fake_drivers import BlindLens
 from test_family import _scaled
 
-from alignrl.apparatus.family import FamilyColumn, load_family
+from alignrl.apparatus.family import FamilyColumn
+from alignrl.apparatus.family_box import load_family
 from alignrl.apparatus.instruments import INSTRUMENT_DIR, VALIDATION_SET
 from alignrl.checkpoints import load_checkpoint
 from alignrl.cli import main

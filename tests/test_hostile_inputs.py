@@ -26,7 +26,7 @@ import yaml
 from conftest import SMALL_SAC, write_experiment
 from hostile import assert_refused, run_cli
 
-from alignrl.apparatus.family import FAMILY_DIR
+from alignrl.apparatus.family_box import FAMILY_DIR
 from alignrl.apparatus.instruments import HELD_OUT_SET, INSTRUMENT_DIR, held_out_reason
 from alignrl.config import ConfigError, load_experiment, read_layered
 from alignrl.config_reading import MAX_ENV_STEPS, MAX_EPISODE_STEPS, MAX_EPISODES, MAX_SCENARIOS

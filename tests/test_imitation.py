@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from alignrl.agents.sac import Actor, SACConfig
-from alignrl.apparatus.family import family_path, load_family
+from alignrl.apparatus.family_box import family_path, load_family
 from alignrl.apparatus.registry import make_apparatus_copies
 from alignrl.config import TaskOptions
 from alignrl.envs.fit_features import bracketed_optimum

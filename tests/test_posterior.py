@@ -11,14 +11,8 @@ import numpy as np
 import pytest
 
 from alignrl.apparatus.base import NoEdgesError
-from alignrl.apparatus.family import (
-    BOUNDED,
-    PAIR_FIELDS,
-    FamilyColumn,
-    FocusFamily,
-    family_path,
-    load_family,
-)
+from alignrl.apparatus.family import FamilyColumn
+from alignrl.apparatus.family_box import BOUNDED, PAIR_FIELDS, FocusFamily, family_path, load_family
 from alignrl.apparatus.family_posterior import (
     _FAMILY_NAMES,
     FLAT_DECADES,

@@ -24,7 +24,7 @@ not written in a file) then walks and ends the champion's alignments (Task.poste
   during the alignments: calibrate again after changing them), and far from focus trusted
   less (`CALIBRATED`, with which the calibrated posterior reads too): the fitted noise is
   then what the model does not explain near focus, where the verification is taken.
-* What it believes (issue 60): a width below MIN_READING_PX is no reading; a search is
+* What it believes (issue 60): a width below MIN_EDGE_WIDTH_PX is no reading; a search is
   bounded by the memory it states (`search_memory`, MAX_SEARCH_BYTES); readings support a
   column only where their widths follow the setting (`support_p`) and each alignment's
   fitted focus lies inside the limits it was read within (`check_support`:
@@ -53,7 +53,8 @@ from typing import Any
 
 import numpy as np
 
-from alignrl.apparatus.family import PAIR_FIELDS, PHYSICAL, FocusFamily, even_fractions
+from alignrl.apparatus.family import even_fractions
+from alignrl.apparatus.family_box import PAIR_FIELDS, PHYSICAL, FocusFamily
 from alignrl.apparatus.family_posterior import (
     _FAMILY_NAMES,
     ColumnModels,
@@ -72,7 +73,6 @@ __all__ = [
     "FAR_NOISE_SEARCHED",
     "FROM_ABOVE",
     "MAX_SEARCH_BYTES",
-    "MIN_READING_PX",
     "SUPPORT_P",
     "Calibration",
     "ColumnEvidence",
@@ -145,9 +145,6 @@ ALIGNMENTS = 10
 # twenty-second session; with the seventeenth session's champion they aligned one more).
 FROM_ABOVE, BACKLASH_SEARCHED = 2, 0.03
 MIN_SPREAD = 0.005  # the least spread of the search's normal, a share of the widened box
-# A width narrower than this (px) is no reading: an unmeasured frame, as a NaN is (the
-# shield's floor of a driver's width: no detector resolves a tenth of a pixel).
-MIN_READING_PX = MIN_EDGE_WIDTH_PX
 # What the search may hold: each column's evidence keeps about SEARCH_ARRAYS arrays of the
 # posterior's shape (specimen scales x optimum grid points, float64) alive at its peak
 # (measured with tracemalloc: 9.7; 0.93 MB per column of the widened box, whose grid is
@@ -287,11 +284,11 @@ def check_far_noise(far_noise: float | None) -> None:
 
 
 def measured_sweeps(sweeps: Sequence[Sweep]) -> list[list[tuple[float, float, float]]]:
-    """`sweeps` with every width below MIN_READING_PX (or not finite) a frame without edges
+    """`sweeps` with every width below MIN_EDGE_WIDTH_PX (or not finite) a frame without edges
     (NaN): no detector resolves a tenth of a pixel, so such a width is no reading."""
     return [
         [
-            (float(u), float(w) if math.isfinite(w) and w >= MIN_READING_PX else math.nan, side)
+            (float(u), float(w) if math.isfinite(w) and w >= MIN_EDGE_WIDTH_PX else math.nan, side)
             for u, w, side in sweep
         ]
         for sweep in sweeps
@@ -316,7 +313,7 @@ def calibrate(
     approached from above, backlash up to BACKLASH_SEARCHED at least. `on_round(done, steps,
     best log evidence)` after each round and after the far noise's (steps: `rounds`, one
     more where the far noise is searched).
-    A width below MIN_READING_PX is read as a frame without edges (`measured_sweeps`).
+    A width below MIN_EDGE_WIDTH_PX is read as a frame without edges (`measured_sweeps`).
     UncalibratedError (a ValueError) for no reading in focus's sense (fewer than two
     measured widths in all); ValueError for a population below 8 or beyond MAX_SEARCH_BYTES,
     rounds below 1, an elite share outside (0, 1) or a far noise outside [0, 1]."""
@@ -326,7 +323,7 @@ def calibrate(
         total = sum(len(sweep) for sweep in sweeps)
         raise UncalibratedError(
             f"a calibration needs measured readings: {len(sweeps)} alignments hold {measured} "
-            f"of {total} (a frame without edges, or a width below {MIN_READING_PX:g} px, is "
+            f"of {total} (a frame without edges, or a width below {MIN_EDGE_WIDTH_PX:g} px, is "
             "none)"
         )
     check_search(population, rounds, elite)

@@ -46,38 +46,23 @@ from dataclasses import dataclass
 import numpy as np
 
 from alignrl.apparatus.base import NoEdgesError, check_write
-from alignrl.apparatus.family_box import (  # noqa: F401 (re-exported: the box of the columns)
-    BOUNDED,
-    FAMILY_DIR,
-    FAMILY_KINDS,
+from alignrl.apparatus.family_box import (
     LOG_SCALE,
     PAIR_FIELDS,
-    PHYSICAL,
     FocusFamily,
-    family_digest,
-    family_names,
-    family_path,
-    load_family,
 )
 from alignrl.apparatus.probe import focus_sigma_px, logistic
 from alignrl.apparatus.quality import TEN_NINETY_PER_SIGMA, edge_width
 
 __all__ = [
-    "FAMILY_DIR",
-    "FAMILY_KINDS",
     "SAMPLINGS",
     "ColumnDraw",
     "FamilyColumn",
-    "FocusFamily",
     "column_at",
     "design_names",
     "draw_column",
     "draw_fractions",
     "even_fractions",
-    "family_digest",
-    "family_names",
-    "family_path",
-    "load_family",
 ]
 
 SAMPLINGS = ("uniform", "edges")  # how a family column draws from its box (draw_fractions)

@@ -60,14 +60,12 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.special import ndtr
 
-from alignrl.apparatus.family import (
+from alignrl.apparatus.family import NO_EDGES_SPREAD, column_at, even_fractions
+from alignrl.apparatus.family_box import (
     BOUNDED,
     LOG_SCALE,
-    NO_EDGES_SPREAD,
     PAIR_FIELDS,
     FocusFamily,
-    column_at,
-    even_fractions,
     family_path,
     load_family,
 )

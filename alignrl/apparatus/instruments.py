@@ -25,13 +25,8 @@ from typing import Any
 
 import numpy as np
 
-from alignrl.apparatus.family import (
-    PAIR_FIELDS,
-    FamilyColumn,
-    FocusFamily,
-    family_path,
-    load_family,
-)
+from alignrl.apparatus.family import FamilyColumn
+from alignrl.apparatus.family_box import PAIR_FIELDS, FocusFamily, family_path, load_family
 
 __all__ = [
     "HELD_OUT_SET",

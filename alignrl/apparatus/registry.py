@@ -40,7 +40,8 @@ from pathlib import Path
 from typing import Any
 
 from alignrl.apparatus.base import APPARATUS_METHODS, Apparatus
-from alignrl.apparatus.family import SAMPLINGS, FamilyColumn, family_path, load_family
+from alignrl.apparatus.family import SAMPLINGS, FamilyColumn
+from alignrl.apparatus.family_box import family_path, load_family
 from alignrl.apparatus.guard import (
     DEFAULT_CALL_TIMEOUT_S,
     checked_intervals,

@@ -43,7 +43,8 @@ import numpy as np
 
 from alignrl.apparatus.base import NoEdgesError, check_write
 from alignrl.apparatus.edge_profiles import TEN_NINETY_PER_SIGMA
-from alignrl.apparatus.family import FocusFamily, draw_column, family_path, load_family
+from alignrl.apparatus.family import draw_column
+from alignrl.apparatus.family_box import FocusFamily, family_path, load_family
 from alignrl.apparatus.scenarios import ScenarioSet, read_scenarios
 
 __all__ = [

@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from alignrl.agents.agent import MemberSpec
-from alignrl.apparatus.family import PHYSICAL
+from alignrl.apparatus.family_box import PHYSICAL
 from alignrl.deploy.formats import EXPORT_FORMATS, ONNX_OPSET
 from alignrl.deploy.graph import graph_signature
 from alignrl.envs.core import feature_layout

@@ -442,18 +442,24 @@ def _agrees_with_card(
     files and the first field where they differ."""
     run, task, training = record["run"], card["task"], card.get("training") or {}
     pairs = [
-        *((f"member.{name}", record["member"].get(name), spec.get(name), f"member.{name}")
-          for name in sorted(set(spec) | set(record["member"]))),
-        *((key, record[key], card["member"][key], f"member.{key}")
-          for key in ("steps_seen", "updates")),
+        *(
+            (f"member.{name}", record["member"].get(name), spec.get(name), f"member.{name}")
+            for name in sorted(set(spec) | set(record["member"]))
+        ),
+        *(
+            (key, record[key], card["member"][key], f"member.{key}")
+            for key in ("steps_seen", "updates")
+        ),
         ("run.task", run.get("task"), task["name"], "task.name"),
         ("run.task_options", run.get("task_options"), task["options"], "task.options"),
         ("run.history", run.get("history"), card["history"], "history"),
-        *((f"run.{key}", run.get(key), training.get(key), f"training.{key}")
-          for key in ("apparatus", "apparatus_args", "eval_apparatus", "eval_apparatus_args")),
+        *(
+            (f"run.{key}", run.get(key), training.get(key), f"training.{key}")
+            for key in ("apparatus", "apparatus_args", "eval_apparatus", "eval_apparatus_args")
+        ),
         ("knobs", record["knobs"], card["knobs"], "knobs"),
         ("source", record["source"], card["source"], "source"),
-    ]  # fmt: skip
+    ]
     for key, mine, theirs, field in pairs:
         found = _first_difference(_plain(mine), _plain(theirs), key)
         if found:
