@@ -25,16 +25,9 @@ from alignrl.config import (
     LearnerConfig,
     parse_experiment,
 )
-from alignrl.envs.hindsight import FocusPosterior, HindsightSecrets  # re-exported
 from alignrl.runs.sources import PolicySource, require_learner_state
 
-__all__ = [
-    "FocusPosterior",
-    "HindsightSecrets",
-    "adaptation_config",
-    "adaptation_shield",
-    "check_adaptable",
-]
+__all__ = ["adaptation_config", "adaptation_shield", "check_adaptable"]
 
 
 def check_adaptable(source: PolicySource, named: str) -> None:

@@ -271,7 +271,7 @@ class TaskOptions(_Strict):
 
     def apply(self, task: Any) -> Any:
         """The task with these changes (a new object; the registry's task is untouched)."""
-        from alignrl.apparatus.calibration import column_values
+        from alignrl.posterior.calibration import column_values
 
         success_keys = ("success_relative", "success_absolute_px")
         changes = {name: value for name, value in self.model_dump().items()

@@ -1,6 +1,6 @@
 """Memory a process frees stays in it for the next array (glibc's allocator, tuned once).
 
-The focus posterior (alignrl/apparatus/family_posterior.py) makes and drops arrays of 15 MB at
+The focus posterior (alignrl/posterior/inference.py) makes and drops arrays of 15 MB at
 every reading (1,024 columns x 1,836 optimum grid points; a calibration's search, 256 columns
 x 3 specimen points x up to 4,000, 20-25 MB), several temporaries per line. glibc serves a
 block above its mmap threshold with fresh pages from the kernel and hands them back when it

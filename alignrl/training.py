@@ -69,7 +69,7 @@ from alignrl.runs.training_logs import TrainingLogs
 from alignrl.runs.training_runs import load_policy, member_spec
 
 if TYPE_CHECKING:
-    from alignrl.adaptation import HindsightSecrets
+    from alignrl.envs.hindsight import HindsightSecrets
     from alignrl.runs.sources import PolicySource
 
 __all__ = [
@@ -419,7 +419,7 @@ class Trainer:
     def _hindsight_secrets(self) -> HindsightSecrets | None:
         """HindsightSecrets where an adaptation's SAC critics read a secret that some of its
         apparatus cannot tell; None otherwise (every transition is stored as it comes)."""
-        from alignrl.adaptation import HindsightSecrets
+        from alignrl.envs.hindsight import HindsightSecrets
 
         adaptation, learner = self.config.adaptation, self.config.learner
         blind = ~self.env.episodes.secrets_known()

@@ -8,11 +8,11 @@ Bayesian autofocus of alignrl/evaluation/posterior.py, in five kinds (issue 21):
   the same for every instrument: it knows what training knows, no more (`alignrl evaluate
   --policy posterior`); `--reach R` widens the box by R of each range at both ends;
 * `oracle-scale-free` (only where asked): the oracle with its readings in an unknown pixel
-  scale (PosteriorFocus.scale_free): every parameter of the column known but its pixels, as a
+  scale (BayesianAutofocus.scale_free): every parameter of the column known but its pixels, as a
   unit-free aligner must read them. What it cannot do in a number of acquisitions, no
   unit-free controller does reliably there;
 * `scale-free` (only where asked): the same box, its readings in an unknown pixel scale
-  (PosteriorFocus.scale_free): what a unit-free aligner could learn from it;
+  (BayesianAutofocus.scale_free): what a unit-free aligner could learn from it;
 * `robust` (only where asked): `alignrl evaluate --policy posterior-robust`, scale-free with
   more columns and far readings trusted less (posterior.ROBUST), as the champion's ending
   posterior reads images.
@@ -39,10 +39,11 @@ from pathlib import Path
 
 from alignrl.apparatus.base import Apparatus
 from alignrl.apparatus.family_box import family_path, load_family
-from alignrl.apparatus.family_posterior import PROBE_RULES
 from alignrl.apparatus.instruments import load_set
 from alignrl.evaluation.instrument_sets import set_table
-from alignrl.evaluation.posterior import FAMILY_REACH, ROBUST, SCALE_FREE, PosteriorFocus, widened
+from alignrl.evaluation.posterior import ROBUST, BayesianAutofocus
+from alignrl.posterior.inference import PROBE_RULES, SCALE_FREE
+from alignrl.posterior.models import FAMILY_REACH, widened
 from benchmarks.heldout import same_sessions, stored_or_run
 
 KINDS = ("oracle", "oracle-scale-free", "posterior", "scale-free", "robust")
@@ -58,10 +59,10 @@ class _Oracle:
     def __init__(self, set_name: str, label: str, probe_rule: str, reads: dict) -> None:
         self.name = label
         self.by_instrument = {
-            name: PosteriorFocus(instrument, name=label, probe_rule=probe_rule, **reads)
+            name: BayesianAutofocus(instrument, name=label, probe_rule=probe_rule, **reads)
             for name, instrument in load_set(set_name)
         }
-        self.present: PosteriorFocus | None = None
+        self.present: BayesianAutofocus | None = None
 
     def switch(self, instrument: str) -> None:
         self.present = self.by_instrument[instrument]
@@ -81,7 +82,7 @@ def _result(kind: str, args: argparse.Namespace) -> dict:
         return stored_or_run(name, lambda: oracle, args, path, on_instrument=oracle.switch)
     box = widened(load_family(family_path(args.family)), args.reach)
     settings = {"draws": args.draws, **reads, "probe_rule": args.probe_rule}
-    return stored_or_run(name, lambda: PosteriorFocus(box, name=name, **settings), args, path)
+    return stored_or_run(name, lambda: BayesianAutofocus(box, name=name, **settings), args, path)
 
 
 def _beside(args: argparse.Namespace) -> list[dict]:
@@ -105,7 +106,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--analytic", action="store_true", help="analytic readings, no images")
     parser.add_argument("--family", default="focus", help="the box `posterior` knows")
     parser.add_argument(
-        "--draws", type=int, default=PosteriorFocus.draws, help="columns (robust: 1024)"
+        "--draws", type=int, default=BayesianAutofocus.draws, help="columns (robust: 1024)"
     )
     parser.add_argument(
         "--probe-rule", choices=PROBE_RULES, default="variance", help="FamilyPosterior.probe_rule"

@@ -27,14 +27,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-from alignrl.apparatus.calibration import (
-    ALIGNMENTS,
-    CALIBRATED_STOP,
-    FAR_NOISE_SEARCHED,
-    FROM_ABOVE,
-    POPULATION,
-    ROUNDS,
-)
 from alignrl.apparatus.instruments import load_set
 from alignrl.apparatus.registry import make_apparatus
 from alignrl.cli.common import _at_least_zero, _share
@@ -42,6 +34,14 @@ from alignrl.deploy.calibrate import calibrate_policy
 from alignrl.evaluation.instrument_sets import instrument_spec
 from alignrl.evaluation.session import VALIDATION_SEED, run_session
 from alignrl.intervals import success_text
+from alignrl.posterior.calibration import (
+    ALIGNMENTS,
+    CALIBRATED_STOP,
+    FAR_NOISE_SEARCHED,
+    FROM_ABOVE,
+    POPULATION,
+    ROUNDS,
+)
 from benchmarks.heldout import _controller as policy_controller
 
 JUDGED = "judged.json"

@@ -1,4 +1,4 @@
-"""Clone the Bayesian autofocus over the training box into an aligner (alignrl/imitation.py).
+"""Clone the Bayesian autofocus over the training box into an aligner (benchmarks/imitation.py).
 
     python -m benchmarks.imitate collect --config benchmarks/configs/focus-v2-imitate.yaml \
         --episodes 1500 --seed 1 --out runs/s12/teacher-1.npz
@@ -34,8 +34,9 @@ from alignrl.config import load_experiment
 from alignrl.envs.core import feature_layout
 from alignrl.envs.task import knob_change
 from alignrl.envs.vector import VectorAlignmentEnv
-from alignrl.evaluation.posterior import SCALE_FREE, PosteriorFocus
-from alignrl.imitation import Demonstrations, PosteriorTeacher, clone, collect
+from alignrl.evaluation.posterior import BayesianAutofocus
+from alignrl.posterior.inference import SCALE_FREE
+from benchmarks.imitation import Demonstrations, PosteriorTeacher, clone, collect
 
 
 def _collect(args: argparse.Namespace) -> None:
@@ -52,7 +53,7 @@ def _collect(args: argparse.Namespace) -> None:
         student = lambda observation: agent.act(observation, deterministic=True)  # noqa: E731
     box = load_family(family_path("focus"))
     options = SCALE_FREE if args.teacher == "scale-free" else {}
-    teacher = PosteriorTeacher(env, lambda: PosteriorFocus(box, **options))
+    teacher = PosteriorTeacher(env, lambda: BayesianAutofocus(box, **options))
     if args.teacher_ends:
         if student is None:
             raise SystemExit(
@@ -209,7 +210,7 @@ def main(argv: list[str] | None = None) -> int:
     two.add_argument("--runs-dir", default="runs")
     two.add_argument(
         "--continue-weight", type=float, default=1.0,
-        help="weight of the stop component where the teacher goes on (alignrl.imitation.clone)",
+        help="weight of the stop component where the teacher goes on (benchmarks.imitation.clone)",
     )  # fmt: skip
     three = verbs.add_parser("agreement", help="how well the teacher can be followed")
     three.add_argument("--config", required=True)
@@ -224,7 +225,7 @@ def main(argv: list[str] | None = None) -> int:
         )  # fmt: skip
         verb.add_argument(
             "--anneal", action="store_true",
-            help="the learning rate falls to zero along a half cosine (alignrl.imitation.clone)",
+            help="the learning rate falls to zero along a half cosine (benchmarks.imitation.clone)",
         )  # fmt: skip
     args = parser.parse_args(argv)
     {"collect": _collect, "clone": _clone, "agreement": _agreement}[args.verb](args)

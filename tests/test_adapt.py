@@ -470,12 +470,13 @@ def test_train_given_an_adaptation_config_starts_from_its_source(
 
 
 def test_hindsight_secrets_have_a_room_of_their_own() -> None:
-    # Below training and adaptation (numpy only), and named for their old importers; the
-    # config's adaptation section reads the same names, not a copy.
+    # Below training and adaptation (numpy only), the pooled curve in the posterior's room;
+    # the config's adaptation section reads the same names, not a copy.
     import alignrl.adaptation as adaptation
     import alignrl.config as config
     import alignrl.envs.hindsight as hindsight
+    from alignrl.posterior.hindsight import PooledCurve
 
-    assert adaptation.HindsightSecrets is hindsight.HindsightSecrets
-    assert adaptation.FocusPosterior is hindsight.FocusPosterior
+    assert isinstance(hindsight.HindsightSecrets([True]).posterior, PooledCurve)
+    assert not hasattr(adaptation, "HindsightSecrets")  # no re-export: one name, one place
     assert config.HINDSIGHT_OPTIMA is hindsight.HINDSIGHT_OPTIMA  # one copy, not two that agree

@@ -55,20 +55,20 @@ def test_oracle_rows_are_written_read_back_and_shown_beside(
 
 @pytest.fixture
 def made(monkeypatch: pytest.MonkeyPatch) -> list:
-    """Every PosteriorFocus benchmarks/bound.py makes, as it makes it; each then aligns with
+    """Every BayesianAutofocus benchmarks/bound.py makes, as it makes it; each then aligns with
     at most 64 columns (the robust kind draws 1,024), judging as many states as an episode's
     posterior of as many (resample_for): the same files and rows, whose figures these tests
     do not read, in less computing."""
     made = []
 
-    class Recording(bound.PosteriorFocus):
+    class Recording(bound.BayesianAutofocus):
         def __post_init__(self) -> None:
             made.append(copy.copy(self))
             self.draws = min(self.draws, 64)
             self.resample = resample_for(self.draws)
             super().__post_init__()
 
-    monkeypatch.setattr(bound, "PosteriorFocus", Recording)
+    monkeypatch.setattr(bound, "BayesianAutofocus", Recording)
     return made
 
 

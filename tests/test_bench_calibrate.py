@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from alignrl.apparatus.calibration import CALIBRATED_STOP, FAR_NOISE_SEARCHED
+from alignrl.posterior.calibration import CALIBRATED_STOP, FAR_NOISE_SEARCHED
 from benchmarks.calibrate import main
 
 

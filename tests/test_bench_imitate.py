@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from alignrl.imitation import Demonstrations, PosteriorTeacher, collect
 from benchmarks.imitate import main
+from benchmarks.imitation import Demonstrations, PosteriorTeacher, collect
 from tests.test_imitation import _env, _small_posterior
 
 FITEND = "benchmarks/configs/focus-v2-imitate-fitend.yaml"

@@ -21,9 +21,10 @@ from fake_drivers import HostileLens, ParabolicLens
 from hostile import assert_refused, run_cli
 from test_calibration import COLUMN, _sweeps
 
-import alignrl.apparatus.calibration as calibration_module
 import alignrl.checkpoints as checkpoints
-from alignrl.apparatus.calibration import (
+import alignrl.posterior.calibration as calibration_module
+from alignrl.cli.common import EXIT_INTERRUPTED
+from alignrl.posterior.calibration import (
     MAX_SEARCH_BYTES,
     SUPPORT_P,
     UncalibratedError,
@@ -32,7 +33,6 @@ from alignrl.apparatus.calibration import (
     search_memory,
     support_p,
 )
-from alignrl.cli.common import EXIT_INTERRUPTED
 
 EXIT_NOT_CALIBRATED = 1  # documented in docs/cli.md, alignrl calibrate
 HOSTILE = "fake_drivers:HostileLens"

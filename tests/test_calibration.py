@@ -1,4 +1,4 @@
-"""Calibrating the focus posterior to one column (alignrl/apparatus/calibration.py) and
+"""Calibrating the focus posterior to one column (alignrl/posterior/calibration.py) and
 `alignrl calibrate` (alignrl/deploy/calibrate.py): a champion adapted to a microscope by
 what its alignments there read."""
 
@@ -15,29 +15,30 @@ import torch
 from fake_drivers import TEN_NINETY, BlindLens, ParabolicLens
 from safetensors.torch import load_file
 
-from alignrl.apparatus.calibration import (
-    ALIGNMENTS,
-    CALIBRATED,
-    CALIBRATED_STOP,
-    COLUMN_FIELDS,
-    FAR_NOISE_SEARCHED,
-    FROM_ABOVE,
-    ColumnEvidence,
-    calibrate,
-    calibrated_posterior,
-    column_evidence,
-    column_family,
-    column_problem,
-    sweeps_of,
-)
 from alignrl.apparatus.family_box import PAIR_FIELDS
-from alignrl.apparatus.family_posterior import ColumnModels, FamilyPosterior, focus_box
 from alignrl.cli import main
 from alignrl.config import ConfigError, RunConfig, TaskOptions, parse_config
 from alignrl.deploy.calibrate import calibrate_policy, read_from_above
 from alignrl.deploy.policy import load_deployable
 from alignrl.envs.ending import EpisodeEnds
 from alignrl.envs.task import get_task
+from alignrl.posterior.calibration import (
+    ALIGNMENTS,
+    CALIBRATED,
+    CALIBRATED_STOP,
+    COLUMN_FIELDS,
+    FAR_NOISE_SEARCHED,
+    FROM_ABOVE,
+    calibrate,
+    calibrated_posterior,
+    column_evidence,
+    column_family,
+    column_problem,
+    evidence_of,
+    sweeps_of,
+)
+from alignrl.posterior.inference import FamilyPosterior
+from alignrl.posterior.models import ColumnModels, focus_box
 
 MIDDLE = np.full((1, len(PAIR_FIELDS)), 0.5)  # one row of the box (a column family: any)
 # A column inside the training box (alignrl/apparatus/families/focus.yaml)
@@ -93,7 +94,7 @@ def test_the_evidence_prefers_the_column_the_readings_came_from() -> None:
                "wider": {"floor_sigma_px": 2.0}, "flat": {"curve_power": 3.0}}  # fmt: skip
     for label, change in changes.items():
         family = column_family({**COLUMN, **change})
-        evidence = ColumnEvidence(family, draws=1)
+        evidence = evidence_of(family, 1)
         scores[label] = float(column_evidence(evidence, MIDDLE, sweeps)[0])
     assert all(math.isfinite(score) for score in scores.values())
     assert scores["true"] > max(scores["steeper"], scores["wider"], scores["flat"]) + 10
@@ -118,7 +119,7 @@ def test_the_evidence_tells_how_far_readings_stray() -> None:
     spread their far readings were drawn with, and a per-column far noise reads as the
     same share given to all."""
     shares = np.array([0.01, 0.05, 0.2, 0.6])
-    evidence = ColumnEvidence(column_family(COLUMN), draws=1)
+    evidence = evidence_of(column_family(COLUMN), 1)
     rows = np.repeat(MIDDLE, len(shares), axis=0)
     for drawn in (0.01, 0.2):
         log = column_evidence(evidence, rows, _sweeps(COLUMN, 12, seed=3, far=drawn), shares)

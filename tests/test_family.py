@@ -437,9 +437,9 @@ def test_edge_sampling_stays_in_the_box_and_meets_its_edges_more_often() -> None
 
 
 def test_every_parameter_has_a_physical_range_that_every_shipped_column_lies_in() -> None:
-    from alignrl.apparatus.calibration import CALIBRATION_REACH
     from alignrl.apparatus.family_box import PHYSICAL
-    from alignrl.apparatus.family_posterior import focus_box
+    from alignrl.posterior.calibration import CALIBRATION_REACH
+    from alignrl.posterior.models import focus_box
 
     assert set(PHYSICAL) == set(PAIR_FIELDS)
     shipped = [FOCUS, *(family for _, family in load_set(HELD_OUT_SET) + load_set(VALIDATION_SET))]

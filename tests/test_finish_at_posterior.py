@@ -8,19 +8,19 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from alignrl.apparatus.family_posterior import (
-    PROBE_RULES,
-    SCALE_FREE,
-    SCORED_STATES,
-    STOP_STATES,
-    FamilyPosterior,
-    focus_box,
-)
 from alignrl.apparatus.registry import make_apparatus
 from alignrl.config import TaskOptions
 from alignrl.envs.core import AlignmentEpisodes
 from alignrl.envs.ending import EpisodeEnds, resample_for
 from alignrl.envs.task import POSTERIOR_PROBE_RULES, get_task
+from alignrl.posterior.inference import (
+    PROBE_RULES,
+    SCALE_FREE,
+    SCORED_STATES,
+    STOP_STATES,
+    FamilyPosterior,
+)
+from alignrl.posterior.models import focus_box
 
 WALK = [0.9, -0.6, 0.4, -0.3]  # probes on both sides of focus, from the episode's start
 

@@ -1,4 +1,4 @@
-"""alignrl/imitation.py: the posterior teaches the env's actions (probes land where it asked,
+"""benchmarks/imitation.py: the posterior teaches the env's actions (probes land where it asked,
 a stop ends at its best setting), episodes are collected with the teacher or a student acting,
 and cloning fits an actor to the teacher's labels."""
 
@@ -15,8 +15,8 @@ from alignrl.config import TaskOptions
 from alignrl.envs.fit_features import bracketed_optimum
 from alignrl.envs.task import get_task, knob_change
 from alignrl.envs.vector import VectorAlignmentEnv
-from alignrl.evaluation.posterior import PosteriorFocus
-from alignrl.imitation import Demonstrations, PosteriorTeacher, action_for_move, clone, collect
+from alignrl.evaluation.posterior import BayesianAutofocus
+from benchmarks.imitation import Demonstrations, PosteriorTeacher, action_for_move, clone, collect
 
 OPTIONS = dict(
     final_move=True, approach_from_below=True, action_power=2.0, move_floor=0.02,
@@ -30,8 +30,8 @@ def _env(envs: int = 2, history: int = 6, **options) -> VectorAlignmentEnv:
     return VectorAlignmentEnv(apparatus, task, history=history)
 
 
-def _small_posterior() -> PosteriorFocus:
-    return PosteriorFocus(load_family(family_path("focus")), draws=16, specimen_points=1)
+def _small_posterior() -> BayesianAutofocus:
+    return BayesianAutofocus(load_family(family_path("focus")), draws=16, specimen_points=1)
 
 
 @pytest.mark.parametrize("power, floor", [(1.0, 0.0), (2.0, 0.02), (2.0, 0.0)])

@@ -37,7 +37,8 @@ print(held.hblkhd - before.hblkhd, after.fordblks - before.fordblks)
 # A short alignment's worth of the focus posterior: what it decides and its states' bytes.
 POSTERIOR = """
 import hashlib
-from alignrl.apparatus.family_posterior import FamilyPosterior, focus_box
+from alignrl.posterior.inference import FamilyPosterior
+from alignrl.posterior.models import focus_box
 from alignrl.memory import keep_freed_memory
 print(keep_freed_memory())
 posterior = FamilyPosterior(focus_box(), draws=64, probe_rule="entropy")

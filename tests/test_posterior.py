@@ -13,23 +13,15 @@ import pytest
 from alignrl.apparatus.base import NoEdgesError
 from alignrl.apparatus.family import FamilyColumn
 from alignrl.apparatus.family_box import BOUNDED, PAIR_FIELDS, FocusFamily, family_path, load_family
-from alignrl.apparatus.family_posterior import (
-    _FAMILY_NAMES,
-    FLAT_DECADES,
-    PROBE_RULES,
-    SCALE_FREE,
-    ColumnModels,
-    FamilyPosterior,
-    focus_box,
-    widened,
-)
 from alignrl.apparatus.instruments import instrument_names
 from alignrl.cli import main
 from alignrl.envs.ending import resample_for
 from alignrl.envs.task import get_task
 from alignrl.evaluation.controllers import CountingApparatus
-from alignrl.evaluation.posterior import PosteriorFocus
+from alignrl.evaluation.posterior import BayesianAutofocus
 from alignrl.evaluation.session import run_session
+from alignrl.posterior.inference import PROBE_RULES, SCALE_FREE, FamilyPosterior
+from alignrl.posterior.models import FLAT_DECADES, MODEL_FIELDS, ColumnModels, focus_box, widened
 
 # A posterior of 32 columns judging as many states as an episode's posterior of 32 does
 SMALL = {"draws": 32, "resample": resample_for(32)}
@@ -96,7 +88,7 @@ def test_knowing_the_instrument_it_aligns_in_few_acquisitions():
     family = _instrument("val-mid")
     apparatus = FamilyColumn(family, analytic=True)
     session = run_session(
-        PosteriorFocus(family, name="oracle"), apparatus, get_task("focus"), scenarios=12, seed=5
+        BayesianAutofocus(family, name="oracle"), apparatus, get_task("focus"), scenarios=12, seed=5
     )
     assert session.successes == 12
     assert session.median_acquisitions <= 4
@@ -118,7 +110,7 @@ def test_knowing_only_a_box_it_still_aligns(rule):
         curve_power=[1.6, 2.6],
         hysteresis_fraction=[0.0, 0.006],
     )
-    controller = PosteriorFocus(box, probe_rule=rule, **SMALL)
+    controller = BayesianAutofocus(box, probe_rule=rule, **SMALL)
     assert controller.models.count == 32
     apparatus = FamilyColumn(load_family(path), analytic=True)
     session = run_session(controller, apparatus, get_task("focus"), scenarios=12, seed=1)
@@ -126,7 +118,7 @@ def test_knowing_only_a_box_it_still_aligns(rule):
     assert session.median_acquisitions <= 4
 
 
-def _decisions(controller: PosteriorFocus, readings, factor: float) -> list[tuple[float, bool]]:
+def _decisions(controller: BayesianAutofocus, readings, factor: float) -> list[tuple[float, bool]]:
     """The controller's decision after each of `readings` (setting, px), the px times
     `factor`."""
     controller.begin()
@@ -149,11 +141,11 @@ def test_a_scale_free_posterior_decides_alike_in_any_pixel_scale():
     for setting in (0.2, 0.7, 0.45, 0.5):
         column.write({"defocus": low + setting * (high - low)})
         readings.append((setting, column.measure()))
-    free = PosteriorFocus(box, draws=16, scale_free=True, specimen_points=1)
+    free = BayesianAutofocus(box, draws=16, scale_free=True, specimen_points=1)
     once, wider = _decisions(free, readings, 1.0), _decisions(free, readings, 3.7)
     for (a, stop_a), (b, stop_b) in zip(once, wider, strict=True):
         assert a == pytest.approx(b, abs=1e-9) and stop_a == stop_b
-    fixed = PosteriorFocus(box, draws=16)
+    fixed = BayesianAutofocus(box, draws=16)
     assert _decisions(fixed, readings, 1.0) != _decisions(fixed, readings, 3.7)
 
 
@@ -166,7 +158,7 @@ def test_a_scale_free_posterior_aligns_a_column_at_another_magnification():
     for scale_free in (True, False):
         apparatus = _Magnified(FamilyColumn(load_family(path), analytic=True), 3.0)
         options = {"scale_free": True, "specimen_points": 1} if scale_free else {}
-        controller = PosteriorFocus(box, **SMALL, **options)
+        controller = BayesianAutofocus(box, **SMALL, **options)
         session = run_session(controller, apparatus, get_task("focus"), scenarios=8, seed=1)
         successes[scale_free] = session.successes
     assert successes[True] >= 6
@@ -215,7 +207,7 @@ def test_a_column_without_edges_ends_inside_the_interval_and_budget():
     family = _instrument("val-mid")
     blind = _Blind()
     counting = CountingApparatus(blind, budget=5)
-    PosteriorFocus(family, name="oracle").align(counting, "defocus", budget=5)
+    BayesianAutofocus(family, name="oracle").align(counting, "defocus", budget=5)
     assert counting.acquisitions <= 5
     assert blind.written and all(-10.0 <= value <= 30.0 for value in blind.written)
 
@@ -228,7 +220,7 @@ def test_a_setting_at_the_top_of_an_interval_that_rounds_is_written_inside_it():
     blind.knobs = {"defocus": (low, high)}
     blind.setting = low
     assert low + 1.0 * (high - low) > high
-    PosteriorFocus(_instrument("val-mid"), name="oracle")._write(
+    BayesianAutofocus(_instrument("val-mid"), name="oracle")._write(
         blind, "defocus", low, high - low, 1.0
     )
     assert blind.written[-1] == high
@@ -247,7 +239,7 @@ def test_a_setting_at_the_top_of_an_interval_that_rounds_is_written_inside_it():
 )
 def test_bad_settings_are_refused(field, value):
     with pytest.raises(ValueError, match=field):
-        PosteriorFocus(_instrument("val-mid"), **{field: value})
+        BayesianAutofocus(_instrument("val-mid"), **{field: value})
 
 
 def test_a_widened_box_holds_the_box_within_what_the_family_allows():
@@ -256,7 +248,7 @@ def test_a_widened_box_holds_the_box_within_what_the_family_allows():
     assert widened(box, 0.0) == box
     assert wide.optimum_fraction == box.optimum_fraction  # the prior's own business
     grew = 0
-    for name in _FAMILY_NAMES.values():
+    for name in MODEL_FIELDS.values():
         (low, high), (wide_low, wide_high) = getattr(box, name), getattr(wide, name)
         lowest, highest = BOUNDED.get(name, (0.0, math.inf))
         assert lowest <= wide_low <= low <= high <= wide_high <= highest, name
@@ -312,7 +304,7 @@ def test_far_noise_keeps_two_far_readings_from_making_the_posterior_sure():
     family = _instrument("val-steep")
     decisions = {}
     for far_noise in (0.0, 0.1):
-        posterior = PosteriorFocus(family, far_noise=far_noise)
+        posterior = BayesianAutofocus(family, far_noise=far_noise)
         posterior.begin()
         for setting, reading in [(0.907, math.nan), (0.0414, 11.83), (0.0897, 19.81)]:
             posterior.observe(setting, reading)
@@ -320,7 +312,7 @@ def test_far_noise_keeps_two_far_readings_from_making_the_posterior_sure():
     assert decisions[0.0][0] > 0.99 and decisions[0.0][1]
     assert decisions[0.1][0] < 0.9 and not decisions[0.1][1]
     with pytest.raises(ValueError, match="far_noise"):
-        PosteriorFocus(family, far_noise=-0.1)
+        BayesianAutofocus(family, far_noise=-0.1)
 
 
 def test_the_flat_bottom_is_weighed_log_uniformly_over_its_decades():
@@ -397,7 +389,7 @@ def test_a_reading_on_either_branch_joins_the_scale_sums_with_the_branches_sprea
     """ScaleSums.add_either: alike branches are one reading (the same sums and predictive as
     `add`); branches apart join with their mean residual and their spread added to the
     variance, and weigh each branch's predictive by its chance of a measured reading."""
-    from alignrl.apparatus.scale_sums import ScaleSums
+    from alignrl.posterior.scale_sums import ScaleSums
 
     one, either = ScaleSums.empty((2,)), ScaleSums.empty((2,))
     for sums in (one, either):
@@ -471,7 +463,7 @@ def test_a_column_too_noisy_to_pass_surely_even_at_focus_still_ends():
     apparatus = FamilyColumn(family, analytic=True)
     medians = {}
     for relative in (False, True):
-        oracle = PosteriorFocus(
+        oracle = BayesianAutofocus(
             family, confidence=0.98, max_acquisitions=12, relative_stop=relative
         )
         oracle.begin()

@@ -1,7 +1,7 @@
 """The house as issue 20 fixed it, read from the source with `ast` (no import runs):
 
-* imports point downward only: apparatus -> envs -> agents -> (config, runs) -> (evaluation,
-  league, deploy, training, adaptation, imitation) -> cli, with the bottom modules (yaml_io,
+* imports point downward only: apparatus -> posterior -> envs -> agents -> (config, runs) ->
+  (evaluation, league, deploy, training, adaptation) -> cli, with the bottom modules (yaml_io,
   checkpoints, metrics, overlays) below all of them; an import inside a function counts
   as much as one at the top;
 * no circle between modules;
@@ -31,21 +31,21 @@ LAYERS = {
     "alignrl.animation": 0,  # frames and GIFs of an alignment: numpy, matplotlib, Pillow
     "alignrl.memory": 0,  # glibc's allocator tuned at start: freed arrays reused
     "alignrl.apparatus": 1,
-    "alignrl.envs": 2,
-    "alignrl.agents": 3,
-    "alignrl.plots": 3,
+    "alignrl.posterior": 2,  # inference about a column from its readings (design.md)
+    "alignrl.envs": 3,
+    "alignrl.agents": 4,
+    "alignrl.plots": 4,
     "alignrl.config_reading": 0,  # how a config file is read: bounded YAML, strict models
-    "alignrl.config": 4,  # the experiment models: they build tasks, limits and learners
-    "alignrl.runs": 4,
-    "alignrl.evaluation": 5,
-    "alignrl.league": 5,
-    "alignrl.deploy": 5,
-    "alignrl.training": 5,
-    "alignrl.adaptation": 5,
-    "alignrl.imitation": 5,  # an aligner taught by a controller (the Bayesian autofocus)
-    "alignrl.api": 5,  # train, evaluate, align from Python (docs/python.md)
-    "alignrl.cli": 6,
-    "alignrl.__main__": 6,  # `python -m alignrl`: the command itself
+    "alignrl.config": 5,  # the experiment models: they build tasks, limits and learners
+    "alignrl.runs": 5,
+    "alignrl.evaluation": 6,
+    "alignrl.league": 6,
+    "alignrl.deploy": 6,
+    "alignrl.training": 6,
+    "alignrl.adaptation": 6,
+    "alignrl.api": 6,  # train, evaluate, align from Python (docs/python.md)
+    "alignrl.cli": 7,
+    "alignrl.__main__": 7,  # `python -m alignrl`: the command itself
 }
 
 

@@ -66,9 +66,9 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 def _calibrate(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from alignrl.apparatus.calibration import UncalibratedError
     from alignrl.apparatus.registry import make_apparatus
     from alignrl.deploy.calibrate import CALIBRATION_FILE, plan_calibration, run_calibration
+    from alignrl.posterior.calibration import UncalibratedError
 
     # Everything that can be checked without the apparatus, before it is opened
     plan = plan_calibration(
@@ -172,7 +172,7 @@ def add_calibrate_parser(verbs: argparse._SubParsersAction[argparse.ArgumentPars
     calibrate.add_argument(
         "--alignments",
         type=_at_least_one,
-        default=10,  # alignrl.apparatus.calibration.ALIGNMENTS, left unimported (scipy)
+        default=10,  # alignrl.posterior.calibration.ALIGNMENTS, left unimported (scipy)
         help="alignments run to calibrate on (default: 10)",
     )
     calibrate.add_argument(
@@ -201,7 +201,7 @@ def add_calibrate_parser(verbs: argparse._SubParsersAction[argparse.ArgumentPars
     calibrate.add_argument(
         "--from-above",
         type=_at_least_zero,
-        default=2,  # alignrl.apparatus.calibration.FROM_ABOVE, left unimported (scipy)
+        default=2,  # alignrl.posterior.calibration.FROM_ABOVE, left unimported (scipy)
         metavar="N",
         help="images approached from above after each alignment, which tell the column's "
         "backlash (default: 2; 0: none)",

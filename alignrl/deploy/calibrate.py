@@ -5,7 +5,7 @@ The policy (a champion or any export whose task ends at the focus posterior,
 Task.finish_at_posterior, and approaches every setting from below) runs a session of
 `alignments` on the apparatus, every write through the shield as in `alignrl evaluate`; the
 readings of those alignments calibrate the column's reading model
-(alignrl/apparatus/calibration.py: no optimum needed, a driver that cannot tell its own is
+(alignrl/posterior/calibration.py: no optimum needed, a driver that cannot tell its own is
 calibrated alike); the policy is then exported to `out` (safetensors, with its learner state
 where it has one) with that column as its posterior's (`task_options.posterior_column`),
 read with the far noise fitted with it (`posterior_far_noise`: searched over
@@ -24,7 +24,7 @@ Nothing is written to the column before everything that can be checked without i
 (`plan_calibration`: the counts, the search's memory, the output folder, the policy, its
 card against its learner state and the knob intervals its export will carry; the session
 then checks the apparatus's knob and the spec before its first write). Nothing calibrated
-is written from readings that do not support a column (alignrl/apparatus/calibration.py,
+is written from readings that do not support a column (alignrl/posterior/calibration.py,
 `check_support`: widths that do not follow the setting, or a focus the limits keep out of
 reach): an UncalibratedError says why. The export and calibration.json are published
 together, whole or not at all: an interrupted calibration leaves nothing.
@@ -41,7 +41,7 @@ from pathlib import Path
 from typing import Any
 
 from alignrl.apparatus.base import Apparatus
-from alignrl.apparatus.calibration import (
+from alignrl.posterior.calibration import (
     ALIGNMENTS,
     CALIBRATED,
     CALIBRATED_STOP,

@@ -387,10 +387,10 @@ def _task(read: _CardReader, entry: Any) -> Task:
 
 def _posterior_options(read: _CardReader, options: dict[str, Any]) -> None:
     """The posterior settings of a card's task options inside what an instrument family can
-    give them (alignrl.apparatus.calibration.posterior_options_problem: a calibrated column's
+    give them (alignrl.posterior.calibration.posterior_options_problem: a calibrated column's
     every parameter, where its readings level off); the far noise, draws and chances are
     bounded by TaskOptions itself."""
-    from alignrl.apparatus.calibration import posterior_options_problem
+    from alignrl.posterior.calibration import posterior_options_problem
 
     bound = posterior_options_problem(options)
     if bound is not None:

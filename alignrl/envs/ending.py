@@ -15,7 +15,7 @@ With `final_move` the stopping action's own move ends the episode instead; with
 (`estimated`): the policy says how far from the fit, not how far from where it stands.
 
 With `finish_at_posterior` the fit's place is taken by the setting that a posterior over the
-focus training box (alignrl/apparatus/family_posterior.py, one per episode, fed every
+focus training box (alignrl/posterior/inference.py, one per episode, fed every
 measured reading) holds most likely to pass; with `stop_when_sure` too, an episode also ends
 once that setting passes with the chance asked (`sure`); with `probe_until_sure` a stop it
 is unsure of becomes a reading where it would probe next, and with `posterior_walk_after`
@@ -52,7 +52,7 @@ from alignrl.envs.fit_features import bracketed_optimum
 from alignrl.envs.task import Task
 
 if TYPE_CHECKING:  # made on first use: scipy's Sobol' and the box
-    from alignrl.apparatus.family_posterior import FamilyPosterior
+    from alignrl.posterior.inference import FamilyPosterior
 
 __all__ = ["STATES_PER_COLUMN", "EndPlan", "EpisodeEnds", "Noted", "resample_for"]
 
@@ -66,7 +66,7 @@ STATES_PER_COLUMN = (8, 80)
 def resample_for(draws: int) -> tuple[int, int]:
     """The states (probe, stop) a posterior of `draws` columns judges (STATES_PER_COLUMN;
     FamilyPosterior.resample)."""
-    from alignrl.apparatus.family_posterior import SCORED_STATES, STOP_STATES
+    from alignrl.posterior.inference import SCORED_STATES, STOP_STATES
 
     probe, stop = STATES_PER_COLUMN
     return min(SCORED_STATES, probe * draws), min(STOP_STATES, stop * draws)
@@ -252,11 +252,8 @@ class EpisodeEnds:
             if made is None and self.task.posterior_column:
                 made = self._calibrated()
             if made is None:
-                from alignrl.apparatus.family_posterior import (
-                    SCALE_FREE,
-                    FamilyPosterior,
-                    focus_box,
-                )
+                from alignrl.posterior.inference import SCALE_FREE, FamilyPosterior
+                from alignrl.posterior.models import focus_box
 
                 made = FamilyPosterior(
                     focus_box(saturation_px=self.task.posterior_saturation_px or None),
@@ -272,10 +269,10 @@ class EpisodeEnds:
 
     def _calibrated(self) -> FamilyPosterior:
         """The posterior over the column calibrated on the microscope (Task.posterior_column,
-        alignrl/apparatus/calibration.py), in its own pixels, far readings trusted as the
+        alignrl/posterior/calibration.py), in its own pixels, far readings trusted as the
         task says (Task.posterior_far_noise: `alignrl calibrate` writes the far noise the
         column was fitted with)."""
-        from alignrl.apparatus.calibration import (
+        from alignrl.posterior.calibration import (
             COLUMN_FIELDS,
             calibrated_posterior,
         )

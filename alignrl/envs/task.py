@@ -57,7 +57,7 @@ ACTING_OPTIONS = (
 )  # fmt: skip
 # The posterior of finish_at_posterior: the columns it draws (FamilyPosterior.draws)
 POSTERIOR_DRAWS, MIN_POSTERIOR_DRAWS, MAX_POSTERIOR_DRAWS = 256, 16, 4096
-# Where its walk probes: FamilyPosterior's PROBE_RULES (alignrl/apparatus/family_posterior.py,
+# Where its walk probes: FamilyPosterior's PROBE_RULES (alignrl/posterior/inference.py,
 # left unimported here for its scipy; tests/test_finish_at_posterior.py holds them equal)
 POSTERIOR_PROBE_RULES = ("variance", "chance", "entropy")
 MAX_FAR_NOISE = 1.0  # its posterior_far_noise: beyond it a reading far from focus says nothing
@@ -157,7 +157,7 @@ class Task:
     # policy corrects the fit). One-knob width tasks.
     finish_at_fit: bool = False
     # As finish_at_fit, with the setting that the scale-free Bayesian autofocus over the
-    # focus training box (alignrl/apparatus/family_posterior.py) holds most likely to pass,
+    # focus training box (alignrl/posterior/inference.py) holds most likely to pass,
     # given the episode's measured readings, in place of the fit's optimum: the policy
     # probes and stops, the posterior says where it ends. Focus tasks approached from below
     # (its reading model); a fraction of a second of computing per episode end.
@@ -206,7 +206,7 @@ class Task:
     # edge widths measured on images level off from 15 px (grids, bars); (): the box's.
     posterior_saturation_px: tuple[float, ...] = ()
     # With finish_at_posterior: the posterior reads in the one column calibrated on the
-    # microscope (alignrl/apparatus/calibration.py: COLUMN_FIELDS' values in order, `alignrl
+    # microscope (alignrl/posterior/calibration.py: COLUMN_FIELDS' values in order, `alignrl
     # calibrate`), in that column's own pixels, not in the scale-free training box; (): the box.
     posterior_column: tuple[float, ...] = ()
     finish_window: float = FINISH_WINDOW  # that fit takes the readings within this x the narrowest
@@ -391,7 +391,7 @@ class Task:
         """What is wrong with posterior_column, or None (the box, or a calibrated column)."""
         if not self.posterior_column:
             return None
-        from alignrl.apparatus.calibration import COLUMN_FIELDS, column_problem
+        from alignrl.posterior.calibration import COLUMN_FIELDS, column_problem
 
         if len(self.posterior_column) != len(COLUMN_FIELDS):
             return f"{len(COLUMN_FIELDS)} values ({', '.join(COLUMN_FIELDS)})"

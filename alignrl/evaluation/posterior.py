@@ -1,8 +1,8 @@
 """A Bayesian autofocus that knows its columns' model: what a controller can do with
 everything but the optimum (issue 21).
 
-`PosteriorFocus(family)` aligns the focus knob of a column drawn from `family`: the inference
-of alignrl/apparatus/family_posterior.py (`FamilyPosterior`: a posterior over where the
+`BayesianAutofocus(family)` aligns the focus knob of a column drawn from `family`: the inference
+of alignrl/posterior/inference.py (`FamilyPosterior`: a posterior over where the
 optimum lies and which of the box's columns it is on, updated by every reading), written to
 an apparatus. Each probe goes where the expected posterior variance of the optimum is
 least; once the setting most likely to pass the session's verification passes with the
@@ -22,31 +22,17 @@ from dataclasses import dataclass
 import numpy as np
 
 from alignrl.apparatus.base import Apparatus
-from alignrl.apparatus.family_posterior import (
-    FAMILY_REACH,
-    SCALE_FREE,
-    ColumnModels,
-    FamilyPosterior,
-    focus_box,
-    widened,
-)
 from alignrl.evaluation.controllers import approach_from_below, measure_width
+from alignrl.posterior.inference import SCALE_FREE, FamilyPosterior
+from alignrl.posterior.models import FAMILY_REACH, focus_box
 
-__all__ = [
-    "FAMILY_REACH",
-    "ROBUST",
-    "SCALE_FREE",
-    "ColumnModels",
-    "PosteriorFocus",
-    "family_posterior",
-    "widened",
-]
+__all__ = ["ROBUST", "BayesianAutofocus", "family_posterior"]
 
 OVERSHOOT = 0.01  # share of the interval a setting below the present one is approached from
 
 
 @dataclass
-class PosteriorFocus(FamilyPosterior):
+class BayesianAutofocus(FamilyPosterior):
     """The Bayesian autofocus of the module docstring, for columns of `family`."""
 
     def align(self, apparatus: Apparatus, knob: str, budget: int) -> None:
@@ -80,7 +66,7 @@ ROBUST = {**SCALE_FREE, "draws": 1024, "far_noise": 0.1}
 
 def family_posterior(
     reach: float = FAMILY_REACH, scale_free: bool = False, robust: bool = False
-) -> PosteriorFocus:
+) -> BayesianAutofocus:
     """The posterior over the focus training box (alignrl/apparatus/families/focus.yaml),
     widened by `reach`: a Bayesian autofocus for a column of the focus family or near it,
     whatever its units (`alignrl evaluate --policy posterior`); `scale_free`, in any pixel
@@ -89,7 +75,7 @@ def family_posterior(
     readings measured on images (`--policy posterior-robust`)."""
     box = focus_box(reach)
     if robust:
-        return PosteriorFocus(box, name="posterior-robust", **ROBUST)
+        return BayesianAutofocus(box, name="posterior-robust", **ROBUST)
     if scale_free:
-        return PosteriorFocus(box, name="posterior-scale-free", **SCALE_FREE)
-    return PosteriorFocus(box)
+        return BayesianAutofocus(box, name="posterior-scale-free", **SCALE_FREE)
+    return BayesianAutofocus(box)

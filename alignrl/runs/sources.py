@@ -467,8 +467,8 @@ def read_card_file(card_path: Path) -> dict[str, Any]:
     read_card, which checks it field by field): at most MAX_CARD_BYTES, refused by its size
     before it is parsed; no key twice in one object; no deeper than a card nests; a mapping;
     and its posterior settings within what an instrument family can give them
-    (alignrl.apparatus.calibration.posterior_options_problem). ExportError naming the file."""
-    from alignrl.apparatus.calibration import posterior_options_problem
+    (alignrl.posterior.calibration.posterior_options_problem). ExportError naming the file."""
+    from alignrl.posterior.calibration import posterior_options_problem
 
     if not card_path.is_file():
         raise ExportError(f"{card_path} is missing: {card_path.parent} is not an exported policy")

@@ -16,7 +16,7 @@ posterior's best setting (Task.final_move), once it is within one move (of the f
 where the task's last move starts there: finish_at_fit). The teacher reads the
 readings in px, as the env measures them; a unit-free policy sees their ratios only, so the
 teacher that a network can follow is the posterior in an unknown pixel scale
-(`PosteriorFocus(scale_free=True)`), whose decisions depend on the ratios alone: the box
+(`BayesianAutofocus(scale_free=True)`), whose decisions depend on the ratios alone: the box
 posterior in the box's pixels takes its first probe from the first reading's pixels, which
 no unit-free policy can tell apart (docs/benchmarks.md, "An aligner taught by the Bayesian
 autofocus").
@@ -40,7 +40,7 @@ from alignrl.envs.core import feature_layout
 from alignrl.envs.fit_features import FIT_FEATURES, bracketed_optimum, fit_features
 from alignrl.envs.task import knob_change
 from alignrl.envs.vector import VectorAlignmentEnv
-from alignrl.evaluation.posterior import PosteriorFocus
+from alignrl.evaluation.posterior import BayesianAutofocus
 
 __all__ = ["Demonstrations", "PosteriorTeacher", "clone", "collect"]
 
@@ -62,9 +62,9 @@ def action_for_move(move: float, max_step: float, power: float, floor: float) ->
 
 
 class PosteriorTeacher:
-    """One PosteriorFocus per env slot, fed every reading the slot takes (module doc)."""
+    """One BayesianAutofocus per env slot, fed every reading the slot takes (module doc)."""
 
-    def __init__(self, env: VectorAlignmentEnv, posterior: Callable[[], PosteriorFocus]) -> None:
+    def __init__(self, env: VectorAlignmentEnv, posterior: Callable[[], BayesianAutofocus]) -> None:
         episodes = env.episodes
         if episodes.k != 1:
             raise ValueError("the posterior teaches one-knob focus tasks only")

@@ -46,8 +46,8 @@ model is approximate (an edge width measured on a rendered frame is not the anal
 reading): `model_noise` is what covers the difference.
 
 Three parts of alignrl ask it: the Bayesian autofocus (alignrl/evaluation/posterior.py,
-`PosteriorFocus`, which writes its settings to an apparatus: `alignrl evaluate --policy
-posterior`), the teacher of cloned aligners (alignrl/imitation.py), and an episode's end
+`BayesianAutofocus`, which writes its settings to an apparatus: `alignrl evaluate --policy
+posterior`), the teacher of cloned aligners (benchmarks/imitation.py), and an episode's end
 (Task.finish_at_posterior, alignrl/envs/ending.py: a trained aligner's probes, ended where
 the posterior over the training box puts the best setting).
 """
@@ -55,35 +55,16 @@ the posterior over the training box puts the best setting).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.special import ndtr
 
-from alignrl.apparatus.family import NO_EDGES_SPREAD, column_at, even_fractions
-from alignrl.apparatus.family_box import (
-    BOUNDED,
-    LOG_SCALE,
-    PAIR_FIELDS,
-    FocusFamily,
-    family_path,
-    load_family,
-)
-from alignrl.apparatus.probe import focus_sigma_px, levelled_px
-from alignrl.apparatus.quality import TEN_NINETY_PER_SIGMA
-from alignrl.apparatus.scale_sums import ScaleSums
+from alignrl.apparatus.family_box import FocusFamily
+from alignrl.posterior.models import FLAT_DECADES, ColumnModels, narrowest_spec
+from alignrl.posterior.scale_sums import ScaleSums
 
-__all__ = [
-    "FAMILY_REACH",
-    "FLAT_DECADES",
-    "SCALE_FREE",
-    "SCORED_STATES",
-    "STOP_STATES",
-    "ColumnModels",
-    "FamilyPosterior",
-    "focus_box",
-    "widened",
-]
+__all__ = ["PROBE_RULES", "SCALE_FREE", "SCORED_STATES", "STOP_STATES", "FamilyPosterior"]
 
 SCORED_STATES = 2000  # states the probe choice is scored on (a systematic resample beyond)
 STOP_STATES = 20000  # states a stop is judged on (a systematic resample beyond)
@@ -96,26 +77,6 @@ STOP_SETTINGS = 81  # final settings a stop chooses among
 # Where a reading's approach is unknown, the branches of the backlash it may lie on (x the
 # lag): from below, from above, and the middle (a column left between them)
 BRANCHES = (1.0, -1.0, 0.0)
-# How far beyond the training box `family_posterior` looks (`widened`), chosen on
-# set:validation (analytic, 30 alignments per instrument, seed 3,000,000): at 0 it aligned
-# 170/180 at medians of 3-4 acquisitions, at 0.25 173/180 at medians of 4-7 (p90 up to 17).
-FAMILY_REACH = 0.0
-# How the posterior weighs a column's flat bottom (`flat_fraction`, the box's 0-1 % of the
-# interval either side of the optimum): log-uniformly over FLAT_DECADES decades below the
-# box's widest (`ColumnModels.at`), not uniformly as the box draws it. A plateau's width is
-# a scale, known to its order of magnitude at best; drawn uniformly, half the columns have
-# one wider than a steep column's whole passing window (0.3-0.5 %), and readings that never
-# showed focus leave the posterior sure of a window no reading has seen (docs/benchmarks.md,
-# twenty-first session). Two decades set beforehand; kept on set:validation (more columns
-# aligned than the uniform prior at each confidence tried: 0.95, 0.97, 0.99).
-FLAT_DECADES = 2.0
-
-
-def _narrowest_spec(family: FocusFamily, relative: float) -> float:
-    """The narrowest half-width within the spec any column of the box has (fractions)."""
-    reach = min((relative**q - 1.0) ** (1.0 / q) for q in family.curve_power)
-    gain = family.blur_px_per_interval[1] * math.sqrt(family.asymmetry[1])
-    return family.flat_fraction[0] + reach * family.floor_sigma_px[0] / gain
 
 
 def _systematic(weights: np.ndarray, draws: int, offset: float) -> np.ndarray:
@@ -132,149 +93,11 @@ def _quantiles(u: np.ndarray, weight: np.ndarray, shares: list[float]) -> np.nda
     return u[order][np.minimum(np.searchsorted(cumulative, shares), u.size - 1)]
 
 
-def widened(family: FocusFamily, reach: float) -> FocusFamily:
-    """`family` with every range that the readings depend on reaching `reach` x its span
-    further at both ends (on a log scale where the family draws on one), kept within what
-    the family allows: a prior for columns beyond the box a policy trained on. Points stay
-    points; the optimum's range is left alone (`FamilyPosterior.optimum_prior` says where
-    the optimum may lie)."""
-    if not (math.isfinite(reach) and reach >= 0.0):
-        raise ValueError(f"reach must be a finite share >= 0, got {reach}")
-    update = {}
-    for name in _FAMILY_NAMES.values():
-        low, high = getattr(family, name)
-        if name in LOG_SCALE:
-            ratio = (high / low) ** reach
-            low, high = low / ratio, high * ratio
-        else:
-            span = reach * (high - low)
-            low, high = max(low - span, 0.0), high + span
-        lowest, highest = BOUNDED.get(name, (0.0, math.inf))
-        update[name] = (max(low, lowest), min(high, highest))
-    return FocusFamily.model_validate({**family.model_dump(), **update})
-
-
-# ColumnModels' parameters and the family's names for them
-_FAMILY_NAMES = {
-    "gain": "blur_px_per_interval",
-    "floor": "floor_sigma_px",
-    "power": "curve_power",
-    "flat": "flat_fraction",
-    "asymmetry": "asymmetry",
-    "noise_rel": "reading_noise_rel",
-    "noise_px": "reading_noise_px",
-    "specimen_rel": "specimen_rel",
-    "saturation": "saturation_px",
-    "no_edges": "no_edges_px",
-    "drift": "drift_fraction",
-    "lag": "hysteresis_fraction",
-}
-
-
-@dataclass(frozen=True)
-class ColumnModels:
-    """The reading model of K columns, each parameter an array of shape (K, 1, 1) in units of
-    the interval (fractions) and px, broadcasting against the posterior's (K, Z, N)."""
-
-    gain: np.ndarray  # px of sigma per interval
-    floor: np.ndarray
-    power: np.ndarray
-    flat: np.ndarray
-    asymmetry: np.ndarray
-    noise_rel: np.ndarray
-    noise_px: np.ndarray
-    specimen_rel: np.ndarray
-    saturation: np.ndarray
-    no_edges: np.ndarray
-    drift: np.ndarray
-    lag: np.ndarray
-    rows: np.ndarray  # (K, len(PAIR_FIELDS)): where each column was drawn (`at`)
-    model_noise: float = 0.01
-    far_noise: float | np.ndarray = 0.0  # one share for all, or one per column (K, 1, 1)
-
-    @classmethod
-    def of(
-        cls, family: FocusFamily, draws: int, seed: int, model_noise: float, far_noise: float = 0.0,
-        flat_decades: float = 0.0,
-    ) -> ColumnModels:  # fmt: skip
-        """One model where `family` is a single column in every parameter the readings
-        depend on; else `draws` columns drawn from it: a scrambled Sobol' sequence over the
-        box's fractions (generator `seed`), which spreads them over every parameter's range
-        more evenly than independent draws (`flat_decades`: as `at` places them)."""
-        single = all(
-            getattr(family, name)[0] == getattr(family, name)[1] for name in _FAMILY_NAMES.values()
-        )
-        rows = even_fractions(len(PAIR_FIELDS), 1 if single else draws, seed)
-        return cls.at(family, rows, model_noise, far_noise, flat_decades)
-
-    @classmethod
-    def at(
-        cls, family: FocusFamily, rows: np.ndarray, model_noise: float,
-        far_noise: float | np.ndarray = 0.0, flat_decades: float = 0.0,
-    ) -> ColumnModels:  # fmt: skip
-        """The columns at `rows` (K, len(PAIR_FIELDS)) of fractions of the box (column_at);
-        with `flat_decades`, a row's flat-bottom fraction u places it at 10^(-flat_decades
-        (1 - u)) of the box's range (log-uniform over those decades, FLAT_DECADES) rather
-        than at u; `far_noise` one share for all, or one per row (K,)."""
-        placed = np.array(rows, float)
-        if flat_decades:
-            flat = PAIR_FIELDS.index("flat_fraction")
-            placed[:, flat] = 10.0 ** (-flat_decades * (1.0 - placed[:, flat]))
-        columns = [column_at(family, dict(zip(PAIR_FIELDS, row, strict=True)), 0) for row in placed]
-        values = {
-            name: np.array([getattr(draw, attribute) for draw in columns], float)[:, None, None]
-            for name, attribute in _FAMILY_NAMES.items()
-        }
-        far = np.asarray(far_noise, float).reshape(-1, 1, 1) if np.ndim(far_noise) else far_noise
-        return cls(**values, rows=np.asarray(rows, float), model_noise=model_noise, far_noise=far)
-
-    @property
-    def count(self) -> int:
-        return int(self.gain.shape[0])
-
-    def best_px(self) -> np.ndarray:
-        """The width a frame in focus reads, noise-free (K, 1, 1)."""
-        return levelled_px(TEN_NINETY_PER_SIGMA * self.floor, self.saturation)
-
-    def spec_half_width(self, relative: float) -> np.ndarray:
-        """How far from the optimum (fractions) the probe stays within `relative` x its
-        floor, on the steeper side (K, 1, 1)."""
-        reach = (relative**self.power - 1.0) ** (1.0 / self.power) * self.floor
-        return self.flat + reach / (self.gain * np.sqrt(self.asymmetry))
-
-    def picked(self, columns: np.ndarray) -> ColumnModels:
-        """The models of `columns` (S,), one per state: parameters of shape (S,)."""
-        named = [*_FAMILY_NAMES, *(["far_noise"] if np.ndim(self.far_noise) else [])]
-        picked = {name: getattr(self, name)[columns, 0, 0] for name in named}
-        return replace(self, **picked, rows=self.rows[columns])
-
-    def reading(self, error: np.ndarray, scale: np.ndarray) -> tuple[np.ndarray, ...]:
-        """At focus errors `error` (fractions) and specimen scales `scale` (the log of the
-        specimen's factor): the chance of a frame without edges, the mean reading and its
-        spread (px), broadcast against the parameters. The spread has the model's noise and
-        `model_noise` x the mean more: what the model does not know of a real column; and
-        `far_noise` x log(mean / the in-focus reading) x the mean: far from focus a measured
-        edge width tells less of the blur than the model says (on a specimen whose features
-        are a few blur widths across the readings level off early and fall again)."""
-        true = TEN_NINETY_PER_SIGMA * focus_sigma_px(
-            error, self.gain, self.floor, self.power, self.flat, self.asymmetry
-        )
-        spread_px = NO_EDGES_SPREAD * self.no_edges
-        none = 0.5 * (1.0 + np.tanh(0.5 * (true - self.no_edges) / spread_px))
-        levelled = levelled_px(true, self.saturation)
-        mean = levelled * np.exp(scale)
-        relative = self.model_noise**2
-        if np.any(self.far_noise):
-            relative = relative + (self.far_noise * np.log(levelled / self.best_px())) ** 2
-        spread = np.sqrt((mean * self.noise_rel) ** 2 + self.noise_px**2 + relative * mean**2)
-        return none, mean, spread
-
-
 @dataclass
 class FamilyPosterior:
     """The posterior of the module docstring, for columns of `family`: `begin`, then
     `observe` every reading, `decide` where the next goes or whether to stop, `final`: where
-    to end (alignrl/evaluation/posterior.py, PosteriorFocus, writes them to an apparatus)."""
+    to end (alignrl/evaluation/posterior.py, BayesianAutofocus, writes them to an apparatus)."""
 
     family: FocusFamily
     name: str = "posterior"
@@ -302,7 +125,7 @@ class FamilyPosterior:
     # Readings in any pixel scale: every reading is the model's times an unknown factor of
     # the episode, flat on a log scale, marginalised per state (module docstring): the
     # posterior then learns only from ratios of readings and the curve's shape, as a unit-free
-    # policy must (alignrl/imitation.py), and aligns a column imaged at any magnification.
+    # policy must (benchmarks/imitation.py), and aligns a column imaged at any magnification.
     scale_free: bool = False
     # where the next reading goes: "variance", where it leaves the least expected variance of
     # the optimum; "entropy", the least expected entropy of it over the grid (the most
@@ -314,6 +137,11 @@ class FamilyPosterior:
     # surely at focus still ends (not a box: there it mixes columns not yet told apart)
     relative_stop: bool = False
     resample: tuple[int, int] = (SCORED_STATES, STOP_STATES)  # the probe's states, the stop's
+    # Evidence of given columns (alignrl/posterior/calibration.py): the columns set by
+    # `use_columns`, never drawn again, each column's filter normalised apart, and after
+    # `begin` and every `observe` `log_evidence` holds per column the log of the chance of
+    # its readings (up to a constant the same for every column)
+    columns_apart: bool = False
     models: ColumnModels = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -338,7 +166,7 @@ class FamilyPosterior:
         self._initial = self.models
         low, high = self.family.optimum_fraction if self.optimum_prior == "box" else (0.0, 1.0)
         spacing = float(min(self.models.spec_half_width(self.spec_relative).min(),
-                            _narrowest_spec(self.family, self.spec_relative)))  # fmt: skip
+                            narrowest_spec(self.family, self.spec_relative)))  # fmt: skip
         spacing /= GRID_POINTS_PER_WINDOW
         spacing = max(spacing, (high - low + 0.1) / MAX_GRID)
         pad = 0.05 + 3.0 * spacing
@@ -361,14 +189,27 @@ class FamilyPosterior:
         self._posterior = self._prior.copy()
         self._readings: list[tuple[float, float, float]] = []
         self._scale = ScaleSums.empty(self._prior.shape) if self.scale_free else None
+        self.log_evidence = np.zeros(self.models.count)
+
+    def use_columns(self, rows: np.ndarray, far_noise: np.ndarray | None = None) -> None:
+        """Weigh the columns at `rows` (K, len(PAIR_FIELDS)) of fractions of the box, equally
+        likely, each read with its own far noise where `far_noise` (K,) is given, from the
+        next `begin` on (with `columns_apart`: the evidence of each)."""
+        far = self.far_noise if far_noise is None else far_noise
+        self._initial = ColumnModels.at(self.family, rows, self.model_noise, far)
+        self._prior = np.broadcast_to(self._prior[:1], (len(rows), *self._prior.shape[1:])).copy()
+        self._prior /= self._prior.sum()
 
     def observe(self, setting: float, reading: float, side: float = 1.0) -> None:
         """A reading (px; NaN: no edges) taken at `setting`, a fraction of the interval,
-        approached from `side`: +1 from below (as PosteriorFocus writes every setting), -1
+        approached from `side`: +1 from below (as BayesianAutofocus writes every setting), -1
         from above, 0 unknown (a column as it was found, anywhere within its backlash: read
         as the mixture of both branches and their middle, BRANCHES)."""
         self._readings.append((float(setting), float(reading), float(side)))
-        posterior = self._drifted(self._posterior * self._likelihood(*self._readings[-1]))
+        posterior = self._posterior * self._likelihood(*self._readings[-1])
+        if self.columns_apart:
+            posterior = self._weighed_apart(posterior)
+        posterior = self._drifted(posterior)
         if self._renewable(posterior):
             posterior = self._renew(posterior, self._readings, self._rng)
         self._posterior = posterior
@@ -440,6 +281,19 @@ class FamilyPosterior:
         density = np.exp(-0.5 * ((reading - mean) / spread) ** 2) / spread
         return (1.0 - none) * density
 
+    def _weighed_apart(self, posterior: np.ndarray) -> np.ndarray:
+        """`columns_apart`: each column's chance of the reading joins its `log_evidence`, and
+        each column holds its own share again (a column that ruled its every state out
+        starts from the prior; its evidence says how unlikely it is)."""
+        totals = posterior.sum(axis=(1, 2))
+        # each column held 1 / K of the weight before the reading: its own chance is K x
+        self.log_evidence += np.log(np.maximum(totals, 1e-300)) + math.log(self.models.count)
+        kept = (totals > 0)[:, None, None]
+        posterior = posterior / np.where(kept, totals[:, None, None], 1.0)
+        if not kept.all():
+            posterior = np.where(kept, posterior, self._prior * self.models.count)
+        return posterior
+
     def _drifted(self, posterior: np.ndarray) -> np.ndarray:
         """The posterior normalised, then each column's optimum blurred by its drift over
         one acquisition: passes of a three-point kernel whose variances add up to the
@@ -462,7 +316,7 @@ class FamilyPosterior:
 
     def _renewable(self, posterior: np.ndarray) -> bool:
         """Whether the columns' weights have collapsed onto a few (module docstring)."""
-        if self.models.count == 1:
+        if self.models.count == 1 or self.columns_apart:
             return False
         weights = posterior.sum(axis=(1, 2))
         return 1.0 / float(np.sum(weights**2)) < self.renew_below * self.models.count
@@ -604,15 +458,3 @@ class FamilyPosterior:
 # FamilyPosterior in any pixel scale: one specimen point, the unknown factor covers the
 # specimen's scale too.
 SCALE_FREE = {"scale_free": True, "specimen_points": 1}
-
-
-def focus_box(
-    reach: float = FAMILY_REACH, saturation_px: tuple[float, float] | None = None
-) -> FocusFamily:
-    """The focus training box (alignrl/apparatus/families/focus.yaml), widened by `reach`;
-    with `saturation_px`, its readings levelling off within that range of px instead
-    (Task.posterior_saturation_px: where edge widths measured on images level off)."""
-    box = widened(load_family(family_path("focus")), reach)
-    if saturation_px is None:
-        return box
-    return FocusFamily.model_validate({**box.model_dump(), "saturation_px": saturation_px})

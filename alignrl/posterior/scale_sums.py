@@ -1,5 +1,5 @@
 """An unknown pixel scale marginalised in closed form, per state of a posterior
-(alignrl/apparatus/family_posterior.py, `scale_free`): every reading is the model's times a
+(alignrl/posterior/inference.py, `scale_free`): every reading is the model's times a
 factor of the episode, flat on a log scale, so that the readings tell only their ratios and
 the curve's shape."""
 

@@ -13,8 +13,8 @@ not written in a file) then walks and ends the champion's alignments (Task.poste
 
 * The evidence of a column (`column_evidence`): per alignment the filter of FamilyPosterior
   (a grid over the optimum, its drift, the specimen's scale), each column kept apart
-  (`ColumnEvidence`): the log of the product of every reading's predictive given the ones
-  before, summed over the alignments.
+  (`evidence_of`, FamilyPosterior's `columns_apart`): the log of the product of every
+  reading's predictive given the ones before, summed over the alignments.
 * The search: a cross-entropy search over the training box widened by `reach` x every range
   (a column steeper, wider or noisier than any the box holds is found too): a population of
   columns (a scrambled Sobol' sequence first), the best `elite` share of all seen kept, the
@@ -33,7 +33,7 @@ not written in a file) then walks and ends the champion's alignments (Task.poste
   `posterior_options_problem`: alignrl/apparatus/family_box.py, PHYSICAL).
 
 Every reading but an alignment's first must have been approached from below
-(Task.approach_from_below, PosteriorFocus), so that backlash shifts them all alike; the first
+(Task.approach_from_below, BayesianAutofocus), so that backlash shifts them all alike; the first
 (an aligner's opening reading: the column as it was found, on whichever branch of its
 backlash) is read on every branch (FamilyPosterior.observe, side 0), and the offset between
 it and the rest is what tells the backlash (`sweeps_of`). Each alignment's verification image,
@@ -55,14 +55,9 @@ import numpy as np
 
 from alignrl.apparatus.family import even_fractions
 from alignrl.apparatus.family_box import PAIR_FIELDS, PHYSICAL, FocusFamily
-from alignrl.apparatus.family_posterior import (
-    _FAMILY_NAMES,
-    ColumnModels,
-    FamilyPosterior,
-    focus_box,
-    widened,
-)
 from alignrl.apparatus.guard import MIN_EDGE_WIDTH_PX
+from alignrl.posterior.inference import FamilyPosterior
+from alignrl.posterior.models import MODEL_FIELDS, ColumnModels, focus_box, widened
 
 __all__ = [
     "ALIGNMENTS",
@@ -75,7 +70,6 @@ __all__ = [
     "MAX_SEARCH_BYTES",
     "SUPPORT_P",
     "Calibration",
-    "ColumnEvidence",
     "UncalibratedError",
     "calibrate",
     "calibrated_posterior",
@@ -87,6 +81,7 @@ __all__ = [
     "column_family",
     "column_problem",
     "column_values",
+    "evidence_of",
     "measured_sweeps",
     "posterior_options_problem",
     "search_memory",
@@ -96,7 +91,7 @@ __all__ = [
 
 # The reading model's parameters (the family's names), in the order Task.posterior_column
 # keeps them
-COLUMN_FIELDS = tuple(_FAMILY_NAMES.values())
+COLUMN_FIELDS = tuple(MODEL_FIELDS.values())
 # How a calibration, and the posterior over the column it found, read: far from focus a
 # reading is trusted less (as posterior-robust does on images); what the fit leaves near
 # focus is the column's noise, and the model's own spread beyond it small. The export keeps
@@ -177,50 +172,21 @@ class UncalibratedError(ValueError):
     setting as a focus column's do, or a focus the limits keep out of reach."""
 
 
-@dataclass
-class ColumnEvidence(FamilyPosterior):
-    """FamilyPosterior over columns set by `use` (rows of the box, never drawn again), each
-    column's filter normalised apart: after `begin` and every `observe` of an alignment,
-    `log_evidence` holds per column the log of the chance of its readings (up to a constant
-    the same for every column)."""
-
-    def use(self, rows: np.ndarray, far_noise: np.ndarray | None = None) -> None:
-        """Columns at `rows` (K, len(PAIR_FIELDS)) of fractions of the box, equally likely,
-        each read with its own far noise where `far_noise` (K,) is given."""
-        far = self.far_noise if far_noise is None else far_noise
-        self._initial = ColumnModels.at(self.family, rows, self.model_noise, far)
-        self._prior = np.broadcast_to(self._prior[:1], (len(rows), *self._prior.shape[1:])).copy()
-        self._prior /= self._prior.sum()
-
-    def begin(self) -> None:
-        super().begin()
-        self.log_evidence = np.zeros(self.models.count)
-
-    def _renewable(self, posterior: np.ndarray) -> bool:
-        return False
-
-    def _drifted(self, posterior: np.ndarray) -> np.ndarray:
-        totals = posterior.sum(axis=(1, 2))
-        # each column held 1 / K of the weight before the reading: its own chance is K x
-        self.log_evidence += np.log(np.maximum(totals, 1e-300)) + math.log(self.models.count)
-        kept = (totals > 0)[:, None, None]
-        # each column its own share again (a column that ruled its every state out starts
-        # from the prior; its evidence says how unlikely it is)
-        posterior = posterior / np.where(kept, totals[:, None, None], 1.0)
-        if not kept.all():
-            posterior = np.where(kept, posterior, self._prior * self.models.count)
-        return super()._drifted(posterior)
+def evidence_of(family: FocusFamily, columns: int, seed: int = 0, **settings) -> FamilyPosterior:
+    """A FamilyPosterior that weighs the evidence of `columns` columns of `family` apart
+    (`columns_apart`; the columns set by `column_evidence`)."""
+    return FamilyPosterior(family, draws=columns, seed=seed, columns_apart=True, **settings)
 
 
 def column_evidence(
-    evidence: ColumnEvidence,
+    evidence: FamilyPosterior,
     rows: np.ndarray,
     sweeps: Sequence[Sweep],
     far_noise: np.ndarray | None = None,
 ):
     """The log evidence (K,) of the columns at `rows` (each read with its own `far_noise`
     where given) for every reading of `sweeps`."""
-    evidence.use(rows, far_noise)
+    evidence.use_columns(rows, far_noise)
     total = np.zeros(len(rows))
     for sweep in sweeps:
         evidence.begin()
@@ -252,7 +218,7 @@ class Calibration:
 def search_memory(population: int, reach: float = CALIBRATION_REACH) -> tuple[int, int]:
     """(bytes, bytes per column) the search over the focus box widened by `reach` holds at
     its peak with `population` columns (SEARCH_ARRAYS arrays of the posterior's shape each)."""
-    probe = ColumnEvidence(widened(focus_box(0.0), reach), draws=1, **CALIBRATED)
+    probe = FamilyPosterior(widened(focus_box(0.0), reach), draws=1, **CALIBRATED)
     per_column = int(probe._prior[0].size) * 8 * SEARCH_ARRAYS
     return population * per_column, per_column
 
@@ -335,7 +301,7 @@ def calibrate(
         box = FocusFamily.model_validate({**box.model_dump(), **reach_to})
     searching = far_noise is None
     far = CALIBRATED["far_noise"] if searching else far_noise
-    evidence = ColumnEvidence(box, draws=population, seed=seed, **{**CALIBRATED, "far_noise": far})
+    evidence = evidence_of(box, population, seed, **{**CALIBRATED, "far_noise": far})
     rng = np.random.default_rng(seed)
     # only the reading model's parameters are searched; the rest (interval, optimum, dose)
     # say nothing of the readings and stay in the box's middle
@@ -379,7 +345,7 @@ def calibrate(
             on_round(steps, steps, progress[-1])
     best = ColumnModels.at(box, kept_rows[:1], 0.0)
     column = {
-        name: float(getattr(best, attribute)[0, 0, 0]) for attribute, name in _FAMILY_NAMES.items()
+        name: float(getattr(best, attribute)[0, 0, 0]) for attribute, name in MODEL_FIELDS.items()
     }
     return Calibration(
         column=column,
