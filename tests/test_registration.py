@@ -9,11 +9,10 @@ import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
-import alignrl.envs  # noqa: F401 (registers the ids)
+from alignrl import GYMNASIUM_ENVS  # importing alignrl registers the ids
 from alignrl.envs import AlignmentEnv
-from alignrl.envs.registration import ENV_IDS
 
-IDS = [*ENV_IDS, "alignrl/FocusFamily-v0"]
+IDS = list(GYMNASIUM_ENVS)
 
 
 @pytest.mark.parametrize("env_id", IDS)

@@ -14,7 +14,9 @@
 One module per verb group, each adding its verbs to the parser (main.py assembles them):
 record.py (record, scenarios validate), sessions.py (evaluate, baselines), training.py (train,
 adapt, report), league.py (league run|resume|status, leaderboard), deploy.py (align, export);
-common.py holds what they share (exit codes, CommandError, option types and blocks).
+common.py holds what they share (exit codes, CommandError, option types and blocks), parsing.py
+the parser class of every verb (no abbreviated options; a mistyped option or verb refused by
+its verb with the closest name).
 """
 
 from alignrl.cli.common import (

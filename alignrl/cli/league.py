@@ -7,9 +7,10 @@ session it comes from and carries its 95 % Wilson interval."""
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -27,6 +28,20 @@ from alignrl.cli.common import (
 
 if TYPE_CHECKING:
     from alignrl.runs.lock import RunLock
+
+
+@contextlib.contextmanager
+def _working(what: str) -> Iterator[None]:
+    """`what` on stderr while a step that shows nothing else works (only where stderr is a
+    terminal: never in a log or a pipe), erased when it ends."""
+    shown = sys.stderr.isatty()
+    if shown:
+        print(f"{what} ...", end="", file=sys.stderr, flush=True)
+    try:
+        yield
+    finally:
+        if shown:
+            print("\r\033[K", end="", file=sys.stderr, flush=True)
 
 
 def _leaderboard_lines(rows: list[dict[str, Any]]) -> list[str]:
@@ -169,12 +184,38 @@ def cmd_league_resume(args: argparse.Namespace) -> int:
     return _run_league(lambda _: League.resume(args.run), args, Path(args.run), new=False)
 
 
+def _status(run: str) -> Any:
+    """What `league status` shows (alignrl.league.standings.LeagueStatus): read from the
+    config and the last checkpoint's league state alone; a run without a checkpoint as
+    League.resume starts it, from its rosters."""
+    from alignrl.league.standings import LeagueStatus, read_status
+
+    status = read_status(run)
+    if status is not None:
+        return status
+    from alignrl.league.loop import League
+
+    league = League.resume(run, read_only=True)
+    return LeagueStatus(
+        config=league.config,
+        iteration=league.iteration,
+        env_steps=league.env_steps,
+        complexity=league.backend.complexity,
+        members={team: league.pool.active(team) for team in ("aligner", "misaligner")},
+        snapshots={
+            team: [snapshot.id for snapshot in league.pool.snapshots(team)]
+            for team in ("aligner", "misaligner")
+        },
+        best=league.best,
+    )
+
+
 def cmd_league_status(args: argparse.Namespace) -> int:
     from alignrl.intervals import success_text
-    from alignrl.league.loop import League
     from alignrl.league.sessions import interval, lines_of_test
 
-    league = League.resume(args.run, read_only=True)
+    with _working(f"reading {args.run}: its config and last checkpoint"):
+        league = _status(args.run)
     sessions = league.config.sessions
     schedule = league.config.schedule
     payload = {
@@ -182,12 +223,9 @@ def cmd_league_status(args: argparse.Namespace) -> int:
         "iteration": league.iteration,
         "iterations": schedule.iterations,
         "env_steps": league.env_steps,
-        "complexity": league.backend.complexity,
-        "members": {team: league.pool.active(team) for team in ("aligner", "misaligner")},
-        "snapshots": {
-            team: [snapshot.id for snapshot in league.pool.snapshots(team)]
-            for team in ("aligner", "misaligner")
-        },
+        "complexity": league.complexity,
+        "members": league.members,
+        "snapshots": league.snapshots,
         "best": [
             {
                 **row,
@@ -197,7 +235,7 @@ def cmd_league_status(args: argparse.Namespace) -> int:
             }
             for row in league.best.values()
         ],
-        "test": _read_test(league.run_dir),
+        "test": _read_test(Path(args.run)),
     }
     lines = [
         f"{args.run}: iteration {league.iteration} of {schedule.iterations}, "
@@ -219,8 +257,9 @@ def cmd_leaderboard(args: argparse.Namespace) -> int:
     from alignrl.league.loop import League
     from alignrl.league.sessions import lines_of_test
 
-    league = League.resume(args.run, read_only=True)
-    rows, anchors, lines = _standing(league)
+    with _working(f"reading {args.run}: its last checkpoint, every member and snapshot"):
+        league = League.resume(args.run, read_only=True)
+        rows, anchors, lines = _standing(league)
     test = _read_test(league.run_dir)
     payload = {"run": args.run, "leaderboard": rows, "anchors": anchors, "test": test}
     if test:

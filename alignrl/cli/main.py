@@ -25,6 +25,7 @@ from alignrl.cli.common import (
 )
 from alignrl.cli.deploy import add_deploy_parsers
 from alignrl.cli.league import add_league_parsers
+from alignrl.cli.parsing import CommandParser
 from alignrl.cli.record import add_record_parsers
 from alignrl.cli.sessions import add_session_parsers
 from alignrl.cli.training import add_training_parsers
@@ -32,9 +33,11 @@ from alignrl.memory import keep_freed_memory
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = CommandParser(  # its verbs' parsers are CommandParsers too (no abbreviations)
         prog="alignrl",
         description="Train and run reinforcement-learning agents that align electron microscopes.",
+        epilog="The method is that of the paper 'Method of aligning a charged particle beam "
+        "apparatus' (docs/index.md, The method).",
     )
     parser.add_argument("--version", action="version", version=f"alignrl {__version__}")
     verbs = parser.add_subparsers(dest="verb", required=True, metavar="VERB")

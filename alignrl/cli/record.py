@@ -235,7 +235,9 @@ def cmd_scenarios_validate(args: argparse.Namespace) -> int:
 
 def add_record_parsers(verbs: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     record = verbs.add_parser(
-        "record", help="sweep an apparatus into a scenario CSV (seed section 4.3)"
+        "record",
+        help="sweep an apparatus into a scenario CSV (section 4.3 of the method's paper, "
+        "docs/index.md)",
     )
     _add_apparatus_options(record)
     record.add_argument(

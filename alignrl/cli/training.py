@@ -383,7 +383,12 @@ def add_training_parsers(verbs: argparse._SubParsersAction[argparse.ArgumentPars
     report = verbs.add_parser(
         "report", help="training figures and a Markdown and HTML report of a run"
     )
-    report.add_argument("run", metavar="RUN", help="a run directory of `alignrl train`")
+    report.add_argument(
+        "run",
+        metavar="RUN",
+        help="a run directory of `alignrl train` or `alignrl adapt` (a league run's report: "
+        "`alignrl leaderboard RUN`)",
+    )
     report.add_argument("--out", metavar="DIR", help="where to write (default: RUN/report)")
     report.add_argument("--json", action="store_true", help="machine-readable summary")
     report.set_defaults(handler=cmd_report)

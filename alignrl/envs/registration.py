@@ -1,59 +1,39 @@
-"""The environments under Gymnasium's registry, so that `gymnasium.make("alignrl/Focus-v0")`
-builds an AlignmentEnv once alignrl is imported (`import alignrl.envs`, or anything that
-imports it). Keyword arguments of `make` reach AlignmentEnv: `apparatus=`, `apparatus_args=`,
-`history=`, `complexity=`.
+"""The environments under Gymnasium's registry: `import alignrl` registers the ids
+(alignrl.GYMNASIUM_ENVS, alignrl/__init__.py), so that `gymnasium.make("alignrl/Focus-v0")`
+builds an AlignmentEnv; `gymnasium.make("alignrl:alignrl/Focus-v0")` needs no import of
+alignrl first (Gymnasium imports the module named before the colon). Keyword arguments of
+`make` reach AlignmentEnv: `apparatus=`, `apparatus_args=`, `history=`, `complexity=`,
+`render_mode=`.
 
 | id | task | apparatus |
 | --- | --- | --- |
-| `alignrl/Focus-v0` | focus | the default (the shipped recordings' simulator) |
+| `alignrl/Focus-v0` | focus | the default (`csv:default`, the shipped recordings' simulator) |
 | `alignrl/FocusFamily-v0` | focus, unit-free | `family:focus`, analytic: a new column per episode |
-| `alignrl/Stigmation-v0` | stigmation | the default |
-| `alignrl/Aperture-v0` | aperture | the default |
-| `alignrl/Column-v0` | column | the default |
+| `alignrl/Stigmation-v0` | stigmation | `synthetic`, analytic |
+| `alignrl/Aperture-v0` | aperture | `synthetic`, analytic |
+| `alignrl/Column-v0` | column | `synthetic`, analytic |
+
+This module holds what the ids need beyond AlignmentEnv: the focus family's env, whose task
+(readings relative to the episode's first) is an object no registry entry can spell.
 """
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 from typing import Any
 
-import gymnasium
-
+from alignrl.envs.alignment import AlignmentEnv
 from alignrl.envs.task import get_task
 
-__all__ = ["ENV_IDS", "register_envs"]
-
-ENTRY_POINT = "alignrl.envs.alignment:AlignmentEnv"
+__all__ = ["focus_family_env"]
 
 
-def _family_task() -> Any:
-    return dataclasses.replace(get_task("focus"), quality_reference="first")
+def focus_family_env(**kwargs: Any) -> AlignmentEnv:
+    """The AlignmentEnv of `alignrl/FocusFamily-v0`: the focus task with its readings
+    relative to the episode's first (`quality_reference: first`), unless `task=` is given."""
+    kwargs.setdefault("task", dataclasses.replace(get_task("focus"), quality_reference="first"))
+    return AlignmentEnv(**kwargs)
 
 
-ANALYTIC_SEM = {"apparatus": "synthetic", "apparatus_args": {"analytic": True}}
-ENV_IDS: dict[str, dict[str, Any]] = {
-    "alignrl/Focus-v0": {"task": "focus"},
-    "alignrl/Stigmation-v0": {"task": "stigmation", **ANALYTIC_SEM},
-    "alignrl/Aperture-v0": {"task": "aperture", **ANALYTIC_SEM},
-    "alignrl/Column-v0": {"task": "column", **ANALYTIC_SEM},
-}
-
-
-def register_envs() -> None:
-    """Register every id of ENV_IDS (and the family's) with Gymnasium, once."""
-    for env_id, kwargs in ENV_IDS.items():
-        if env_id not in gymnasium.registry:
-            gymnasium.register(id=env_id, entry_point=ENTRY_POINT, kwargs=copy.deepcopy(kwargs))
-    family = "alignrl/FocusFamily-v0"
-    if family not in gymnasium.registry:
-        gymnasium.register(
-            id=family,
-            entry_point=ENTRY_POINT,
-            kwargs={
-                "task": _family_task(),
-                "apparatus": "family:focus",
-                "apparatus_args": {"analytic": True},
-                "history": 10,
-            },
-        )
+# What Gymnasium reads of an entry point to check a render_mode (AlignmentEnv's).
+focus_family_env.metadata = AlignmentEnv.metadata  # type: ignore[attr-defined]

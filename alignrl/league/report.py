@@ -20,8 +20,10 @@ HTML (alignrl.report_document).
 
 from __future__ import annotations
 
-from collections.abc import Collection, Mapping, Sequence
-from dataclasses import dataclass
+import functools
+import hashlib
+from collections.abc import Callable, Collection, Mapping, Sequence
+from dataclasses import dataclass, fields, is_dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -35,9 +37,12 @@ from alignrl.league.report_data import (
     classical_references,
     member_env_steps,
     member_sessions,
+    member_teams,
     on_own_env_steps,
     rated_matches,
+    rating_histories,
     read_league_run,
+    team_of,
 )
 from alignrl.league.report_figures import (
     LEAGUE_FIGURES,
@@ -50,15 +55,12 @@ from alignrl.league.report_figures import (
     evaluations_figure,
     learning_figure,
     member_colours,
-    member_teams,
     payoff_figure,
     payoff_grid,
-    rating_histories,
     ratings_figure,
-    team_of,
     test_session_figure,
 )
-from alignrl.plots import FIGURES, Reference, save_png, write_figures
+from alignrl.plots import FIGURES, Reference, drawn_from, save_png, write_figures
 from alignrl.report_document import Block, Facts, Heading, Image, Paragraph, Table, write_documents
 from alignrl.run_tables import RunMetrics, read_metrics_folder
 
@@ -114,23 +116,31 @@ class _Drawing:
         return on_own_env_steps(metrics, member_sessions(run, member), self.steps.get(member))
 
 
-def _league_figures(run: LeagueRun, drawing: _Drawing) -> tuple[dict[str, Figure], dict[str, str]]:
+# A league figure as `_league_figures` gives it: what it is drawn from (for its digest: a
+# figure drawn from the same is not drawn again), and what draws it.
+Maker = tuple[tuple[Any, ...], Callable[[], "Figure"]]
+
+
+def _league_figures(run: LeagueRun, drawing: _Drawing) -> tuple[dict[str, Maker], dict[str, str]]:
     """Every league figure the run allows, and why each other one is left out."""
-    built: dict[str, Figure] = {}
+    makers: dict[str, Maker] = {}
     skipped: dict[str, str] = {}
-    checkpoint, colours = run.checkpoint, drawing.colours
+    checkpoint, colours, references = run.checkpoint, drawing.colours, drawing.references
     if checkpoint is None:
         skipped["ratings.png"] = skipped["payoff.png"] = "no checkpoint yet (checkpoints/LATEST)"
     else:
-        if checkpoint.ratings.history:
-            built["ratings.png"] = ratings_figure(
-                checkpoint.ratings, run.teams, run.replaced, colours
+        ratings = checkpoint.ratings
+        if ratings.history:
+            anchors = {anchor: ratings.rating(anchor).mu for anchor in ratings.anchors}
+            makers["ratings.png"] = (
+                (ratings.history, anchors, run.teams, run.replaced, colours),
+                lambda: ratings_figure(ratings, run.teams, run.replaced, colours),
             )
         else:
             skipped["ratings.png"] = "the last checkpoint holds no rated iteration"
-        grid = payoff_grid(checkpoint.payoff, checkpoint.ratings)
+        grid = payoff_grid(checkpoint.payoff, ratings)
         if grid.aligners:
-            built["payoff.png"] = payoff_figure(grid, colours)
+            makers["payoff.png"] = ((grid, colours), lambda: payoff_figure(grid, colours))
         else:
             skipped["payoff.png"] = "the last checkpoint holds no match"
     curves = {}
@@ -140,23 +150,81 @@ def _league_figures(run: LeagueRun, drawing: _Drawing) -> tuple[dict[str, Figure
             if len(metrics.episodes):
                 curves[member] = (metrics.episodes, metrics.evaluations)
     if curves:
-        built["learning.png"] = learning_figure(curves, colours, drawing.references)
+        makers["learning.png"] = (
+            (curves, colours, references),
+            lambda: learning_figure(curves, colours, references),
+        )
     else:
         skipped["learning.png"] = "no aligner has played a match yet (metrics/members/)"
     if len(run.iterations):
         rated = rated_matches(run.iterations, run.uniform_starts)
-        built["curriculum.png"] = curriculum_figure(run.iterations, rated)
+        makers["curriculum.png"] = (
+            (run.iterations, rated),
+            lambda: curriculum_figure(run.iterations, rated),
+        )
     else:
         skipped["curriculum.png"] = run.why_empty("metrics/iterations.csv")
     if len(run.evaluations):
-        built["evaluations.png"] = evaluations_figure(run.evaluations, colours, drawing.references)
+        makers["evaluations.png"] = (
+            (run.evaluations, colours, references),
+            lambda: evaluations_figure(run.evaluations, colours, references),
+        )
     else:
         skipped["evaluations.png"] = run.why_empty("metrics/evaluations.csv")
-    if run.designs is not None:  # (only a league whose misaligners design the column)
-        built["designs.png"] = designs_figure(run.designs)
-    if run.test is not None:
-        built[TEST_FIGURE[0]] = test_session_figure(run.test, colours)
-    return built, skipped
+    designs, test = run.designs, run.test
+    if designs is not None:  # (only a league whose misaligners design the column)
+        makers["designs.png"] = ((designs,), lambda: designs_figure(designs))
+    if test is not None:
+        makers[TEST_FIGURE[0]] = ((test, colours), lambda: test_session_figure(test, colours))
+    return makers, skipped
+
+
+@functools.cache
+def _drawing_code() -> bytes:
+    """What draws a league figure besides its data: the modules that draw it and the
+    versions of matplotlib and alignrl."""
+    import matplotlib
+
+    from alignrl import __version__, intervals, plots
+    from alignrl.league import report_figures
+
+    digest = hashlib.blake2b(digest_size=16)
+    for module in (__file__, report_figures.__file__, plots.__file__, intervals.__file__):
+        digest.update(Path(module).read_bytes())
+    digest.update(f"{matplotlib.__version__} {__version__}".encode())
+    return digest.digest()
+
+
+def _digest(name: str, inputs: tuple[Any, ...]) -> str:
+    """The digest of a league figure: its name, what it is drawn from (tables, arrays,
+    plain values, nested) and the drawing code; kept in its PNG (alignrl.plots.save_png)."""
+    import pandas as pd
+
+    digest = hashlib.blake2b(_drawing_code(), digest_size=16)
+
+    def feed(value: Any) -> None:
+        digest.update(f"<{type(value).__name__}>".encode())
+        if isinstance(value, pd.DataFrame):
+            digest.update(repr((list(value.columns), list(map(str, value.dtypes)))).encode())
+            digest.update(pd.util.hash_pandas_object(value, index=True).to_numpy().tobytes())
+        elif isinstance(value, np.ndarray):
+            digest.update(repr((value.dtype.str, value.shape)).encode())
+            digest.update(np.ascontiguousarray(value).tobytes())
+        elif isinstance(value, Mapping):
+            for key, item in value.items():
+                feed(key)
+                feed(item)
+        elif isinstance(value, list | tuple):
+            for item in value:
+                feed(item)
+        elif is_dataclass(value) and not isinstance(value, type):
+            feed([getattr(value, field.name) for field in fields(value)])
+        else:
+            digest.update(repr(value).encode())
+        digest.update(b"</>")
+
+    feed((name, inputs))
+    return digest.hexdigest()
 
 
 def _members_with_metrics(run_dir: Path, rows: Sequence[Mapping[str, Any]]) -> list[str]:
@@ -170,15 +238,37 @@ def _members_with_metrics(run_dir: Path, rows: Sequence[Mapping[str, Any]]) -> l
     return ranked + [member for member in found if member not in ranked]
 
 
+def _progress(total: int) -> Any:
+    """A progress bar of the figures to draw on stderr, where that is a terminal (never in
+    a log or a pipe), gone once they are drawn."""
+    import sys
+
+    from tqdm import tqdm
+
+    return tqdm(
+        total=total,
+        desc="drawing the report",
+        unit="figure",
+        file=sys.stderr,
+        leave=False,
+        disable=None if total else True,
+    )
+
+
 def _write_member_figures(
-    run: LeagueRun, drawing: _Drawing, rows: Sequence[Mapping[str, Any]], out: Path
+    run: LeagueRun,
+    drawing: _Drawing,
+    members: Sequence[str],
+    out: Path,
+    done: Callable[[], Any] = lambda: None,
 ) -> tuple[dict[str, list[str]], dict[str, str]]:
-    """Each member's training figures into out/members/<id>/, in its colour and on its own
-    env steps: the names written per member, and why each figure that applies to the member
-    was left out."""
+    """Each member's training figures (`members`: _members_with_metrics) into
+    out/members/<id>/, in its colour and on its own env steps: the names written per member,
+    and why each figure that applies to the member was left out. `done` is called after
+    each member."""
     written: dict[str, list[str]] = {}
     skipped: dict[str, str] = {}
-    for member in _members_with_metrics(run.run_dir, rows):
+    for member in members:
         folder = f"metrics/members/{member}"
         team = team_of(member, run.teams)
         figures = write_figures(
@@ -188,6 +278,7 @@ def _write_member_figures(
             steps_label=MEMBER_STEPS_LABEL,
             references=drawing.references if team == "aligner" else (),
         )
+        done()
         if not figures.written:
             skipped[f"members/{member}/"] = f"nothing to draw yet: {folder}/ has no rows"
             continue
@@ -468,17 +559,25 @@ def write_league_report(run_dir: str | Path, leaderboard_rows: Sequence[Mapping[
     `run_dir`/report/; return report.md's path. `leaderboard_rows` are those of
     alignrl.league.loop.leaderboard. Every file is replaced atomically, the figures first and
     report.md last, so that neither document ever links a figure not written yet; temporaries
-    that a report killed midway left in report/ are removed."""
+    that a report killed midway left in report/ are removed. A figure whose PNG carries the
+    digest of the same data and drawing code (`_digest`) is kept as it is, not drawn again
+    (as alignrl.plots.write_figures keeps a member's): `alignrl leaderboard` after `league run`
+    draws nothing. Where stderr is a terminal, a progress bar counts the figures."""
     run = read_league_run(Path(run_dir))
     out = run.run_dir / FIGURE_FOLDER
     remove_partial_writes(out)
     drawing = _Drawing.of(run)
     built, skipped = _league_figures(run, drawing)
-    for name, figure in built.items():
-        save_png(figure, out / name)
-    member_figures, member_skipped = _write_member_figures(
-        run, drawing, leaderboard_rows, out / "members"
-    )
+    digests = {name: _digest(name, inputs) for name, (inputs, _) in built.items()}
+    stale = [name for name, digest in digests.items() if drawn_from(out / name) != digest]
+    members = _members_with_metrics(run.run_dir, leaderboard_rows)
+    with _progress(len(stale) + len(members)) as progress:
+        for name in stale:  # a figure drawn from the same data is kept as it is
+            save_png(built[name][1](), out / name, digests[name])
+            progress.update()
+        member_figures, member_skipped = _write_member_figures(
+            run, drawing, members, out / "members", progress.update
+        )
 
     title = f"League report: {run.config.get('name', run.run_dir.name)}"
     blocks: list[Block] = [

@@ -3,7 +3,8 @@ checkpoint's ratings, payoff table and anchors' record, the metrics CSVs, the ro
 best/best.json (the validation sessions' choice), test.json (the champion's test session)
 and config.yaml; it writes nothing. Read strictly (a CSV cell that is not a number names its
 file, line and column), but a file the league has not written yet is no error: its table has
-zero rows, and the report says why (`LeagueRun.why_empty`).
+zero rows, and the report says why (`LeagueRun.why_empty`). `member_teams` and `team_of`
+give each player's team, `rating_histories` each player's ratings as arrays.
 
 A member's CSVs (metrics/members/<id>/) count env steps as the league does, all matches
 together. `member_env_steps` turns them into the member's own: the transitions it learned
@@ -14,7 +15,7 @@ onto them).
 from __future__ import annotations
 
 import json
-from collections.abc import Collection, Mapping
+from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -25,7 +26,6 @@ from alignrl.checkpoints import CheckpointError, load_checkpoint
 from alignrl.league.checkpointing import check_state_format, latest_checkpoint
 from alignrl.league.matchmaking import SNAPSHOT_MARK, TEAMS
 from alignrl.league.ratings import PayoffTable, Ratings
-from alignrl.league.report_figures import member_teams
 from alignrl.league.sessions import read_test
 from alignrl.league.standings import anchor_records
 from alignrl.metrics import LEAGUE_EVALUATION_COLUMNS, LEAGUE_ITERATION_COLUMNS, LINEAGE_COLUMNS
@@ -41,9 +41,12 @@ __all__ = [
     "classical_references",
     "member_env_steps",
     "member_sessions",
+    "member_teams",
     "on_own_env_steps",
     "rated_matches",
+    "rating_histories",
     "read_league_run",
+    "team_of",
 ]
 
 # Read as the league writes them (alignrl.league.logs); the member ids as text.
@@ -177,6 +180,50 @@ def _designs(path: Path) -> pd.DataFrame | None:
         return None
     frame = pd.read_csv(path)
     return frame if len(frame) else None
+
+
+# --- the players: their teams and ratings --------------------------------------------------
+
+
+def member_teams(rosters: Mapping[str, Sequence[str]], lineage: pd.DataFrame) -> dict[str, str]:
+    """The team of every member the league ever had: the rosters' members (team -> ids), and
+    each copy made by population-based training (lineage.csv), which joins its parent's."""
+    teams = {member: team for team, members in rosters.items() for member in members}
+    for member, parent in zip(lineage["member"], lineage["parent"], strict=True):
+        if parent not in teams:
+            raise ReportError(
+                f"metrics/lineage.csv: {member!r} copies {parent!r}, a member of neither "
+                "roster nor an earlier copy; is the run directory complete?"
+            )
+        teams[member] = teams[parent]
+    return teams
+
+
+def team_of(player: str, teams: Mapping[str, str]) -> str:
+    """The team of a player: its member's (a snapshot `x@N` is member x's)."""
+    member = player.split(SNAPSHOT_MARK)[0]
+    if member not in teams:
+        raise ReportError(
+            f"{player!r} was rated but is in neither roster (aligners.yaml, misaligners.yaml) "
+            "nor metrics/lineage.csv; is the run directory complete?"
+        )
+    return teams[member]
+
+
+def rating_histories(ratings: Ratings) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Per player, anchors included, in order of first appearance: the iterations its rating
+    was recorded at, and its mu and sigma there."""
+    rows: dict[str, list[tuple[int, float, float]]] = {}
+    for iteration, player, mu, sigma in ratings.history:
+        rows.setdefault(player, []).append((iteration, mu, sigma))
+    return {
+        player: (
+            np.array([i for i, _, _ in points]),
+            np.array([mu for _, mu, _ in points]),
+            np.array([sigma for _, _, sigma in points]),
+        )
+        for player, points in rows.items()
+    }
 
 
 # --- a member's own env steps -------------------------------------------------------------

@@ -1,7 +1,8 @@
 """The figures of a league report (alignrl.league.report), and what they show as plain data.
 
-`rating_histories`, `payoff_grid`, `member_teams` and `member_colours` turn the league's
-ratings, payoff table and rosters into arrays and mappings (tested by hand);
+`payoff_grid` and `member_colours` turn the league's payoff table and rosters into arrays
+and mappings (tested by hand; the players' teams and rating histories are read by
+alignrl.league.report_data);
 `ratings_figure`, `payoff_figure`, `learning_figure`, `curriculum_figure`,
 `evaluations_figure` and `test_session_figure` draw them. Every figure draws a member in the
 one colour `member_colours` gives it, and a snapshot `x@N` in its member's colour, dashed or
@@ -26,7 +27,9 @@ from numpy.typing import ArrayLike
 from alignrl.intervals import success_text
 from alignrl.league.matchmaking import SNAPSHOT_MARK, TEAMS
 from alignrl.league.ratings import PayoffTable, Ratings
+from alignrl.league.report_data import rating_histories, team_of
 from alignrl.plots import (
+    LEGEND_BESIDE_WIDTH,
     REFERENCE_COLOUR,
     REFERENCE_STYLES,
     Reference,
@@ -59,12 +62,9 @@ __all__ = [
     "evaluations_figure",
     "learning_figure",
     "member_colours",
-    "member_teams",
     "payoff_figure",
     "payoff_grid",
-    "rating_histories",
     "ratings_figure",
-    "team_of",
     "test_session_figure",
 ]
 
@@ -74,6 +74,9 @@ MEMBER_STEPS_LABEL = "the member's own env steps (transitions it learned from)"
 SNAPSHOT_ALPHA = 0.55  # a snapshot is drawn lighter than its member
 DODGE = 0.05  # evaluations.png: shift between members, a share of the spacing of sessions
 CLASSICAL_BAR = "0.65"  # a classical controller's bar: grey, light enough for its error bar
+MARK_GAP = 0.045  # ratings.png: the least gap between two snapshots' marks, a share of the y axis
+MARK_MARGIN = 0.09  # ratings.png: room right of the lines for the marks, a share of the x axis
+UNPLAYED = "#c8c8c8"  # payoff.png: the hatching of pairs that never met, on white
 
 
 # The league's own figures, in the order of the report, with heading and caption.
@@ -84,17 +87,20 @@ LEAGUE_FIGURES: dict[str, tuple[str, str]] = {
         "the band mu ± sigma around each active member, each member in its own colour (the "
         "same in every figure of this report). Active members are solid lines, members "
         "replaced by population-based training thin ones; snapshots are dashed, lighter, in "
-        "the colour of their member and marked @N at their end (a snapshot starts at its "
-        "member's rating). The anchors, classical controllers of fixed rating that align the "
-        "same starts as the aligners, are black lines in the aligners' panel: an aligner "
-        "above one does better than it on those starts.",
+        "the colour of their member and marked @N right of their end (moved apart where "
+        "they end close together, a thin line leading to each moved mark; a snapshot starts "
+        "at its member's rating). The legend is beside the panels. The anchors, classical "
+        "controllers of fixed rating that align the same starts as the aligners, are black "
+        "lines in the aligners' panel: an aligner above one does better than it on those "
+        "starts.",
     ),
     "payoff.png": (
         "Payoff table",
         "The aligner's win rate against each misaligner, with the matches they played in "
-        "brackets; grey where the two never met. Rows are aligners, columns misaligners, each "
-        "best rated first, snapshots included (their names lighter and slanted); each name in "
-        "its member's colour.",
+        "brackets; hatched, without colour, where the two never met (the title counts the "
+        "pairs that met). Only players that met someone have a row or column. Rows are "
+        "aligners, columns misaligners, each best rated first, snapshots included (their "
+        "names lighter and slanted); each name in its member's colour.",
     ),
     "learning.png": (
         "Aligners' learning curves",
@@ -148,22 +154,6 @@ DESIGN_BINS = 10
 # --- what the figures show, as plain data -----------------------------------------------
 
 
-def rating_histories(ratings: Ratings) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """Per player, anchors included, in order of first appearance: the iterations its rating
-    was recorded at, and its mu and sigma there."""
-    rows: dict[str, list[tuple[int, float, float]]] = {}
-    for iteration, player, mu, sigma in ratings.history:
-        rows.setdefault(player, []).append((iteration, mu, sigma))
-    return {
-        player: (
-            np.array([i for i, _, _ in points]),
-            np.array([mu for _, mu, _ in points]),
-            np.array([sigma for _, _, sigma in points]),
-        )
-        for player, points in rows.items()
-    }
-
-
 @dataclass(frozen=True)
 class PayoffGrid:
     """The payoff table of every player that played, each side best rated first."""
@@ -188,31 +178,6 @@ def payoff_grid(payoff: PayoffTable, ratings: Ratings) -> PayoffGrid:
         [[payoff.matches(a, m) for m in misaligners] for a in aligners], dtype=int
     ).reshape(len(aligners), len(misaligners))
     return PayoffGrid(aligners, misaligners, payoff.matrix(aligners, misaligners), matches)
-
-
-def member_teams(rosters: Mapping[str, Sequence[str]], lineage: pd.DataFrame) -> dict[str, str]:
-    """The team of every member the league ever had: the rosters' members (team -> ids), and
-    each copy made by population-based training (lineage.csv), which joins its parent's."""
-    teams = {member: team for team, members in rosters.items() for member in members}
-    for member, parent in zip(lineage["member"], lineage["parent"], strict=True):
-        if parent not in teams:
-            raise ReportError(
-                f"metrics/lineage.csv: {member!r} copies {parent!r}, a member of neither "
-                "roster nor an earlier copy; is the run directory complete?"
-            )
-        teams[member] = teams[parent]
-    return teams
-
-
-def team_of(player: str, teams: Mapping[str, str]) -> str:
-    """The team of a player: its member's (a snapshot `x@N` is member x's)."""
-    member = player.split(SNAPSHOT_MARK)[0]
-    if member not in teams:
-        raise ReportError(
-            f"{player!r} was rated but is in neither roster (aligners.yaml, misaligners.yaml) "
-            "nor metrics/lineage.csv; is the run directory complete?"
-        )
-    return teams[member]
 
 
 def member_colours(teams: Mapping[str, str]) -> dict[str, str]:
@@ -256,28 +221,66 @@ def _draw_snapshots(
     histories: Mapping[str, tuple[np.ndarray, ...]],
     snapshots: list[str],
     colour: str,
-) -> Any:
-    """A member's snapshots: dashed and lighter in its colour, each marked @N at its end;
-    the legend entry that names them all."""
+) -> tuple[Any, list[tuple[float, float, str, str]]]:
+    """A member's snapshots: dashed and lighter in its colour; the legend entry that names
+    them all, and the mark @N of each at its line's end as (x, y, text, colour), placed by
+    `_place_marks` once every line of the panel is drawn."""
     from matplotlib.lines import Line2D
 
+    marks = []
     for snapshot in snapshots:
         iterations, values, _ = histories[snapshot]
         axes.plot(iterations, values, "--", color=colour, lw=0.9, alpha=SNAPSHOT_ALPHA)
         mark = snapshot[snapshot.index(SNAPSHOT_MARK) :]
+        marks.append((float(iterations[-1]), float(values[-1]), mark, colour))
+    member = snapshots[0].split(SNAPSHOT_MARK)[0]
+    marks_named = ", ".join(snapshot[snapshot.index(SNAPSHOT_MARK) :] for snapshot in snapshots)
+    label = f"{member} snapshots ({marks_named})"
+    handle = Line2D([], [], color=colour, ls="--", lw=0.9, alpha=SNAPSHOT_ALPHA, label=label)
+    return handle, marks
+
+
+def _spread(values: Sequence[float], gap: float, top: float) -> list[float]:
+    """`values` (ascending) moved as little as a simple pass can so that neighbours are at
+    least `gap` apart: up from the lowest, then down from `top` where they pass it."""
+    placed: list[float] = []
+    for value in values:
+        placed.append(value if not placed else max(value, placed[-1] + gap))
+    for index in reversed(range(len(placed))):
+        ceiling = top if index == len(placed) - 1 else placed[index + 1] - gap
+        placed[index] = min(placed[index], ceiling)
+    return placed
+
+
+def _place_marks(axes: Axes, marks: list[tuple[float, float, str, str]]) -> None:
+    """The snapshots' marks right of their lines' ends, in a margin the x axis leaves for
+    them, spread apart where their lines end close together (a thin line in the snapshot's
+    colour leads to a mark that had to move)."""
+    if not marks:
+        return
+    low, high = axes.get_ylim()
+    left, right = axes.get_xlim()
+    end = max(x for x, *_ in marks)
+    axes.set_xlim(left, max(right, end + MARK_MARGIN * (end - left)))
+    gap = MARK_GAP * (high - low)
+    ordered = sorted(marks, key=lambda mark: mark[1])
+    placed = _spread([y for _, y, _, _ in ordered], gap, high - gap / 2)
+    for (x, y, text, colour), at in zip(ordered, placed, strict=True):
+        moved = abs(at - y) > gap / 4
         axes.annotate(
-            mark,
-            (iterations[-1], values[-1]),
-            xytext=(2, 0),
-            textcoords="offset points",
+            text,
+            (x, y),
+            xytext=(end + 0.025 * (end - left), at),
+            textcoords="data",
             fontsize=6,
             color=colour,
             va="center",
+            arrowprops=(
+                {"arrowstyle": "-", "color": colour, "lw": 0.5, "alpha": SNAPSHOT_ALPHA}
+                if moved
+                else None
+            ),
         )
-    member = snapshots[0].split(SNAPSHOT_MARK)[0]
-    marks = ", ".join(snapshot[snapshot.index(SNAPSHOT_MARK) :] for snapshot in snapshots)
-    label = f"{member} snapshots ({marks})"
-    return Line2D([], [], color=colour, ls="--", lw=0.9, alpha=SNAPSHOT_ALPHA, label=label)
 
 
 def ratings_figure(
@@ -317,8 +320,11 @@ def ratings_figure(
                 label=f"{player} (replaced)" if retired else player,
             )
             handles.append(line)
+        marks: list[tuple[float, float, str, str]] = []
         for member, frozen in snapshots.items():
-            handles.append(_draw_snapshots(axes, histories, frozen, colours[member]))
+            handle, placed = _draw_snapshots(axes, histories, frozen, colours[member])
+            handles.append(handle)
+            marks += placed
         if team == TEAMS[0]:  # the anchors rate the aligners
             for index, anchor in enumerate(ratings.anchors):
                 style = (":", "-.", "--")[index % 3]
@@ -331,7 +337,17 @@ def ratings_figure(
                 )
                 handles.append(line)
         _label_iterations(axes, f"{team.capitalize()}s", "rating (mu)")
-        place_legend(axes, handles)
+        _place_marks(axes, marks)
+        # Beside the axes, never over the lines; both panels' legends in the same place.
+        axes.legend(
+            handles=handles,
+            loc="upper left",
+            bbox_to_anchor=(1.02, 1.0),
+            borderaxespad=0.0,
+            fontsize="small",
+        )
+    width, height = figure.get_size_inches()
+    figure.set_size_inches(max(width, LEGEND_BESIDE_WIDTH + 1.0), height)
     return figure
 
 
@@ -339,13 +355,32 @@ def payoff_figure(grid: PayoffGrid, colours: Mapping[str, str]) -> Figure:
     """A heatmap of the aligners' win rates with the numbers in the cells; the cells and
     their text shrink as the grid grows; each name in its member's colour."""
     from matplotlib import colormaps
+    from matplotlib.patches import Rectangle
 
     rows, columns = grid.win_rates.shape
     figure, (axes,) = new_figure()
     figure.set_size_inches(max(4.8, 2.6 + 0.8 * columns), max(3.2, 1.8 + 0.5 * rows))
-    colormap = colormaps["RdBu"].with_extremes(bad="#d9d9d9")  # never played: grey
+    # A pair that never met shows the light hatching behind the grid, no colour of its own.
+    axes.add_patch(
+        Rectangle(
+            (-0.5, -0.5),
+            columns,
+            rows,
+            facecolor="white",
+            edgecolor=UNPLAYED,
+            hatch="////",
+            lw=0.0,
+            zorder=0,
+        )
+    )
+    colormap = colormaps["RdBu"].with_extremes(bad=(0.0, 0.0, 0.0, 0.0))
     image = axes.imshow(
-        np.ma.masked_invalid(grid.win_rates), cmap=colormap, vmin=0.0, vmax=1.0, aspect="auto"
+        np.ma.masked_invalid(grid.win_rates),
+        cmap=colormap,
+        vmin=0.0,
+        vmax=1.0,
+        aspect="auto",
+        zorder=1,
     )
     font_size = max(5.0, min(9.0, 80.0 / max(rows, columns)))
     for (row, column), rate in np.ndenumerate(grid.win_rates):
@@ -370,7 +405,10 @@ def payoff_figure(grid: PayoffGrid, colours: Mapping[str, str]) -> Figure:
             label.set_fontstyle("italic")
     axes.set_xlabel("misaligner")
     axes.set_ylabel("aligner")
-    axes.set_title(LEAGUE_FIGURES["payoff.png"][0])
+    met = int(np.count_nonzero(grid.matches))
+    axes.set_title(
+        f"{LEAGUE_FIGURES['payoff.png'][0]}: {met} of {rows * columns} pairs met (hatched: never)"
+    )
     figure.colorbar(image, ax=axes, label="aligner win rate")
     return figure
 

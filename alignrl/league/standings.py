@@ -6,17 +6,34 @@ with its 95 % Wilson interval; an anchor has none (it is judged on the test sess
 champion: alignrl.league.sessions), only its record in the league's rated matches: how many of
 the starts the aligners were given it aligned within spec. These rows are what `alignrl
 leaderboard` prints and gives as `--json`, and what the report's tables show.
+
+`read_status` is what `alignrl league status` shows, read from the run directory's
+config.yaml and last checkpoint's league state alone: no member is loaded, no backend built
+(a few seconds fewer, and nothing started where the league plays on Ray).
 """
 
 from __future__ import annotations
 
-from typing import Any
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from alignrl.intervals import success_text
 from alignrl.league.ratings import PayoffTable, Ratings
 from alignrl.league.sessions import VALIDATION, interval
 
-__all__ = ["ANCHOR_ARCHITECTURE", "anchor_lines", "anchor_records", "leaderboard"]
+if TYPE_CHECKING:
+    from alignrl.league.config import LeagueConfig
+
+__all__ = [
+    "ANCHOR_ARCHITECTURE",
+    "LeagueStatus",
+    "anchor_lines",
+    "anchor_records",
+    "leaderboard",
+    "read_status",
+]
 
 ANCHOR_ARCHITECTURE = "classical controller (anchor)"
 
@@ -125,3 +142,56 @@ def anchor_lines(records: dict[str, Any]) -> list[str]:
             "apparatus gives no twin of its column (a real microscope)"
         )
     return lines
+
+
+@dataclass(frozen=True)
+class LeagueStatus:
+    """Where a league run stands as of its last checkpoint, as League.resume would give it:
+    the iteration, the env steps, the curriculum's complexity, each team's active members and
+    kept snapshots (ids, oldest snapshot first) and the best validation session per aligner."""
+
+    config: LeagueConfig
+    iteration: int
+    env_steps: int
+    complexity: float
+    members: dict[str, list[str]]
+    snapshots: dict[str, list[str]]
+    best: dict[str, dict[str, Any]]
+
+
+def read_status(run_dir: str | Path) -> LeagueStatus | None:
+    """The status of the league in `run_dir` from config.yaml and the league state of its
+    last checkpoint (checked as a resume checks it); None where it has no checkpoint (a run
+    directory that lost its checkpoints: League.resume then starts from the rosters)."""
+    from alignrl.checkpoints import load_checkpoint
+    from alignrl.envs.curriculum import Curriculum
+    from alignrl.league.checkpointing import check_state_format, latest_checkpoint
+    from alignrl.league.config import parse_league
+    from alignrl.league.matchmaking import TEAMS, OpponentPool
+    from alignrl.runs.state import CONFIG_FILE, run_config_data
+
+    run_dir = Path(run_dir)
+    config = parse_league(run_config_data(run_dir, "league run"), str(run_dir / CONFIG_FILE))
+    latest = latest_checkpoint(run_dir)
+    if latest is None:
+        return None
+    path = run_dir / "checkpoints" / latest / "league.pt"
+    state = load_checkpoint(path)
+    check_state_format(state, path)
+    pool = OpponentPool(config.matchmaking.max_snapshots)
+    pool.load_state_dict(state["pool"])
+    complexity = float(config.complexity)
+    curriculum = Curriculum.from_config(config.curriculum)
+    if curriculum:  # the level League.resume sets the backend to
+        if state["curriculum"]:
+            curriculum.load_state_dict(state["curriculum"])
+        complexity = float(curriculum.level)
+    return LeagueStatus(
+        config=config,
+        iteration=int(state["iteration"]),
+        env_steps=int(state["env_steps"]),
+        complexity=complexity,
+        members={team: pool.active(team) for team in TEAMS},
+        snapshots={team: [snapshot.id for snapshot in pool.snapshots(team)] for team in TEAMS},
+        best=json.loads(state["best"]),
+    )

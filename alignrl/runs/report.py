@@ -21,7 +21,7 @@ import numpy as np
 from alignrl.intervals import success_text
 from alignrl.plots import FIGURES, TrainingFigures, write_figures
 from alignrl.report_document import Block, Facts, Heading, Image, Paragraph, Table, write_documents
-from alignrl.run_tables import RunMetrics, read_run_metrics, read_yaml_mapping
+from alignrl.run_tables import ReportError, RunMetrics, read_run_metrics, read_yaml_mapping
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -187,6 +187,22 @@ def _blocks(
     return title, blocks
 
 
+def _not_a_league(run_dir: Path) -> None:
+    """A league run (its config names the two rosters) is refused with the command that
+    reports it: its tables are a league's, not a training run's."""
+    config = run_dir / "config.yaml"
+    if not config.is_file():
+        return  # read_run_metrics says what is missing
+    data = read_yaml_mapping(config)
+    if "aligners" in data and "misaligners" in data:
+        raise ReportError(
+            f"{run_dir} is a league run: `alignrl report` reports a training run (`alignrl "
+            f"train`, `alignrl adapt`); the league's report is written by `alignrl leaderboard "
+            f"{run_dir}` into {run_dir / 'report.md'} and report.html beside it (`alignrl "
+            "league run` and `league resume` write it too when they end)"
+        )
+
+
 def write_run_report(run_dir: Path, out_dir: Path | None = None) -> RunReport:
     """Write the figures, report.md and report.html of a run into `out_dir` (default
     <run_dir>/report/). Nothing else in the run directory is touched, and every file is
@@ -196,6 +212,7 @@ def write_run_report(run_dir: Path, out_dir: Path | None = None) -> RunReport:
 
     run_dir = Path(run_dir)
     out_dir = run_dir / "report" if out_dir is None else Path(out_dir)
+    _not_a_league(run_dir)
     remove_partial_writes(out_dir, recursive=False)
     metrics = read_run_metrics(run_dir)
     config = read_yaml_mapping(run_dir / "config.yaml")
