@@ -18,13 +18,10 @@ from pathlib import Path
 from typing import Any
 
 from alignrl.apparatus.shield import DEFAULT_CALL_TIMEOUT_S, JsonLinesAudit, ShieldOptions
-from alignrl.config import (
-    AdaptationConfig,
-    ExperimentConfig,
-    HindsightOptimum,
-    LearnerConfig,
-    parse_experiment,
-)
+from alignrl.config.adaptation import AdaptationConfig
+from alignrl.config.experiment import ExperimentConfig, parse_experiment
+from alignrl.config.learner import LearnerConfig
+from alignrl.envs.hindsight import HindsightOptimum
 from alignrl.runs.sources import PolicySource, require_learner_state
 
 __all__ = ["adaptation_config", "adaptation_shield", "check_adaptable"]

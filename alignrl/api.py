@@ -24,7 +24,7 @@ from alignrl.apparatus.filming import Film, FilmedApparatus
 from alignrl.apparatus.guard import declared_intervals
 from alignrl.apparatus.registry import build_apparatus, make_apparatus
 from alignrl.apparatus.shield import resolve_limits
-from alignrl.config import ExperimentConfig, parse_experiment
+from alignrl.config.experiment import ExperimentConfig, parse_experiment
 from alignrl.deploy.align import AlignResult, alignment_scene
 from alignrl.deploy.align import align as align_through_shield
 from alignrl.deploy.policy import DeployablePolicy, load_deployable

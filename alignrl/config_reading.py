@@ -1,6 +1,6 @@
 """How alignrl reads a config file: strictly, within bounds, and saying what is wrong where.
 
-The experiment, league and roster models (alignrl/config.py, alignrl/league/config.py) are
+The experiment, league and roster models (alignrl/config/, alignrl/league/config.py) are
 built from what this module gives them:
 
 * `read_yaml` reads a file through alignrl.yaml_io (no duplicate keys, no alias bombs, a

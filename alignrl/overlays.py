@@ -22,8 +22,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-__all__ = ["BASE_KEY", "Layers", "OverlayError", "apply_overrides", "merge", "parse_override",
-           "resolve"]  # fmt: skip
+__all__ = [
+    "BASE_KEY",
+    "Layers",
+    "OverlayError",
+    "apply_overrides",
+    "merge",
+    "parse_override",
+    "resolve",
+]
 
 BASE_KEY = "base"  # the top-level key that makes a file an overlay
 

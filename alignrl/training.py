@@ -50,7 +50,9 @@ from alignrl.checkpoints import (
     remove_partial_writes,
     save_checkpoint,
 )
-from alignrl.config import ConfigError, ExperimentConfig, RunConfig, dump_experiment
+from alignrl.config.experiment import ExperimentConfig, dump_experiment
+from alignrl.config.run import RunConfig
+from alignrl.config_reading import ConfigError
 from alignrl.envs import Curriculum, VectorAlignmentEnv, make_apparatus_copies
 from alignrl.envs.task import Task
 from alignrl.evaluation.controllers import PolicyController
@@ -67,6 +69,7 @@ from alignrl.runs.state import (
 )
 from alignrl.runs.training_logs import TrainingLogs
 from alignrl.runs.training_runs import load_policy, member_spec
+from alignrl.transitions import Transition
 
 if TYPE_CHECKING:
     from alignrl.envs.hindsight import HindsightSecrets
@@ -93,7 +96,7 @@ def with_budget(config: ExperimentConfig, env_steps: int) -> ExperimentConfig:
     if env_steps < 1:
         raise ValueError(f"a budget is a positive number of env steps, not {env_steps}")
     budget = config.budget.model_copy(update={"env_steps": int(env_steps)})
-    from alignrl.config import Provenance
+    from alignrl.config.run import Provenance
 
     given = config.provenance or Provenance()
     provenance = given.model_copy(
@@ -428,20 +431,17 @@ class Trainer:
             return HindsightSecrets(blind, adaptation.hindsight_optimum, seed=self.config.seed)
         return None
 
-    def _observe(self, observation, secret, action, reward, final, infos, done) -> None:
+    def _observe(self, step: Transition, infos: dict[str, Any]) -> None:
         """Store the step's transitions: at once, or (blind slots under hindsight secrets)
         when their episodes end."""
         if self.hindsight is None:
-            self.agent.observe(observation, secret, action, reward, final, infos["secret"], done)
+            self.agent.observe(step)
             return
         seen = ~self.hindsight.blind
         if seen.any():
-            self.agent.observe(
-                observation[seen], secret[seen], action[seen], reward[seen], final[seen],
-                infos["secret"][seen], done[seen],
-            )  # fmt: skip
-        for transitions in self.hindsight.step(observation, action, reward, final, done, infos):
-            self.agent.observe(*transitions)
+            self.agent.observe(step.rows(seen))
+        for episode in self.hindsight.step(step, infos):
+            self.agent.observe(episode)
 
     def _policy_learns(self) -> bool:
         """False during an adaptation's critic warm-up (its first critic_warmup_steps)."""
@@ -488,7 +488,8 @@ class Trainer:
                 infos.get("final_observation", next_observation),
                 next_observation,
             )
-            self._observe(observation, secret, action, reward, final, infos, done)
+            step = Transition(observation, secret, action, reward, final, infos["secret"], done)
+            self._observe(step, infos)
             returns += reward
             episode_rows = []
             for index in np.flatnonzero(done):

@@ -24,7 +24,7 @@ import numpy as np
 import yaml
 
 from alignrl.agents.agent import Agent
-from alignrl.config import parse_experiment
+from alignrl.config.experiment import parse_experiment
 from alignrl.league.backends import InProcessBackend
 from alignrl.league.loop import League
 from alignrl.training import Trainer

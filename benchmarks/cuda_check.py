@@ -10,6 +10,7 @@ import torch
 
 from alignrl.agents.replay import ReplayBuffer
 from alignrl.agents.sac import SAC, SACConfig
+from alignrl.transitions import Transition
 
 CONFIGS = {
     "mlp": SACConfig(encoder_kwargs={"hidden": (256,)}),
@@ -25,13 +26,15 @@ def updates_per_second(device: str, config: SACConfig, batch: int, repeats: int 
     n = 4000
     observation = rng.uniform(-1, 1, (n, 8, 7)).astype(np.float32)
     replay.add(
-        observation,
-        rng.uniform(-1, 1, (n, 1)),
-        rng.uniform(-1, 1, (n, 2)),
-        rng.normal(size=n),
-        observation,
-        rng.uniform(-1, 1, (n, 1)),
-        np.zeros(n),
+        Transition(
+            observation,
+            rng.uniform(-1, 1, (n, 1)),
+            rng.uniform(-1, 1, (n, 2)),
+            rng.normal(size=n),
+            observation,
+            rng.uniform(-1, 1, (n, 1)),
+            np.zeros(n),
+        )
     )
     for _ in range(10):
         agent.update(replay.sample(batch, rng))

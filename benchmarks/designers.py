@@ -45,6 +45,7 @@ import numpy as np
 import yaml
 
 from alignrl.league.exploit import DESIGNER as EXPLOIT_DESIGNER
+from alignrl.league.logs import DESIGN_COLUMNS
 
 CONDITIONS = ("uniform", "improvement", "regret")
 TASK_OPTIONS = {
@@ -385,20 +386,7 @@ def plot_designs(out: Path, names: list[str]) -> Path | None:
     if not frames:
         return None
     every = pd.concat(frames.values())
-    parameters = [
-        c
-        for c in every.columns
-        if c
-        not in (
-            "iteration",
-            "aligner",
-            "misaligner",
-            "match",
-            "aligner_payoff",
-            "success",
-            "payoff",
-        )
-    ]
+    parameters = [c for c in every.columns if c not in (*DESIGN_COLUMNS, "payoff")]
     columns = 5
     rows = math.ceil(len(parameters) / columns)
     figure, axes = plt.subplots(rows, columns, figsize=(3.2 * columns, 2.4 * rows), squeeze=False)

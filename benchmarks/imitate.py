@@ -30,12 +30,13 @@ from tqdm import tqdm
 
 from alignrl.apparatus.family_box import family_path, load_family
 from alignrl.apparatus.registry import make_apparatus_copies
-from alignrl.config import load_experiment
+from alignrl.config.experiment import load_experiment
 from alignrl.envs.core import feature_layout
 from alignrl.envs.task import knob_change
 from alignrl.envs.vector import VectorAlignmentEnv
 from alignrl.evaluation.posterior import BayesianAutofocus
 from alignrl.posterior.inference import SCALE_FREE
+from alignrl.transitions import Transition
 from benchmarks.imitation import Demonstrations, PosteriorTeacher, clone, collect
 
 
@@ -121,9 +122,16 @@ def _clone(args: argparse.Namespace) -> None:
         log=lambda epoch, value: print(f"epoch {epoch + 1}: loss {value:.4f}", flush=True),
     )  # fmt: skip
     trainer.agent.observe(
-        data.observation, data.secret, data.action, data.reward, data.next_observation,
-        data.next_secret, data.done,
-    )  # fmt: skip
+        Transition(
+            data.observation,
+            data.secret,
+            data.action,
+            data.reward,
+            data.next_observation,
+            data.next_secret,
+            data.done,
+        )
+    )
     result = trainer.evaluate_and_keep_best()
     trainer.checkpoint()
     print(

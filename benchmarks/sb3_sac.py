@@ -31,12 +31,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from alignrl.agents.replay import Batch, ReplayBuffer
+from alignrl.agents.replay import ReplayBuffer
 from alignrl.agents.sac import SAC, SACConfig
-from alignrl.config import ExperimentConfig, load_experiment, parse_experiment
+from alignrl.config.experiment import ExperimentConfig, load_experiment, parse_experiment
 from alignrl.envs.alignment import AlignmentEnv
 from alignrl.evaluation.session import SessionResult
 from alignrl.training import Trainer, evaluate_policy
+from alignrl.transitions import Transition
 
 try:
     from stable_baselines3 import SAC as SB3SAC
@@ -115,7 +116,7 @@ class UpdateSpeed:
         return statistics.median(self.ours) / statistics.median(self.sb3)
 
 
-def random_transitions(env: AlignmentEnv, count: int, seed: int) -> Batch:
+def random_transitions(env: AlignmentEnv, count: int, seed: int) -> Transition:
     """`count` transitions of uniform random actions, episodes restarting as they end."""
     rng = np.random.default_rng(seed)
     shape = env.observation_space.shape
@@ -133,7 +134,9 @@ def random_transitions(env: AlignmentEnv, count: int, seed: int) -> Batch:
         secrets[index], next_secrets[index] = info["secret"], next_info["secret"]
         rewards[index], dones[index] = reward, terminated
         observation, info = env.reset() if terminated else (next_observation, next_info)
-    return Batch(observations, secrets, actions, rewards, next_observations, next_secrets, dones)
+    return Transition(
+        observations, secrets, actions, rewards, next_observations, next_secrets, dones
+    )
 
 
 def _parameters(module: torch.nn.Module) -> int:
@@ -159,7 +162,7 @@ def update_speed(
     torch.manual_seed(seed)
     ours = SAC(shape, action_dim, secret_dim, OURS_FOR_SPEED)
     replay = ReplayBuffer(transitions, shape, secret_dim, action_dim)
-    replay.add(*(getattr(stored, name) for name in Batch.__dataclass_fields__))
+    replay.add(stored)
     rng = np.random.default_rng(seed)
 
     sb3 = SB3SAC(

@@ -24,7 +24,7 @@ from pydantic.fields import FieldInfo
 from pydantic.functional_validators import BeforeValidator
 from pydantic.types import AllowInfNan
 
-from alignrl.config import ExperimentConfig
+from alignrl.config.experiment import ExperimentConfig
 from alignrl.league.config import LeagueConfig, Roster
 
 DOC = Path(__file__).resolve().with_name("configs.md")

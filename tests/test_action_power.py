@@ -16,7 +16,7 @@ from conftest import SMALL_SAC, write_experiment
 from alignrl.apparatus.quality import TEN_NINETY_PER_SIGMA
 from alignrl.apparatus.registry import make_apparatus
 from alignrl.cli import main
-from alignrl.config import TaskOptions
+from alignrl.config.task_options import TaskOptions
 from alignrl.deploy.loading import load_exported
 from alignrl.envs.core import AlignmentEpisodes, feature_layout
 from alignrl.envs.task import get_task, knob_change

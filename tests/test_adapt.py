@@ -24,13 +24,15 @@ from alignrl.apparatus.synthetic import PRESET_DIR, load_sem_config
 from alignrl.apparatus.training_shield import TrainingShield
 from alignrl.checkpoints import load_checkpoint
 from alignrl.cli import main
-from alignrl.config import TaskOptions, parse_experiment
+from alignrl.config.experiment import parse_experiment
+from alignrl.config.task_options import TaskOptions
 from alignrl.envs import AlignmentEnv
 from alignrl.envs.core import feature_layout
 from alignrl.envs.hindsight import HindsightSecrets
 from alignrl.envs.task import get_task
 from alignrl.runs.sources import resolve_source
 from alignrl.training import Trainer, start_adaptation
+from alignrl.transitions import Transition
 
 LENS = "fake_drivers:ParabolicLens"
 SPEC_PX = 2.563 * 1.15  # 1.15 x the lens's best edge width (sigma0 = 1 px)
@@ -163,22 +165,23 @@ def test_hindsight_secrets_stand_the_sharpest_reading_in_for_the_optimum() -> No
             "start_position": position(0.0, 0.0, 0.3),  # the next episodes' first readings
             "start_edge_width_px": np.array([2.0, 2.0, 9.0]),
         }
-        actions, rewards = np.full((3, 2), float(t)), np.full(3, float(t))
-        released += hindsight.step(
-            observations[t], actions, rewards, observations[t + 1], np.array(done), infos
+        actions, rewards, told = np.full((3, 2), float(t)), np.full(3, float(t)), np.zeros((3, 1))
+        step = Transition(
+            observations[t], told, actions, rewards, observations[t + 1], told, np.array(done)
         )
+        released += hindsight.step(step, infos)
     assert len(released) == 2  # slot 2 after two steps, then slot 0 after three; not slot 1
-    observation, secret, action, reward, next_observation, next_secret, done = released[0]
+    episode = released[0]
     # Slot 2 visited 0.9 (8 px), 0.7 (5 px), 0.6 (6 px): the sharpest is 0.7.
-    np.testing.assert_allclose(secret[:, 0], [0.7 - 0.9, 0.0], atol=1e-6)
-    np.testing.assert_allclose(next_secret[:, 0], [0.0, 0.7 - 0.6], atol=1e-6)
-    np.testing.assert_array_equal(action[:, 0], [0.0, 1.0])
-    np.testing.assert_array_equal(done, [False, True])
-    np.testing.assert_array_equal(reward, [0.0, 1.0])
-    np.testing.assert_array_equal(observation[:, 0, 0], [0.0, 1.0])
-    np.testing.assert_array_equal(next_observation[:, 0, 0], [1.0, 2.0])
+    np.testing.assert_allclose(episode.secret[:, 0], [0.7 - 0.9, 0.0], atol=1e-6)
+    np.testing.assert_allclose(episode.next_secret[:, 0], [0.0, 0.7 - 0.6], atol=1e-6)
+    np.testing.assert_array_equal(episode.action[:, 0], [0.0, 1.0])
+    np.testing.assert_array_equal(episode.done, [False, True])
+    np.testing.assert_array_equal(episode.reward, [0.0, 1.0])
+    np.testing.assert_array_equal(episode.observation[:, 0, 0], [0.0, 1.0])
+    np.testing.assert_array_equal(episode.next_observation[:, 0, 0], [1.0, 2.0])
     # Slot 0: 0.1 (9 px), 0.4 (4), 0.6 (3), 0.5 (a failed reading): the sharpest is 0.6.
-    secret, next_secret = released[1][1][:, 0], released[1][5][:, 0]
+    secret, next_secret = released[1].secret[:, 0], released[1].next_secret[:, 0]
     np.testing.assert_allclose(secret, [0.5, 0.2, 0.0], atol=1e-6)
     np.testing.assert_allclose(next_secret, [0.2, 0.0, 0.1], atol=1e-6)
 
@@ -221,11 +224,10 @@ def _focus_episodes(hindsight: HindsightSecrets, count: int) -> list[tuple[float
                 x += (optimum - x) * rng.uniform(0.6, 1.2) + rng.normal(0, 0.03 / (move + 1))
                 x = float(np.clip(x, 0.0, 1.0))
             width = read(x)  # the last one: the verification image at the stop
-            released = hindsight.step(
-                blank, blank, np.zeros(1), blank, np.array([last]), infos(x, width)
-            )
-        (transitions,) = released
-        stops.append((optimum - x, float(transitions[5][-1, 0]), width))
+            step = Transition(blank, blank, blank, np.zeros(1), blank, blank, np.array([last]))
+            released = hindsight.step(step, infos(x, width))
+        (episode,) = released
+        stops.append((optimum - x, float(episode.next_secret[-1, 0]), width))
     return stops
 
 
@@ -417,7 +419,7 @@ def test_a_shielded_evaluation_session_is_the_same_session(
     # Sessions on the recordings walk the held-out rows in order (reset_to): the shield must
     # pass that through, or an adaptation's zero-shot figure would be another session's.
     from alignrl.adaptation import adaptation_shield
-    from alignrl.config import AdaptationConfig
+    from alignrl.config.adaptation import AdaptationConfig
     from alignrl.training import evaluate_policy
 
     source = resolve_source(small_source)
@@ -455,7 +457,7 @@ def test_train_given_an_adaptation_config_starts_from_its_source(
     `alignrl train` adapts the source, with its zero-shot session at 0 steps, as `alignrl
     adapt` does; it never trains an aligner from scratch."""
     from alignrl.cli import main
-    from alignrl.config import dump_experiment
+    from alignrl.config.experiment import dump_experiment
 
     source = resolve_source(small_source)
     config = _config(source, 40, name="from-yaml")
@@ -473,10 +475,13 @@ def test_hindsight_secrets_have_a_room_of_their_own() -> None:
     # Below training and adaptation (numpy only), the pooled curve in the posterior's room;
     # the config's adaptation section reads the same names, not a copy.
     import alignrl.adaptation as adaptation
-    import alignrl.config as config
+    import alignrl.config.adaptation as config
     import alignrl.envs.hindsight as hindsight
     from alignrl.posterior.hindsight import PooledCurve
 
     assert isinstance(hindsight.HindsightSecrets([True]).posterior, PooledCurve)
     assert not hasattr(adaptation, "HindsightSecrets")  # no re-export: one name, one place
-    assert config.HINDSIGHT_OPTIMA is hindsight.HINDSIGHT_OPTIMA  # one copy, not two that agree
+    assert not hasattr(config, "HINDSIGHT_OPTIMA")
+    # One copy, not two that agree: the config's field takes the hindsight module's names.
+    field = config.AdaptationConfig.model_fields["hindsight_optimum"]
+    assert field.annotation is hindsight.HindsightOptimum

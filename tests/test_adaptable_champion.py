@@ -30,7 +30,7 @@ from alignrl.adaptation import check_adaptable
 from alignrl.agents.agent import Agent, MemberSpec
 from alignrl.checkpoints import load_checkpoint
 from alignrl.cli import main
-from alignrl.config import parse_experiment
+from alignrl.config.experiment import parse_experiment
 from alignrl.deploy.export import export_policy
 from alignrl.runs.learner_state import (
     LEARNER_FILE,
@@ -41,6 +41,7 @@ from alignrl.runs.learner_state import (
 )
 from alignrl.runs.sources import ExportError, resolve_source
 from alignrl.training import Trainer
+from alignrl.transitions import Transition
 
 BLIND = "fake_drivers:BlindLens"
 SAC_PARTS = ("actor", "q1", "q2", "v", "v_target")  # networks; v_target: the target critic
@@ -191,14 +192,19 @@ def test_a_ppo_member_exports_its_learner_state_too(tmp_path: Path) -> None:
     for _ in range(int(SMALL_PPO["rollout_steps"])):  # one rollout, one update
         observation = rng.uniform(-1, 1, (1, 8, 7)).astype(np.float32)
         action = agent.explore(observation, rng)
-        agent.observe(observation, np.zeros((1, 1), np.float32), action, np.ones(1, np.float32),
-                      observation, np.zeros((1, 1), np.float32), np.zeros(1, bool))  # fmt: skip
+        none = np.zeros((1, 1), np.float32)
+        reward, done = np.ones(1, np.float32), np.zeros(1, bool)
+        agent.observe(Transition(observation, none, action, reward, observation, none, done))
     assert agent.learn(rng) and agent.updates > 0
     agent.save(tmp_path / "p.pt")
     out = export_policy(
-        resolve_source(tmp_path / "p.pt"), tmp_path / "out", "safetensors", histories=8,
-        note=lambda line: None, learner_state=True,
-    ).out  # fmt: skip
+        resolve_source(tmp_path / "p.pt"),
+        tmp_path / "out",
+        "safetensors",
+        histories=8,
+        note=lambda line: None,
+        learner_state=True,
+    ).out
     reloaded = resolve_source(out).agent
     mine, theirs = reloaded.learner.state_dict(), agent.learner.state_dict()
     for part in ("policy", "value"):

@@ -3,6 +3,7 @@ and PPO learning the focus task through the trainer."""
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 from pathlib import Path
 
@@ -13,8 +14,10 @@ import torch
 from alignrl.agents.agent import Agent, MemberSpec
 from alignrl.agents.sac import NonFiniteError
 from alignrl.checkpoints import CheckpointError
-from alignrl.config import ConfigError, parse_experiment
+from alignrl.config.experiment import parse_experiment
+from alignrl.config_reading import ConfigError
 from alignrl.training import Trainer
+from alignrl.transitions import Transition
 
 SHAPE = (8, 7)
 SAC_SMALL = {
@@ -24,8 +27,14 @@ SAC_SMALL = {
     "learning_starts": 16,
     "random_steps": 8,
 }
-PPO_SMALL = {"encoder": "gru", "encoder_kwargs": {"hidden": 16}, "hidden": [32], "batch_size": 16,
-             "rollout_steps": 4, "epochs": 2}  # fmt: skip
+PPO_SMALL = {
+    "encoder": "gru",
+    "encoder_kwargs": {"hidden": 16},
+    "hidden": [32],
+    "batch_size": 16,
+    "rollout_steps": 4,
+    "epochs": 2,
+}
 
 
 def spec(algorithm: str = "sac", **changes: object) -> MemberSpec:
@@ -50,13 +59,15 @@ def play(agent: Agent, steps: int, seed: int) -> None:
         observation[..., 0] = 1.0
         action = agent.explore(observation, rng)
         agent.observe(
-            observation,
-            rng.uniform(-1, 1, (4, 1)),
-            action,
-            rng.normal(size=4),
-            observation[::-1].copy(),
-            rng.uniform(-1, 1, (4, 1)),
-            rng.random(4) < 0.2,
+            Transition(
+                observation,
+                rng.uniform(-1, 1, (4, 1)),
+                action,
+                rng.normal(size=4),
+                observation[::-1].copy(),
+                rng.uniform(-1, 1, (4, 1)),
+                rng.random(4) < 0.2,
+            )
         )
         agent.learn(rng)
 
@@ -224,11 +235,18 @@ def test_sac_warm_up_and_ppo_samples_from_elsewhere() -> None:
     np.testing.assert_array_equal(uniform, expected)  # still in its random warm-up
     ppo = Agent(spec("ppo"), envs=3)
     actions, pre_tanh = ppo.explore_rows(observation, generators)
+    step = Transition(
+        observation,
+        np.zeros((3, 1)),
+        actions,
+        np.zeros(3),
+        observation,
+        np.zeros((3, 1)),
+        np.zeros(3, bool),
+    )
     with pytest.raises(RuntimeError, match="needs the explore"):
-        ppo.observe(observation, np.zeros((3, 1)), actions, np.zeros(3), observation,
-                    np.zeros((3, 1)), np.zeros(3, bool))  # fmt: skip
-    ppo.observe(observation, np.zeros((3, 1)), actions, np.zeros(3), observation,
-                np.zeros((3, 1)), np.zeros(3, bool), pre_tanh=pre_tanh)  # fmt: skip
+        ppo.observe(step)
+    ppo.observe(dataclasses.replace(step, pre_tanh=pre_tanh))
     np.testing.assert_array_equal(ppo.rollout.pre_tanh[:3], pre_tanh)
     assert ppo.steps_seen == 3
     with pytest.raises(ValueError, match="another member"):

@@ -313,7 +313,7 @@ def test_a_league_run_gives_its_champion(tmp_path: Path) -> None:
 
 def test_a_training_run_gives_its_best_checkpoint(tmp_path: Path) -> None:
     from alignrl.checkpoints import save_checkpoint
-    from alignrl.config import dump_experiment, parse_experiment
+    from alignrl.config.experiment import dump_experiment, parse_experiment
     from alignrl.runs.training_runs import member_spec
     from alignrl.training import CHECKPOINT_FORMAT
 

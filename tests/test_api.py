@@ -9,7 +9,7 @@ import pytest
 
 from alignrl import api
 from alignrl.apparatus import make_apparatus
-from alignrl.config import ConfigError
+from alignrl.config_reading import ConfigError
 from alignrl.envs.task import get_task
 from alignrl.evaluation.baselines import CLASSICAL
 from alignrl.evaluation.session import run_session

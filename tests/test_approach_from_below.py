@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from test_stop_at_best import _hysteretic, _Recorder  # a column with 2 % backlash, no drift
 
-from alignrl.config import TaskOptions
+from alignrl.config.task_options import TaskOptions
 from alignrl.envs.core import AlignmentEpisodes
 from alignrl.envs.task import get_task
 

@@ -10,13 +10,13 @@ import pytest
 from fake_drivers import ParabolicLens
 
 from alignrl.apparatus import make_apparatus
+from alignrl.apparatus.focus_curve import fit_focus_curve
 from alignrl.envs.task import get_task
 from alignrl.evaluation.baselines import (
     BASELINES,
     GoldenSection,
     HillClimb,
     HyperbolaFit,
-    fit_focus_curve,
     get_baseline,
 )
 from alignrl.evaluation.controllers import Controller
@@ -38,9 +38,10 @@ def test_fit_recovers_an_exact_hyperbola() -> None:
     a, b, c = 0.04 * TEN_NINETY**2, 43.2, TEN_NINETY**2
     settings = np.array([10.0, 40.0, 45.0, 90.0])
     widths = np.sqrt(a * (settings - b) ** 2 + c)
-    fitted = fit_focus_curve(settings, widths)
-    assert fitted is not None
-    assert fitted == pytest.approx((a, b, c), rel=1e-9)
+    curve = fit_focus_curve(settings, widths)
+    assert curve is not None
+    assert (curve.slope, curve.optimum, curve.floor) == pytest.approx((a, b, c), rel=1e-9)
+    assert curve.brackets  # readings on both sides of the optimum took part
 
 
 def test_fit_refuses_what_has_no_focus() -> None:

@@ -89,7 +89,7 @@ def test_the_held_out_set_is_refused(capsys: pytest.CaptureFixture[str]) -> None
 def test_the_posteriors_options_leave_with_it() -> None:
     """A policy that asks its posterior more (the shipped champion's probe_until_sure) is
     compared with endings that ask none, and the ending at the posterior takes every stop."""
-    from alignrl.config import TaskOptions
+    from alignrl.config.task_options import TaskOptions
 
     trained = TaskOptions(
         approach_from_below=True, stop_at_best=True, finish_at_posterior=True,

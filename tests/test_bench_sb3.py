@@ -14,7 +14,7 @@ pytest.importorskip("stable_baselines3")
 
 from stable_baselines3.common.env_checker import check_env
 
-from alignrl.config import load_experiment
+from alignrl.config.experiment import load_experiment
 from benchmarks.sb3_sac import DEFAULT_CONFIG, learn_sb3, make_env, update_speed
 
 CONFIG = load_experiment(Path(__file__).parents[1] / DEFAULT_CONFIG)

@@ -17,7 +17,9 @@ from safetensors.torch import load_file
 
 from alignrl.apparatus.family_box import PAIR_FIELDS
 from alignrl.cli import main
-from alignrl.config import ConfigError, RunConfig, TaskOptions, parse_config
+from alignrl.config.run import RunConfig
+from alignrl.config.task_options import TaskOptions
+from alignrl.config_reading import ConfigError, parse_config
 from alignrl.deploy.calibrate import calibrate_policy, read_from_above
 from alignrl.deploy.policy import load_deployable
 from alignrl.envs.ending import EpisodeEnds

@@ -294,7 +294,7 @@ def _champion_league(tmp_path: Path, init_from: str) -> Path:
 
 
 def test_a_warm_start_from_a_champion_is_refused_before_any_file(tmp_path: Path) -> None:
-    from alignrl.config import ConfigError
+    from alignrl.config_reading import ConfigError
     from alignrl.league.config import load_league
     from alignrl.league.loop import League
 
@@ -315,7 +315,7 @@ def test_an_unknown_champion_lists_the_shipped_ones(
     )
     name = "champion:focus-v9"
     if verb == "init_from":
-        from alignrl.config import ConfigError
+        from alignrl.config_reading import ConfigError
         from alignrl.league.config import load_league
         from alignrl.league.loop import League
 

@@ -15,7 +15,8 @@ import yaml
 from conftest import SMALL_SAC, quiet_schedule, read_csv, write_experiment, write_league
 
 from alignrl.cli import main
-from alignrl.config import ConfigError, load_experiment
+from alignrl.config.experiment import load_experiment
+from alignrl.config_reading import ConfigError
 from alignrl.league.config import load_league
 from alignrl.overlays import OverlayError, apply_overrides
 

@@ -6,7 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from alignrl.config import ConfigError, dump_experiment, load_experiment, parse_experiment
+from alignrl.config.experiment import dump_experiment, load_experiment, parse_experiment
+from alignrl.config_reading import ConfigError
 
 ROOT = Path(__file__).resolve().parents[1]
 # Experiments that name rosters (`aligners:`) are leagues (tests/test_league.py); the rest
@@ -103,7 +104,7 @@ def test_task_options_change_a_copy_of_the_named_task() -> None:
 )
 def test_counts_of_task_options_are_whole_numbers_within_bounds(options: dict, key: str) -> None:
     # A float for a count is a typo refused as one, never truncated; a count has a bound.
-    from alignrl.config import TaskOptions
+    from alignrl.config.task_options import TaskOptions
 
     with pytest.raises(ValueError, match=key):
         TaskOptions(**options)

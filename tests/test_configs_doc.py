@@ -9,7 +9,7 @@ from types import ModuleType
 import pytest
 from pydantic import BaseModel, Field
 
-from alignrl.config import ExperimentConfig
+from alignrl.config.experiment import ExperimentConfig
 from alignrl.league.config import Roster
 
 ROOT = Path(__file__).resolve().parents[1]

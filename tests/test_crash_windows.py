@@ -29,7 +29,7 @@ from conftest import SMALL_PPO, SMALL_SAC, narrowed, read_csv, write_experiment,
 import alignrl.checkpoints as checkpoints
 from alignrl.checkpoints import load_checkpoint
 from alignrl.cli import main
-from alignrl.config import parse_experiment
+from alignrl.config.experiment import parse_experiment
 from alignrl.league.config import load_league
 from alignrl.league.loop import League, leaderboard
 from alignrl.metrics import CsvLog

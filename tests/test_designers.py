@@ -23,7 +23,7 @@ from alignrl.apparatus.base import NoEdgesError
 from alignrl.apparatus.family import FamilyColumn, design_names
 from alignrl.apparatus.family_box import LOG_SCALE, family_path, load_family
 from alignrl.apparatus.registry import make_apparatus_copies
-from alignrl.config import ConfigError
+from alignrl.config_reading import ConfigError
 from alignrl.envs.core import AlignmentEpisodes
 from alignrl.envs.design import reference_returns
 from alignrl.envs.duel import ALIGNER, MISALIGNER, DuelBatch, env
@@ -390,7 +390,7 @@ def test_a_designer_league_stops_at_its_aligner_steps(tmp_path: Path) -> None:
 
 
 def test_the_experiments_runs_are_valid_experiments(tmp_path: Path) -> None:
-    from alignrl.config import load_experiment
+    from alignrl.config.experiment import load_experiment
     from benchmarks.designers import CONDITIONS, wilson, write_config
 
     for condition in CONDITIONS:

@@ -204,7 +204,7 @@ def test_sac_learns_stigmation_on_the_analytic_column(tmp_path) -> None:
     of 40 new scenarios. (The aperture task needs ~20,000 steps, too many for the suite: its
     learning is shown by experiments/aperture-sac-mlp.yaml in docs/benchmarks.md.)"""
     name = "stigmation"
-    from alignrl.config import parse_experiment
+    from alignrl.config.experiment import parse_experiment
     from alignrl.training import Trainer
 
     settings = {

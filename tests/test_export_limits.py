@@ -16,7 +16,7 @@ from test_league import write_league
 
 import alignrl.checkpoints as checkpoints
 from alignrl.apparatus.registry import make_apparatus
-from alignrl.config import parse_experiment
+from alignrl.config.experiment import parse_experiment
 from alignrl.deploy.export import export_policy
 from alignrl.league.config import load_league
 from alignrl.league.loop import League

@@ -35,7 +35,8 @@ from alignrl.apparatus.instruments import (
     load_set,
 )
 from alignrl.apparatus.registry import make_apparatus
-from alignrl.config import ConfigError, load_experiment
+from alignrl.config.experiment import load_experiment
+from alignrl.config_reading import ConfigError
 from alignrl.envs.core import AlignmentEpisodes
 from alignrl.envs.task import get_task
 

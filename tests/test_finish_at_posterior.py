@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from alignrl.apparatus.registry import make_apparatus
-from alignrl.config import TaskOptions
+from alignrl.config.task_options import TaskOptions
 from alignrl.envs.core import AlignmentEpisodes
 from alignrl.envs.ending import EpisodeEnds, resample_for
 from alignrl.envs.task import POSTERIOR_PROBE_RULES, get_task

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from alignrl.apparatus.registry import make_apparatus
-from alignrl.config import TaskOptions
+from alignrl.config.task_options import TaskOptions
 from alignrl.envs.core import AlignmentEpisodes, feature_layout
 from alignrl.envs.fit_features import FIT_FLOOR_MIN, FIT_STEP_LIMIT, fit_features
 from alignrl.envs.task import get_task

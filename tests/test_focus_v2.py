@@ -19,7 +19,7 @@ from alignrl.apparatus.family_box import load_family
 from alignrl.apparatus.instruments import INSTRUMENT_DIR, VALIDATION_SET
 from alignrl.checkpoints import load_checkpoint
 from alignrl.cli import main
-from alignrl.config import load_experiment
+from alignrl.config.experiment import load_experiment
 from alignrl.deploy.policy import load_deployable
 from alignrl.envs.task import get_task
 from alignrl.evaluation.controllers import PolicyController

@@ -28,9 +28,17 @@ from hostile import assert_refused, run_cli
 
 from alignrl.apparatus.family_box import FAMILY_DIR
 from alignrl.apparatus.instruments import HELD_OUT_SET, INSTRUMENT_DIR, held_out_reason
-from alignrl.config import ConfigError, load_experiment, read_layered
-from alignrl.config_reading import MAX_ENV_STEPS, MAX_EPISODE_STEPS, MAX_EPISODES, MAX_SCENARIOS
-from alignrl.league.config import MAX_ITERATIONS, MAX_MATCHES, MAX_MEMBERS, load_league
+from alignrl.config.experiment import load_experiment
+from alignrl.config_reading import (
+    MAX_ENV_STEPS,
+    MAX_EPISODE_STEPS,
+    MAX_EPISODES,
+    MAX_SCENARIOS,
+    ConfigError,
+    read_layered,
+)
+from alignrl.league.config import MAX_ITERATIONS, MAX_MATCHES, load_league
+from alignrl.league.matchmaking import MAX_MEMBERS
 from alignrl.memory import without_malloc_choices
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -272,7 +272,7 @@ def _tamper_file(path: Path, change: Callable[[dict[str, Any]], None], key: str 
 @pytest.fixture(scope="module")
 def training_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A training run's folder: config.yaml, checkpoints/last.pt and best.pt, no training."""
-    from alignrl.config import parse_experiment
+    from alignrl.config.experiment import parse_experiment
     from alignrl.training import Trainer
 
     settings = {

@@ -11,7 +11,7 @@ import torch
 from alignrl.agents.sac import Actor, SACConfig
 from alignrl.apparatus.family_box import family_path, load_family
 from alignrl.apparatus.registry import make_apparatus_copies
-from alignrl.config import TaskOptions
+from alignrl.config.task_options import TaskOptions
 from alignrl.envs.fit_features import bracketed_optimum
 from alignrl.envs.task import get_task, knob_change
 from alignrl.envs.vector import VectorAlignmentEnv

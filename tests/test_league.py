@@ -24,7 +24,7 @@ from conftest import (
 )
 
 from alignrl.cli import main
-from alignrl.config import ConfigError
+from alignrl.config_reading import ConfigError
 from alignrl.league.config import load_league
 from alignrl.league.loop import League, leaderboard
 
@@ -193,7 +193,7 @@ LEAGUES = sorted(
 
 @pytest.mark.parametrize("path", LEAGUES, ids=lambda path: path.name)
 def test_shipped_leagues_and_rosters_load(path: Path) -> None:
-    from alignrl.config import dump_experiment
+    from alignrl.config.experiment import dump_experiment
     from alignrl.league.config import parse_league
 
     config, aligners, misaligners = load_league(path)

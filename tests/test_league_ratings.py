@@ -151,7 +151,7 @@ def test_unknown_ids_start_at_the_initial_rating_and_add_refuses_a_duplicate():
         ratings.add("aligner-0")
     with pytest.raises(ValueError, match="itself"):
         ratings.update("aligner-0", "aligner-0", [1.0])
-    with pytest.raises(ValueError, match="sigma must be a positive number"):
+    with pytest.raises(ValueError, match="sigma\n  Input should be greater than 0"):
         RatingConfig(sigma=0.0)
 
 
@@ -381,7 +381,8 @@ def league_with_history() -> tuple[OpponentPool, PayoffTable]:
 
 
 def only(strategy: str, weighting: str = "hard") -> Matchmaker:
-    return Matchmaker(MatchmakingConfig({strategy: 1.0}, pfsp_weighting=weighting))
+    weights = {"pfsp": 0.0, "uniform": 0.0, "latest": 0.0, strategy: 1.0}
+    return Matchmaker(MatchmakingConfig(**weights, weighting=weighting))
 
 
 @pytest.mark.parametrize(
@@ -432,7 +433,7 @@ def test_mixture_is_the_weighted_sum_of_strategies():
     probabilities = Matchmaker().opponent_probabilities("a0", payoff, pool)
     np.testing.assert_allclose(list(probabilities.values()), expected, rtol=1e-12)
     # Weights need not sum to 1.
-    doubled = Matchmaker(MatchmakingConfig({"pfsp": 1.0, "uniform": 0.6, "latest": 0.4}))
+    doubled = Matchmaker(MatchmakingConfig(pfsp=1.0, uniform=0.6, latest=0.4))
     assert doubled.opponent_probabilities("a0", payoff, pool) == pytest.approx(probabilities)
 
 
@@ -486,11 +487,11 @@ def test_same_seed_same_pairs():
 @pytest.mark.parametrize(
     ("config", "message"),
     [
-        ({"strategy_weights": {"pfsp": 0.5, "fictitious": 0.5}}, "'fictitious' is unknown"),
-        ({"strategy_weights": {"pfsp": 1.0, "uniform": -0.1}}, "'uniform' needs a weight >= 0"),
-        ({"strategy_weights": {"latest": math.nan}}, "'latest' needs a weight >= 0"),
-        ({"strategy_weights": {"pfsp": 0.0, "uniform": 0.0}}, "sum to 0"),
-        ({"pfsp_weighting": "squared"}, "weighting 'squared' is unknown"),
+        ({"fictitious": 0.5}, "fictitious\n  Extra inputs are not permitted"),
+        ({"uniform": -0.1}, "uniform\n  Input should be greater than or equal to 0"),
+        ({"latest": math.nan}, "latest\n  Input should be a finite number"),
+        ({"pfsp": 0.0, "uniform": 0.0, "latest": 0.0}, "cannot all be 0"),
+        ({"weighting": "squared"}, "weighting\n  Input should be 'hard', 'variance' or 'linear'"),
     ],
 )
 def test_invalid_matchmaking_config(config, message):

@@ -18,7 +18,7 @@ from conftest import create_league, quiet_schedule, write_league
 import alignrl.training
 from alignrl.apparatus.base import knows_optimum
 from alignrl.cli import main
-from alignrl.config import ConfigError
+from alignrl.config_reading import ConfigError
 from alignrl.league.config import VALIDATION_SEED, load_league
 from alignrl.league.loop import League, leaderboard
 from alignrl.league.matches import learn_from_matches, make_anchors

@@ -13,7 +13,7 @@ import yaml
 from conftest import SMALL_SAC, create_league, quiet_schedule, write_league, write_yaml
 
 from alignrl.cli import main
-from alignrl.config import ConfigError
+from alignrl.config_reading import ConfigError
 from alignrl.league.config import load_league
 from alignrl.league.loop import League
 
@@ -218,7 +218,7 @@ def test_init_replay_brings_the_sources_experience_along(tmp_path: Path, source:
         League.create(config, aligners, misaligners, tmp_path / "runs")
     assert not (tmp_path / "runs").exists()
     # A training run's checkpoints/last.pt holds it, and gives all of it.
-    from alignrl.config import parse_experiment
+    from alignrl.config.experiment import parse_experiment
     from alignrl.training import Trainer
 
     settings = {

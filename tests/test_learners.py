@@ -24,7 +24,10 @@ from torch import nn
 from alignrl.agents.agent import Agent, MemberSpec
 from alignrl.agents.learners import LEARNERS, learner_class, learner_defaults, learner_title
 from alignrl.agents.settings import SHIPPED, LearnerSettings
-from alignrl.config import ConfigError, LearnerConfig, parse_experiment
+from alignrl.config.experiment import parse_experiment
+from alignrl.config.learner import LearnerConfig
+from alignrl.config_reading import ConfigError
+from alignrl.transitions import Transition
 
 SHAPE = (4, 3)  # history rows, features
 TARGET = np.array([0.5, -0.25])  # the toy task: the best action, whatever the history
@@ -139,23 +142,12 @@ class ToyLearner:
         noise = np.stack([g.normal(0.0, self.config.noise, self.action_dim) for g in generators])
         return np.tanh(self._mean(observation) + noise), None
 
-    def observe(
-        self,
-        observation: np.ndarray,
-        secret: np.ndarray,
-        action: np.ndarray,
-        reward: np.ndarray,
-        next_observation: np.ndarray,
-        next_secret: np.ndarray,
-        done: np.ndarray,
-        slots: np.ndarray | None,
-        pre_tanh: np.ndarray | None,
-        member: str,
-    ) -> None:
-        store, count = self.experience, len(reward)
+    def observe(self, transition: Transition, member: str) -> None:
+        store, count = self.experience, len(transition)
         rows = slice(store.size, store.size + count)
-        store.features[rows], store.action[rows] = observation[:, -1], action
-        store.reward[rows] = reward
+        store.features[rows] = transition.observation[:, -1]
+        store.action[rows] = transition.action
+        store.reward[rows] = transition.reward
         store.size += count
 
     def learn(
@@ -227,8 +219,10 @@ def play(agent: Agent, steps: int, seed: int) -> list[dict[str, float]]:
         observation = rng.uniform(-1, 1, (4, *SHAPE)).astype(np.float32)
         action = agent.explore(observation, rng)
         reward = -np.square(action - TARGET).sum(-1)
-        agent.observe(observation, np.zeros((4, 1)), action, reward, observation,
-                      np.zeros((4, 1)), np.zeros(4, bool))  # fmt: skip
+        zeros = np.zeros((4, 1))
+        agent.observe(
+            Transition(observation, zeros, action, reward, observation, zeros, np.zeros(4, bool))
+        )
         rows += agent.learn(rng)
     return rows
 
@@ -346,8 +340,12 @@ def test_a_shipped_learner_provides_all_the_agent_asks(name: str) -> None:
     assert getattr(agent, learner.experience_name) is agent.experience
     network = agent.learner.acting_network
     assert hasattr(network, "encoder") and hasattr(network, "head")  # what export reads
-    parameters = {id(p) for optimizer in agent.learner.optimizers for group in
-                  optimizer.param_groups for p in group["params"]}  # fmt: skip
+    parameters = {
+        id(p)
+        for optimizer in agent.learner.optimizers
+        for group in optimizer.param_groups
+        for p in group["params"]
+    }
     assert {id(p) for p in network.parameters()} <= parameters
 
 
@@ -388,7 +386,7 @@ def test_reading_a_config_and_building_the_cli_import_no_torch() -> None:
     script = (
         "import sys\n"
         "from alignrl.cli.main import build_parser\n"
-        "from alignrl.config import load_experiment\n"
+        "from alignrl.config.experiment import load_experiment\n"
         "build_parser()\n"
         "config = load_experiment('experiments/focus-v2.yaml')\n"
         "assert 'torch' not in sys.modules, 'torch was imported'\n"

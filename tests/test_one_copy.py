@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from alignrl.checkpoints import publish_folder, staging_folder
-from alignrl.config import CurriculumConfig
+from alignrl.config.run import CurriculumConfig
 from alignrl.envs.curriculum import Curriculum
 from alignrl.envs.task import TASKS, get_task
 

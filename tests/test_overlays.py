@@ -8,7 +8,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from alignrl.config import ConfigError, dump_experiment, load_experiment, parse_experiment
+from alignrl.config.experiment import dump_experiment, load_experiment, parse_experiment
+from alignrl.config_reading import ConfigError
 from alignrl.league.config import load_league
 from alignrl.overlays import merge
 

@@ -11,10 +11,12 @@ import torch
 
 from alignrl.agents.ppo import PPO, PPOConfig, Rollout, RolloutBuffer, generalized_advantages
 from alignrl.agents.sac import NonFiniteError
+from alignrl.transitions import Transition
 
 SHAPE = (8, 7)
-SMALL = PPOConfig(encoder="gru", encoder_kwargs={"hidden": 16}, hidden=(32,), batch_size=32,
-                  epochs=2)  # fmt: skip
+SMALL = PPOConfig(
+    encoder="gru", encoder_kwargs={"hidden": 16}, hidden=(32,), batch_size=32, epochs=2
+)
 
 
 def learner(seed: int = 0, config: PPOConfig = SMALL) -> PPO:
@@ -30,15 +32,19 @@ def random_rollout(steps: int = 16, envs: int = 4, seed: int = 0) -> Rollout:
     for _ in range(steps):
         observation[..., 0] = 1.0  # every row valid
         following = rng.uniform(-1, 1, (envs, *SHAPE)).astype(np.float32)
-        buffer.add(
+        secret = rng.uniform(-1, 1, (envs, 1))
+        pre_tanh = rng.normal(size=(envs, 2))
+        step = Transition(
             observation,
-            rng.uniform(-1, 1, (envs, 1)),
-            rng.normal(size=(envs, 2)),
+            secret,
+            np.tanh(pre_tanh),
             rng.normal(size=envs),
             following,
             rng.uniform(-1, 1, (envs, 1)),
             (rng.random(envs) < 0.2).astype(np.float32),
+            pre_tanh=pre_tanh,
         )
+        buffer.add(step)
         observation = following
     return buffer.rollout()
 
@@ -65,8 +71,9 @@ def test_the_buffer_links_each_slot_to_its_next_step_also_when_slots_wait() -> N
 
     def step(slots: list[int], done: list[float]) -> None:
         n = len(slots)
-        buffer.add(zeros[:n], np.zeros((n, 1)), np.zeros((n, 2)), np.ones(n), zeros[:n],
-                   np.zeros((n, 1)), np.array(done), slots=np.array(slots))  # fmt: skip
+        secret, action = np.zeros((n, 1)), np.zeros((n, 2))
+        step = Transition(zeros[:n], secret, action, np.ones(n), zeros[:n], secret, np.array(done))
+        buffer.add(dataclasses.replace(step, slots=np.array(slots), pre_tanh=action))
 
     step([0, 1], [0.0, 1.0])  # transitions 0 (slot 0) and 1 (slot 1, its episode ends)
     step([0], [0.0])  # 2: slot 0 alone (slot 1 waits for the round to finish)

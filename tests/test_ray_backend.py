@@ -19,7 +19,7 @@ import ray
 from test_league import write_league
 
 from alignrl.agents.agent import Agent
-from alignrl.config import ConfigError
+from alignrl.config_reading import ConfigError
 from alignrl.envs import make_apparatus_copies
 from alignrl.envs.core import AlignmentEpisodes
 from alignrl.envs.duel import DuelBatch

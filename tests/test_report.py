@@ -19,7 +19,7 @@ from PIL import Image
 
 import alignrl.plots
 from alignrl.cli import main
-from alignrl.config import ExperimentConfig, dump_experiment
+from alignrl.config.experiment import ExperimentConfig, dump_experiment
 from alignrl.intervals import wilson
 from alignrl.plots import (
     FIGURES,

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 import torch
 
-from alignrl.config import ConfigError, dump_experiment, parse_experiment
+from alignrl.config.experiment import dump_experiment, parse_experiment
+from alignrl.config_reading import ConfigError
 from alignrl.envs.task import get_task
 from alignrl.runs import state as run_state
 from alignrl.runs.state import (

@@ -10,19 +10,20 @@ import numpy as np
 import pytest
 import torch
 
-from alignrl.agents.replay import Batch, ReplayBuffer
+from alignrl.agents.replay import ReplayBuffer
 from alignrl.agents.sac import SAC, NonFiniteError, SACConfig
 from alignrl.checkpoints import CheckpointError, load_checkpoint, save_checkpoint
+from alignrl.transitions import Transition
 
 SHAPE = (8, 7)
 SMALL = SACConfig(encoder_kwargs={"hidden": (32, 32)}, batch_size=16)
 
 
-def random_batch(size: int = 16, seed: int = 0) -> Batch:
+def random_batch(size: int = 16, seed: int = 0) -> Transition:
     rng = np.random.default_rng(seed)
     observation = rng.uniform(-1, 1, (size, *SHAPE)).astype(np.float32)
     observation[:, :, 0] = 1.0
-    return Batch(
+    return Transition(
         observation=observation,
         secret=rng.uniform(-1, 1, (size, 1)).astype(np.float32),
         action=rng.uniform(-1, 1, (size, 2)).astype(np.float32),
@@ -94,7 +95,9 @@ def test_each_network_learns_from_its_own_loss_alone() -> None:
     torch.manual_seed(3)
     learner.update(batch)
 
-    given = {name: torch.as_tensor(array) for name, array in vars(batch).items()}
+    given = {
+        name: torch.as_tensor(array) for name, array in vars(batch).items() if array is not None
+    }
     observation, secret, action = given["observation"], given["secret"], given["action"]
     torch.manual_seed(3)  # the same policy noise as inside update()
     new_action, log_prob, _ = learner.actor.sample(observation)
@@ -181,15 +184,7 @@ def test_replay_round_trips_and_samples_reproducibly() -> None:
     replay = ReplayBuffer(10, SHAPE, 1, 2)
     for seed in range(3):
         batch = random_batch(size=4, seed=seed)
-        replay.add(
-            batch.observation,
-            batch.secret,
-            batch.action,
-            batch.reward,
-            batch.next_observation,
-            batch.next_secret,
-            batch.done,
-        )
+        replay.add(batch)
     assert replay.size == 10 and replay.position == 2  # 12 added into a ring of 10
     copy_of = ReplayBuffer(10, SHAPE, 1, 2)
     copy_of.load_state_dict(replay.state_dict())

@@ -11,7 +11,7 @@ import pytest
 
 from alignrl.apparatus.base import ApparatusError
 from alignrl.apparatus.registry import make_apparatus
-from alignrl.config import TaskOptions
+from alignrl.config.task_options import TaskOptions
 from alignrl.envs.core import AlignmentEpisodes
 from alignrl.envs.task import get_task
 

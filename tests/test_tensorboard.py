@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 from conftest import TINY_RUN, create_league, read_csv, write_league
 
-from alignrl.config import parse_experiment
+from alignrl.config.experiment import parse_experiment
 from alignrl.league.loop import League
 from alignrl.runs.state import EVENT_FILES, HPARAMS_TAG, TensorBoardLog, cut_events
 from alignrl.training import Trainer

@@ -19,7 +19,7 @@ from test_tensorboard import assert_each_step_once
 
 from alignrl.checkpoints import load_checkpoint
 from alignrl.cli import main
-from alignrl.config import parse_experiment
+from alignrl.config.experiment import parse_experiment
 from alignrl.intervals import wilson
 from alignrl.training import TEST_SEED, VALIDATION_SEED, Trainer
 

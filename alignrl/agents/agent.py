@@ -8,7 +8,8 @@ loads without unpickling (tensors, numbers, strings, lists and dicts only).
     spec = MemberSpec(id="aligner-0", team="aligner", algorithm="sac", ...)
     agent = Agent(spec)
     action = agent.explore(observation, rng)
-    agent.observe(observation, secret, action, reward, next_observation, next_secret, done)
+    step = Transition(observation, secret, action, reward, next_observation, next_secret, done)
+    agent.observe(step)
     for metrics in agent.learn(rng): ...
 
 What is particular to a learner (SAC, PPO, ...) lives with the learner and is found by the
@@ -16,8 +17,8 @@ spec's algorithm in `alignrl.agents.learners.LEARNERS`; the Agent delegates to i
 
 Where the acting happens elsewhere (a Ray worker at a microscope), `policy_state` is what
 acting needs, `from_policy_state` builds the acting copy there, `explore_rows` draws each
-row's randomness from its own generator, and `observe(..., pre_tanh=...)` stores what came
-back.
+row's randomness from its own generator, and `observe` stores what came back (a Transition
+with its `pre_tanh`).
 """
 
 from __future__ import annotations
@@ -42,6 +43,7 @@ from alignrl.agents.records import (
     is_number,
     tensor_problem,
 )
+from alignrl.transitions import Transition
 
 __all__ = [
     "MEMBER_FORMAT",
@@ -218,41 +220,21 @@ class Agent:
         `generators[i]` alone (one generator per match): a row's action then does not depend
         on the rows beside it nor on the process that computed it. With `warm_up`, a SAC
         member still in its random warm-up acts uniformly at random, as in `explore`.
-        Returns the actions and, for PPO, the pre-squash sample `observe(pre_tanh=...)`
-        stores (None for SAC)."""
+        Returns the actions and, for PPO, the pre-squash sample `observe` stores (a
+        Transition's `pre_tanh`; None for SAC)."""
         return self.learner.explore_rows(observation, generators, self.steps_seen, warm_up)
 
     # --- experience and learning ------------------------------------------------------
 
-    def observe(
-        self,
-        observation: np.ndarray,
-        secret: np.ndarray,
-        action: np.ndarray,
-        reward: np.ndarray,
-        next_observation: np.ndarray,
-        next_secret: np.ndarray,
-        done: np.ndarray,
-        slots: np.ndarray | None = None,
-        pre_tanh: np.ndarray | None = None,
-    ) -> None:
-        """Store one env step of every slot, or of the env slots `slots` where only some
-        moved (next_observation of a done slot: the episode's last history, not the reset
-        one). PPO stores the pre-squash sample of the `explore` before, or `pre_tanh` where
-        the actions were sampled elsewhere (`explore_rows` in a Ray worker)."""
-        self.learner.observe(
-            observation,
-            secret,
-            action,
-            reward,
-            next_observation,
-            next_secret,
-            done.astype(np.float32),
-            slots,
-            pre_tanh,
-            self.id,
-        )
-        self.steps_seen += len(reward)
+    def observe(self, transition: Transition) -> None:
+        """Store one env step of every slot, or of the env slots `transition.slots` where
+        only some moved (next_observation of a done slot: the episode's last history, not the
+        reset one). PPO stores the pre-squash sample of the `explore` before, or the
+        transition's `pre_tanh` where the actions were sampled elsewhere (`explore_rows` in a
+        Ray worker)."""
+        done = transition.done.astype(np.float32)
+        self.learner.observe(dataclasses.replace(transition, done=done), self.id)
+        self.steps_seen += len(transition)
 
     def learn(
         self,
@@ -269,8 +251,8 @@ class Agent:
     def update(
         self, batch: Any, rng: np.random.Generator | None = None, train_policy: bool = True
     ) -> dict[str, float]:
-        """One learner step: a SAC gradient step on a replay Batch, or PPO's epochs on a
-        Rollout. A non-finite loss raises NonFiniteError naming this member."""
+        """One learner step: a SAC gradient step on a Transition batch of its replay, or PPO's
+        epochs on a Rollout. A non-finite loss raises NonFiniteError naming this member."""
         return self.learner.learn_from(batch, rng, self.id, train_policy)
 
     def set_learning_rate(self, learning_rate: float) -> None:

@@ -32,6 +32,8 @@ if TYPE_CHECKING:
     import torch
     from torch import nn
 
+    from alignrl.transitions import Transition
+
 __all__ = [
     "LEARNERS",
     "Experience",
@@ -120,20 +122,9 @@ class Learner(Protocol):
         needs besides them (`pre_tanh`; None where it needs nothing)."""
         ...
 
-    def observe(
-        self,
-        observation: np.ndarray,
-        secret: np.ndarray,
-        action: np.ndarray,
-        reward: np.ndarray,
-        next_observation: np.ndarray,
-        next_secret: np.ndarray,
-        done: np.ndarray,
-        slots: np.ndarray | None,
-        pre_tanh: np.ndarray | None,
-        member: str,
-    ) -> None:
-        """Store one env step of the slots `slots` (all where None); done is float32."""
+    def observe(self, transition: Transition, member: str) -> None:
+        """Store one env step of the slots `transition.slots` (all where None); its done is
+        float32."""
         ...
 
     def learn(
@@ -223,8 +214,9 @@ def learner_defaults(name: str) -> dict[str, Any]:
     _known(name)
     settings = LEARNERS.settings(name)
     defaults = {
-        field.name: field.default if field.default_factory is dataclasses.MISSING
+        field.name: field.default
+        if field.default_factory is dataclasses.MISSING
         else field.default_factory()
         for field in dataclasses.fields(settings.config_type)
-    }  # fmt: skip
+    }
     return {**defaults, **settings.schedule_defaults}

@@ -20,7 +20,7 @@ from __future__ import annotations
 import copy
 import functools
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -31,8 +31,24 @@ from alignrl.agents.exploration import gaussian_rows
 from alignrl.agents.networks import make_encoder, mlp
 from alignrl.agents.sac import NonFiniteError
 from alignrl.agents.settings import SHIPPED, PPOConfig
+from alignrl.transitions import Transition
 
 __all__ = ["PPO", "PPOConfig", "PPOLearner", "Rollout", "RolloutBuffer"]
+
+# What a rollout keeps of a Transition, each in an array of its own name: the pre-squash
+# sample in place of the action; which env slot a row came from links it (`follows`).
+STORED = ("observation", "secret", "pre_tanh", "reward", "next_observation", "next_secret", "done")
+# The arrays of a rollout's state (`state_dict`), in their order there.
+SAVED = (
+    "observation",
+    "next_observation",
+    "secret",
+    "next_secret",
+    "pre_tanh",
+    "reward",
+    "done",
+    "follows",
+)
 
 
 @dataclass(frozen=True)
@@ -85,33 +101,24 @@ class RolloutBuffer:
     def full(self) -> bool:
         return self.size >= self.capacity
 
-    def add(
-        self,
-        observation: np.ndarray,
-        secret: np.ndarray,
-        pre_tanh: np.ndarray,
-        reward: np.ndarray,
-        next_observation: np.ndarray,
-        next_secret: np.ndarray,
-        done: np.ndarray,
-        slots: np.ndarray | None = None,
-    ) -> None:
-        """One step of the env slots `slots` (default: all, in order)."""
-        count = len(reward)
+    def add(self, transition: Transition) -> None:
+        """One step of the env slots `transition.slots` (None: all, in order), with its
+        pre-squash sample `transition.pre_tanh`."""
+        count = len(transition)
+        slots = transition.slots
         slots = np.arange(count) if slots is None else np.asarray(slots, np.int64)
         if len(slots) != count or (count and (slots.min() < 0 or slots.max() >= self.envs)):
             raise ValueError(f"a rollout step needs slot numbers below {self.envs} per row")
         if self.full:
             raise ValueError("the rollout is full: update on it, then clear it")
         index = np.arange(self.size, self.size + count)
-        self.observation[index], self.secret[index] = observation, secret
-        self.pre_tanh[index], self.reward[index], self.done[index] = pre_tanh, reward, done
-        self.next_observation[index], self.next_secret[index] = next_observation, next_secret
+        for name in STORED:
+            getattr(self, name)[index] = getattr(transition, name)
         self.follows[index] = -1
         previous = self._last[slots]
         linked = previous >= 0
         self.follows[previous[linked]] = index[linked]
-        self._last[slots] = np.where(np.asarray(done, bool), -1, index)
+        self._last[slots] = np.where(np.asarray(transition.done, bool), -1, index)
         self.size += count
 
     def rollout(self) -> Rollout:
@@ -132,10 +139,8 @@ class RolloutBuffer:
     def state_dict(self) -> dict[str, np.ndarray | int]:
         """The transitions so far and each slot's latest (numpy and ints: safe to store)."""
         used = slice(0, self.size)
-        arrays = ("observation", "next_observation", "secret", "next_secret", "pre_tanh",
-                  "reward", "done", "follows")  # fmt: skip
         return {
-            **{name: getattr(self, name)[used].copy() for name in arrays},
+            **{name: getattr(self, name)[used].copy() for name in SAVED},
             "last": self._last.copy(),
             "size": self.size,
         }
@@ -147,8 +152,7 @@ class RolloutBuffer:
                 f"saved rollout of {size} transitions over {len(state['last'])} slots does not "
                 f"fit a rollout of {self.capacity} over {self.envs}"
             )
-        for name in ("observation", "next_observation", "secret", "next_secret", "pre_tanh",
-                     "reward", "done", "follows"):  # fmt: skip
+        for name in SAVED:
             getattr(self, name)[:size] = state[name]
         self._last[:] = state["last"]
         self.size = size
@@ -444,27 +448,15 @@ class PPOLearner(PPO):
         mean, std = distribution.mean.cpu().numpy(), distribution.stddev.cpu().numpy()
         return gaussian_rows(generators, mean, std)
 
-    def observe(
-        self,
-        observation: np.ndarray,
-        secret: np.ndarray,
-        action: np.ndarray,
-        reward: np.ndarray,
-        next_observation: np.ndarray,
-        next_secret: np.ndarray,
-        done: np.ndarray,
-        slots: np.ndarray | None,
-        pre_tanh: np.ndarray | None,
-        member: str,
-    ) -> None:
+    def observe(self, transition: Transition, member: str) -> None:
         # The ratio is taken on the sample u, never on atanh of the action the env got.
-        sample = pre_tanh if pre_tanh is not None else self._pending_pre_tanh
-        if sample is None:
-            raise RuntimeError(
-                f"member {member}: observe() needs the explore() before it, or pre_tanh"
-            )
-        rollout = self.experience
-        rollout.add(observation, secret, sample, reward, next_observation, next_secret, done, slots)
+        if transition.pre_tanh is None:
+            if self._pending_pre_tanh is None:
+                raise RuntimeError(
+                    f"member {member}: observe() needs the explore() before it, or pre_tanh"
+                )
+            transition = replace(transition, pre_tanh=self._pending_pre_tanh)
+        self.experience.add(transition)
         self._pending_pre_tanh = None
 
     def learn(

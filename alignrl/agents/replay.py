@@ -8,22 +8,15 @@ a `numpy.random.Generator`, so runs reproduce.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
-__all__ = ["Batch", "ReplayBuffer"]
+from alignrl.transitions import Transition
 
+__all__ = ["ReplayBuffer"]
 
-@dataclass(frozen=True)
-class Batch:
-    observation: np.ndarray  # (B, H, F)
-    secret: np.ndarray  # (B, k)
-    action: np.ndarray  # (B, A)
-    reward: np.ndarray  # (B,)
-    next_observation: np.ndarray  # (B, H, F)
-    next_secret: np.ndarray  # (B, k)
-    done: np.ndarray  # (B,) 1.0 where the episode ended with this transition
+# What a replay keeps of a Transition, each in an array of its own name (not which env slot a
+# row came from, nor PPO's pre-squash sample).
+STORED = ("observation", "secret", "action", "reward", "next_observation", "next_secret", "done")
 
 
 class ReplayBuffer:
@@ -45,42 +38,20 @@ class ReplayBuffer:
         self.position = 0
         self.size = 0
 
-    def add(
-        self,
-        observation: np.ndarray,
-        secret: np.ndarray,
-        action: np.ndarray,
-        reward: np.ndarray,
-        next_observation: np.ndarray,
-        next_secret: np.ndarray,
-        done: np.ndarray,
-    ) -> None:
-        """Store a batch of transitions (one per env slot)."""
-        count = len(reward)
+    def add(self, transition: Transition) -> None:
+        """Store a batch of transitions (one per env slot; which slot does not matter here)."""
+        count = len(transition)
         slots = (self.position + np.arange(count)) % self.capacity
-        self.observation[slots] = observation
-        self.secret[slots] = secret
-        self.action[slots] = action
-        self.reward[slots] = reward
-        self.next_observation[slots] = next_observation
-        self.next_secret[slots] = next_secret
-        self.done[slots] = done
+        for name in STORED:
+            getattr(self, name)[slots] = getattr(transition, name)
         self.position = int((self.position + count) % self.capacity)
         self.size = int(min(self.capacity, self.size + count))
 
-    def sample(self, batch_size: int, rng: np.random.Generator) -> Batch:
+    def sample(self, batch_size: int, rng: np.random.Generator) -> Transition:
         if self.size == 0:
             raise ValueError("cannot sample from an empty replay buffer")
         index = rng.integers(0, self.size, batch_size)
-        return Batch(
-            observation=self.observation[index],
-            secret=self.secret[index],
-            action=self.action[index],
-            reward=self.reward[index],
-            next_observation=self.next_observation[index],
-            next_secret=self.next_secret[index],
-            done=self.done[index],
-        )
+        return Transition(**{name: getattr(self, name)[index] for name in STORED})
 
     def state_dict(self) -> dict[str, np.ndarray | int]:
         """Arrays and counters (numpy only: safe to store without pickling)."""

@@ -29,8 +29,9 @@ from torch import Tensor, nn
 
 from alignrl.agents.exploration import gaussian_rows, uniform_rows
 from alignrl.agents.networks import make_encoder, mlp
-from alignrl.agents.replay import Batch, ReplayBuffer
+from alignrl.agents.replay import ReplayBuffer
 from alignrl.agents.settings import SAC_SCHEDULE, SHIPPED, SACConfig
+from alignrl.transitions import Transition
 
 __all__ = ["SAC", "SAC_SCHEDULE", "NonFiniteError", "SACConfig", "SACLearner"]
 
@@ -215,7 +216,7 @@ class SAC:
         return [secret] if self.config.secret_critics else []
 
     def update(
-        self, batch: Batch, member: str = "sac", train_policy: bool = True
+        self, batch: Transition, member: str = "sac", train_policy: bool = True
     ) -> dict[str, float]:
         """One gradient step of every network; returns the losses of seed figs. 6.1.2-6.1.7.
         `train_policy=False` steps the critics only: the policy and alpha stay as they are
@@ -401,23 +402,9 @@ class SACLearner(SAC):
         actions, _ = gaussian_rows(generators, mean.cpu().numpy(), log_std.exp().cpu().numpy())
         return actions, None
 
-    def observe(
-        self,
-        observation: np.ndarray,
-        secret: np.ndarray,
-        action: np.ndarray,
-        reward: np.ndarray,
-        next_observation: np.ndarray,
-        next_secret: np.ndarray,
-        done: np.ndarray,
-        slots: np.ndarray | None,
-        pre_tanh: np.ndarray | None,
-        member: str,
-    ) -> None:
+    def observe(self, transition: Transition, member: str) -> None:
         # A replay keeps transitions, not episodes: which slot a row came from does not matter.
-        self.experience.add(
-            observation, secret, action, reward, next_observation, next_secret, done
-        )
+        self.experience.add(transition)
 
     def learn(
         self,
@@ -442,6 +429,6 @@ class SACLearner(SAC):
     def learn_from(
         self, batch: Any, rng: np.random.Generator | None, member: str, train_policy: bool
     ) -> dict[str, float]:
-        if not isinstance(batch, Batch):
-            raise TypeError(f"member {member}: SAC updates on a replay Batch")
+        if not isinstance(batch, Transition):
+            raise TypeError(f"member {member}: SAC updates on a Transition batch of its replay")
         return self.update(batch, member, train_policy)

@@ -1,9 +1,9 @@
 """The learners' settings, without their algorithms: what a config needs to know of a
 learner (its title, its settings and their defaults) before torch is imported.
 
-`LearnerConfig` (alignrl/config.py) checks an experiment file against these, so a command
-that only reads a config (`alignrl baselines`, `record`, `scenarios`, `--help`) never loads
-torch. Each learner's class (alignrl/agents/sac.py, ppo.py) takes its `config_type` and
+`LearnerConfig` (alignrl/config/learner.py) checks an experiment file against these, so a
+command that only reads a config (`alignrl baselines`, `record`, `scenarios`, `--help`) never
+loads torch. Each learner's class (alignrl/agents/sac.py, ppo.py) takes its `config_type` and
 `schedule_defaults` from here; `SHIPPED` names where each class lives, and
 alignrl/agents/learners.py imports it there on first use.
 """
@@ -50,8 +50,8 @@ class SACConfig:
 
 @dataclass(frozen=True)
 class PPOConfig:
-    # The network settings every learner shares default alike (alignrl/config.py reads them
-    # from here and from SACConfig, and refuses a disagreement).
+    # The network settings every learner shares default alike (alignrl/config/learner.py reads
+    # them from here and from SACConfig, and refuses a disagreement).
     encoder: str = "mlp"  # history encoder of the policy and the value network
     encoder_kwargs: dict[str, Any] = field(default_factory=dict)
     hidden: tuple[int, ...] = (256, 256)  # hidden widths of the heads

@@ -141,8 +141,9 @@ def column_at(family: FocusFamily, fractions: Mapping[str, float], specimen: int
     width, centre = values.pop("interval_width"), values.pop("interval_centre")
     low, high = centre - 0.5 * width, centre + 0.5 * width
     optimum = low + values.pop("optimum_fraction") * width
-    return ColumnDraw(low=low, high=high, optimum=optimum, specimen=family.specimens[specimen],
-                      **values)  # fmt: skip
+    return ColumnDraw(
+        low=low, high=high, optimum=optimum, specimen=family.specimens[specimen], **values
+    )
 
 
 def draw_column(family: FocusFamily, rng: np.random.Generator) -> ColumnDraw:
@@ -151,8 +152,13 @@ def draw_column(family: FocusFamily, rng: np.random.Generator) -> ColumnDraw:
 
 
 # What only one reading path uses: a designer is offered the parameters its path reads.
-ANALYTIC_ONLY = ("reading_noise_rel", "reading_noise_px", "specimen_rel", "saturation_px",
-                 "no_edges_px")  # fmt: skip
+ANALYTIC_ONLY = (
+    "reading_noise_rel",
+    "reading_noise_px",
+    "specimen_rel",
+    "saturation_px",
+    "no_edges_px",
+)
 IMAGE_ONLY = ("dose_electrons_per_px", "detector_noise")
 
 

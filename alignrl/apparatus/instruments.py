@@ -10,7 +10,7 @@ parameters are points (only the optimum, the start and the noise vary between ep
   may reach it: `held_out_reason` names how a spec would (the set, one of its instruments by
   name, a copy of one under another name or path, or a training box that contains one whole,
   compared by what they simulate: every parameter within SAME_WITHIN, never byte by byte),
-  and the run configs refuse such a spec (alignrl/config.py).
+  and the run configs refuse such a spec (alignrl/config/run.py).
 
 Specs (alignrl/apparatus/registry.py): `instrument:NAME` one instrument, `set:NAME` a whole set
 as one apparatus that moves to the set's next instrument at every reset (`InstrumentSet`).

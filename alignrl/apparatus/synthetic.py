@@ -500,10 +500,13 @@ class SyntheticSEM:
         noise = rng.standard_normal((cfg.image_size_px, cfg.image_size_px))
         count = int(rng.integers(cfg.particles[0], cfg.particles[1] + 1))
         particles = [
-            (*rng.uniform(0, cfg.image_size_px, 2), rng.uniform(*cfg.particle_radius_px),
-             rng.uniform(0.9, 1.1))
+            (
+                *rng.uniform(0, cfg.image_size_px, 2),
+                rng.uniform(*cfg.particle_radius_px),
+                rng.uniform(0.9, 1.1),
+            )
             for _ in range(count)
-        ]  # fmt: skip
+        ]
         return noise, particles
 
     def _draw_specimen(self, rng: np.random.Generator) -> np.ndarray:

@@ -99,7 +99,7 @@ def _share(text: str) -> float:
 
 def _updates_per_step(text: str) -> float:
     """--updates-per-step: gradient updates per acquisition, in (0, MAX_UPDATES_PER_STEP]."""
-    from alignrl.config import MAX_UPDATES_PER_STEP
+    from alignrl.config.learner import MAX_UPDATES_PER_STEP
 
     value = _parsed(text, float)
     if not 0 < value <= MAX_UPDATES_PER_STEP:
@@ -112,7 +112,7 @@ def _updates_per_step(text: str) -> float:
 
 def _renamed(config: Any, name: str) -> Any:
     """`config` under the run name of --name, validated as a name in the file would be."""
-    from alignrl.config import parse_config
+    from alignrl.config_reading import parse_config
 
     return parse_config(type(config), {**config.model_dump(), "name": name}, "--name")
 

@@ -34,7 +34,7 @@ if TYPE_CHECKING:
 
 
 def cmd_train(args: argparse.Namespace) -> int:
-    from alignrl.config import load_experiment
+    from alignrl.config.experiment import load_experiment
     from alignrl.training import Trainer, check_evaluation_apparatus
 
     overrides = _overrides(args)
@@ -238,7 +238,8 @@ def cmd_adapt(args: argparse.Namespace) -> int:
     )
     overrides = _overrides(args)
     if overrides:  # the strict model checks the changed config, key paths named
-        from alignrl.config import ExperimentConfig, overridden, parse_config
+        from alignrl.config.experiment import ExperimentConfig
+        from alignrl.config_reading import overridden, parse_config
 
         data, where = overridden(config.model_dump(mode="json"), "alignrl adapt", overrides)
         config = parse_config(ExperimentConfig, data, where, check_device=True)
@@ -283,7 +284,7 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 
 def add_training_parsers(verbs: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    from alignrl.config import HINDSIGHT_OPTIMA
+    from alignrl.envs.hindsight import HINDSIGHT_OPTIMA
 
     train = verbs.add_parser(
         "train", help="train one aligner against the built-in misalignment (pre-training)"

@@ -336,7 +336,7 @@ def _task(read: _CardReader, entry: Any) -> Task:
     keep the step within one interval and the judged spec as strict as the task's own."""
     from pydantic import ValidationError
 
-    from alignrl.config import TaskOptions
+    from alignrl.config.task_options import TaskOptions
     from alignrl.envs.task import get_task
 
     entry = read.mapping(entry, "task", TASK_CARD_KEYS)

@@ -303,7 +303,7 @@ def with_acting_options(source: PolicySource, overrides: Sequence[str]) -> Polic
     ACTING_OPTIONS (how its moves reach the column and how an alignment ends, never what it
     observes), checked by the same strict model as a run's config; anything else is an
     ExportError naming it."""
-    from alignrl.config import ConfigError, overridden, parse_config
+    from alignrl.config_reading import ConfigError, overridden, parse_config
     from alignrl.envs.task import ACTING_OPTIONS
 
     if not overrides:

@@ -20,7 +20,7 @@ __all__ = ["Curriculum", "CurriculumSettings"]
 
 
 class CurriculumSettings(Protocol):
-    """A config's `curriculum:` section (alignrl.config.CurriculumConfig)."""
+    """A config's `curriculum:` section (alignrl.config.run.CurriculumConfig)."""
 
     enabled: bool
     level: float

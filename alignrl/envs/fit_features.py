@@ -6,8 +6,9 @@ so w^2 is a parabola in the setting x. From the measured rows of the window whos
 are within `window` x the narrowest (Task.fit_window, 3 unless set; far readings level off
 as the features blur into each other, docs/physics.md, and would bend the parabola), a
 least-squares parabola in w^2 is fitted, each row weighted by 1/w^2 (a relative error per
-reading: the narrow readings near focus count most). Where it opens upwards, it places
-the optimum x0 and the floor w0.
+reading: the narrow readings near focus count most; alignrl/apparatus/focus_curve.py, the
+fit every focus-curve fit of alignrl calls). Where it opens upwards, it places the optimum
+x0 and the floor w0.
 
 Three features, appended to the newest row of the history:
 
@@ -32,7 +33,9 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["FINISH_WINDOW", "FIT_FEATURES", "bracketed_optimum", "fit_features", "fit_focus_curve"]
+from alignrl.apparatus.focus_curve import fit_focus_curve
+
+__all__ = ["FINISH_WINDOW", "FIT_FEATURES", "bracketed_optimum", "fit_features"]
 
 FIT_FEATURES = 3
 LOCAL_RATIO = 3.0  # rows within this x the narrowest reading take part in the fit
@@ -74,51 +77,18 @@ def _one(
     if not measured[-1] or measured.sum() < 3 or not step > 0:
         return features
     setting, newest = float(x[-1]), float(q[-1])
-    fitted = fit_focus_curve(x[measured], np.exp(q[measured].astype(np.float64)), window)
-    if fitted is None:
+    widths = np.exp(q[measured].astype(np.float64))
+    curve = fit_focus_curve(x[measured], widths, window, resolution=_MIN_SPREAD)
+    if curve is None:
         return features
-    optimum, floor_sq, _ = fitted  # floor_sq in (width / the reference)^2
+    floor_sq = curve.floor  # in (width / the reference)^2
     features[0] = 1.0
-    features[1] = np.clip((optimum - setting) / step, -FIT_STEP_LIMIT, FIT_STEP_LIMIT)
+    features[1] = np.clip((curve.optimum - setting) / step, -FIT_STEP_LIMIT, FIT_STEP_LIMIT)
     if floor_sq > 0:
         features[2] = np.clip(0.5 * np.log(floor_sq) - newest, FIT_FLOOR_MIN, 0.0)
     else:
         features[2] = FIT_FLOOR_MIN
     return features
-
-
-def fit_focus_curve(
-    settings: np.ndarray, widths: np.ndarray, window: float = LOCAL_RATIO
-) -> tuple[float, float, np.ndarray] | None:
-    """The parabola in w^2 through the readings within `window` x the narrowest (weighted by
-    1 / w^2): (the optimum x0 it places, the floor w0^2 there, the settings it used), or None
-    where fewer than three distinct settings take part or the parabola does not open
-    upwards. Settings and widths in any units (the optimum in the settings', the floor in
-    the widths' squared)."""
-    x = np.asarray(settings, np.float64)
-    width = np.asarray(widths, np.float64)
-    keep = np.isfinite(x) & np.isfinite(width) & (width > 0)
-    x, width = x[keep], width[keep]
-    if x.size < 3:
-        return None
-    local = width <= width.min() * window
-    x, width = x[local], width[local]
-    centre, scale = x.mean(), float(np.ptp(x))
-    if x.size < 3 or not scale > 0:
-        return None
-    u = (x - centre) / scale  # conditioned: the settings may sit within a hair of each other
-    if np.unique(np.round(u / _MIN_SPREAD)).size < 3:
-        return None
-    w2 = width * width
-    weights = 1.0 / w2  # a relative error per reading
-    design = np.stack([u * u, u, np.ones_like(u)], axis=1) * weights[:, None]
-    try:
-        (a, b, c), *_ = np.linalg.lstsq(design, w2 * weights, rcond=None)
-    except np.linalg.LinAlgError:
-        return None
-    if not (np.isfinite([a, b, c]).all() and a > 0):
-        return None
-    return float(centre - scale * b / (2.0 * a)), float(c - b * b / (4.0 * a)), x
 
 
 def bracketed_optimum(
@@ -127,8 +97,5 @@ def bracketed_optimum(
     """Where the focus-curve fit of an episode's readings puts the optimum, if readings on
     both sides of it took part (an interpolation, never an extrapolation beyond them); else
     None. What `Task.finish_at_fit` ends at (alignrl/envs/core.py)."""
-    fitted = fit_focus_curve(settings, widths, window)
-    if fitted is None:
-        return None
-    optimum, _, used = fitted
-    return optimum if used.min() < optimum < used.max() else None
+    curve = fit_focus_curve(settings, widths, window, resolution=_MIN_SPREAD)
+    return curve.optimum if curve is not None and curve.brackets else None

@@ -10,20 +10,20 @@ this is the envs' secret told late, not a learner.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any, Literal, get_args
 
 import numpy as np
 
 from alignrl.posterior.hindsight import PooledCurve
+from alignrl.transitions import Transition
 
 __all__ = ["HINDSIGHT_OPTIMA", "HindsightOptimum", "HindsightSecrets"]
 
-# What stands in for an episode's optimum in hindsight (alignrl.config's adaptation section
+# What stands in for an episode's optimum in hindsight (alignrl.config.adaptation's section
 # takes the same names).
 HindsightOptimum = Literal["posterior", "sharpest"]
 HINDSIGHT_OPTIMA: tuple[str, ...] = get_args(HindsightOptimum)
-
-Transition = tuple[np.ndarray, ...]  # what Agent.observe takes, secrets included
 
 
 class HindsightSecrets:
@@ -60,33 +60,24 @@ class HindsightSecrets:
         n = len(self.blind)
         self._positions: list[list[np.ndarray]] = [[] for _ in range(n)]
         self._widths: list[list[float]] = [[] for _ in range(n)]
-        self._held: list[list[tuple[np.ndarray, ...]]] = [[] for _ in range(n)]
+        self._held: list[list[Transition]] = [[] for _ in range(n)]
 
     def start(self, infos: dict[str, Any]) -> None:
         """The first reading of every blind slot's episode (the infos of `reset`)."""
         for slot in np.flatnonzero(self.blind):
             self._begin(slot, infos["position"][slot], infos["edge_width_px"][slot])
 
-    def step(
-        self,
-        observation: np.ndarray,
-        action: np.ndarray,
-        reward: np.ndarray,
-        next_observation: np.ndarray,
-        done: np.ndarray,
-        infos: dict[str, Any],
-    ) -> list[Transition]:
-        """Hold this step of every blind slot; returns the transitions of the episodes that
-        ended, one batch per episode, with their hindsight secrets. `next_observation` of a
+    def step(self, step: Transition, infos: dict[str, Any]) -> list[Transition]:
+        """Hold this step of every blind slot (`step`: one row per slot, its secrets as
+        the apparatus told them); returns the transitions of the episodes that ended, one
+        Transition per episode, with their hindsight secrets. The next_observation of a
         finished slot is its episode's last history (not the next episode's first)."""
         finished = []
         for slot in np.flatnonzero(self.blind):
-            self._held[slot].append(
-                (observation[slot], action[slot], reward[slot], next_observation[slot], done[slot])
-            )
+            self._held[slot].append(step.rows([slot]))
             self._positions[slot].append(np.asarray(infos["position"][slot], np.float32))
             self._widths[slot].append(float(infos["edge_width_px"][slot]))
-            if done[slot]:
+            if step.done[slot]:
                 finished.append(self._release(slot))
                 self._begin(slot, infos["start_position"][slot], infos["start_edge_width_px"][slot])
         return finished
@@ -106,7 +97,5 @@ class HindsightSecrets:
             if drawn is not None:
                 best = np.array([drawn], np.float32)
         secrets = (best - positions).astype(np.float32)
-        observation, action, reward, next_observation, done = (
-            np.stack(column) for column in zip(*self._held[slot], strict=True)
-        )
-        return (observation, secrets[:-1], action, reward, next_observation, secrets[1:], done)
+        episode = Transition.joined(self._held[slot])
+        return replace(episode, secret=secrets[:-1], next_secret=secrets[1:])

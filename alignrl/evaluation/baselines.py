@@ -41,6 +41,7 @@ from typing import Protocol
 import numpy as np
 
 from alignrl.apparatus.base import Apparatus, ApparatusError
+from alignrl.apparatus.focus_curve import fit_focus_curve
 from alignrl.apparatus.measures import measure_wobble
 from alignrl.envs.task import Task
 from alignrl.evaluation.controllers import (
@@ -64,7 +65,6 @@ __all__ = [
     "HyperbolaFit",
     "StigmatorSearch",
     "WobbleCenter",
-    "fit_focus_curve",
     "get_baseline",
     "task_baselines",
 ]
@@ -139,50 +139,20 @@ class GoldenSection:
 # --- hyperbola fit -------------------------------------------------------------------------
 
 
-def fit_focus_curve(
-    settings: np.ndarray, widths_px: np.ndarray
-) -> tuple[float, float, float] | None:
-    """Least-squares fit of  w^2 = a (V - b)^2 + c ; returns (a, b, c), or None.
-
-    Residuals are relative (each squared width weighted by 1 / w^4): a reading's noise
-    grows with its width, and a far-blurred reading must not outweigh the sharp ones. None
-    where fewer than three finite points or three distinct settings remain, or where the fit
-    has no minimum (a <= 0) or no positive width at it (c <= 0).
-    """
-    settings = np.asarray(settings, dtype=np.float64)
-    widths_px = np.asarray(widths_px, dtype=np.float64)
-    usable = np.isfinite(widths_px) & (widths_px > 0)
-    settings, squared = settings[usable], widths_px[usable] ** 2
-    if np.unique(settings).size < 3:
-        return None
-    centre = float(settings.mean())  # centred and scaled, so the normal matrix is well posed
-    scale = float(np.ptp(settings))
-    x = (settings - centre) / scale
-    design = np.stack([x**2, x, np.ones_like(x)], axis=1) / squared[:, None]
-    solution, *_ = np.linalg.lstsq(design, np.ones_like(x), rcond=None)
-    quadratic, linear, constant = solution  # w^2 = q x^2 + l x + k
-    if not quadratic > 0:
-        return None
-    vertex_x = -linear / (2.0 * quadratic)
-    minimum = constant - quadratic * vertex_x**2
-    if not minimum > 0:
-        return None
-    return float(quadratic / scale**2), float(centre + vertex_x * scale), float(minimum)
-
-
 @dataclass(frozen=True)
 class HyperbolaFit:
     """Fit the focus curve w^2 = a (V - b)^2 + c and jump to its vertex b.
 
     Three probes at `probe_fractions` of the interval and a least-squares fit
-    (fit_focus_curve) give a first vertex; probes at that vertex + `refine_fractions` of the
-    interval sample the curve where its model holds (far from focus the edge width
-    saturates). Then refits on the `fit_points` sharpest points: the alignment stops as soon
-    as a refit moves the vertex by less than `tolerance_fraction` of the interval, else the
-    new vertex is probed and refitted. Where no fit is possible (too few measurable points, no
-    minimum) the next target halves the gap between the sharpest point and its sharper
-    neighbour. Every setting, the final one included, is approached from `approach_fraction`
-    of the interval below, so a lagging lens field (hysteresis) shifts them all alike.
+    (alignrl.apparatus.focus_curve) give a first vertex; probes at that vertex +
+    `refine_fractions` of the interval sample the curve where its model holds (far from focus
+    the edge width saturates). Then refits on the `fit_points` sharpest points: the alignment
+    stops as soon as a refit moves the vertex by less than `tolerance_fraction` of the interval,
+    else the new vertex is probed and refitted. Where no fit is possible (too few measurable
+    points, no minimum) the next target halves the gap between the sharpest point and its
+    sharper neighbour. Every setting, the final one included, is approached from
+    `approach_fraction` of the interval below, so a lagging lens field (hysteresis) shifts them
+    all alike.
     On a noise-free hyperbola: 3 + len(refine_fractions) acquisitions, exactly at focus.
     """
 
@@ -243,9 +213,9 @@ class HyperbolaFit:
     ) -> float:
         """The fitted vertex, or where a probe would narrow the search without a fit."""
         order = np.argsort(widths, kind="stable")[: self.fit_points]
-        fit = fit_focus_curve(np.array(settings)[order], np.array(widths)[order])
-        if fit is not None:
-            return float(min(max(fit[1], low), high))
+        curve = fit_focus_curve(np.array(settings)[order], np.array(widths)[order])
+        if curve is not None and curve.floor > 0:  # a minimum, and a positive width there
+            return float(min(max(curve.optimum, low), high))
         return _split_towards_sharper(settings, widths, low, high)
 
 

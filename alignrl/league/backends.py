@@ -12,12 +12,11 @@ from typing import Protocol
 import numpy as np
 
 from alignrl.agents.agent import Agent
-from alignrl.config import ConfigError
+from alignrl.config_reading import ConfigError
 from alignrl.envs import make_apparatus_copies
 from alignrl.envs.core import AlignmentEpisodes
 from alignrl.league.config import LeagueConfig
 from alignrl.league.matches import (
-    AlignerSteps,
     Chooser,
     MatchResult,
     learn_from_starts,
@@ -25,6 +24,7 @@ from alignrl.league.matches import (
     make_duel,
     play_round,
 )
+from alignrl.transitions import Transition
 
 __all__ = ["BACKENDS", "Backend", "InProcessBackend", "backend_class"]
 
@@ -96,19 +96,10 @@ class InProcessBackend:
                 return lambda inputs, slots: (agent.explore(inputs, rng), None)
             return lambda inputs, slots: (agent.act(inputs, deterministic=deterministic), None)
 
-        def learn_step(step: AlignerSteps) -> None:
+        def learn_step(step: Transition) -> None:
             if aligner.id in learning:
-                aligner.observe(
-                    step.observation,
-                    step.secret,
-                    step.action,
-                    step.reward,
-                    step.next_observation,
-                    step.next_secret,
-                    step.done,
-                    slots=step.slots,
-                )
-                result.updates[aligner.id] += aligner.learn(rng, new_steps=len(step.slots))
+                aligner.observe(step)
+                result.updates[aligner.id] += aligner.learn(rng, new_steps=len(step))
 
         remaining = matches
         while remaining > 0:

@@ -18,13 +18,13 @@ from typing import Annotated, Any, Literal
 from pydantic import Field, field_validator, model_validator
 
 from alignrl.apparatus.registry import spec_form
-from alignrl.config import (
+from alignrl.config.learner import LearnerConfig
+from alignrl.config.run import RunConfig
+from alignrl.config_reading import (
     SEED_LIMIT,
     ConfigError,
     Count,
     EnvSteps,
-    LearnerConfig,
-    RunConfig,
     Scenarios,
     _Strict,
     check_file_name,
@@ -34,6 +34,8 @@ from alignrl.config import (
     read_yaml,
 )
 from alignrl.evaluation.session import TEST_SEED, VALIDATION_SEED
+from alignrl.league.matchmaking import MAX_MEMBERS, MatchmakingConfig, Members
+from alignrl.league.ratings import RatingConfig
 
 __all__ = [
     "LeagueConfig",
@@ -46,15 +48,12 @@ __all__ = [
     "parse_league",
 ]
 
-TEAMS = ("aligner", "misaligner")
 # The upper bounds of a league's counts (as alignrl/config_reading.py bounds env steps and
 # alignments): the shipped leagues run 600 iterations of 64 matches at most, a team of a few
 # members; an iteration takes seconds at least, so 10^6 of them are weeks.
 MAX_ITERATIONS = 10**6  # league iterations, and iterations between snapshots, steps, saves
 MAX_MATCHES = 10**5  # matches (alignment episodes) of one iteration
-MAX_MEMBERS = 1000  # members of a team: in its roster, kept best, frozen snapshots kept
 Iterations = Annotated[Count, Field(le=MAX_ITERATIONS)]
-Members = Annotated[Count, Field(le=MAX_MEMBERS)]
 
 
 class MemberConfig(_Strict):
@@ -132,47 +131,6 @@ class ScheduleConfig(_Strict):
         lt=1,
         description="share of a learning aligner's matches started uniformly, not by a "
         "misaligner (unrated)",
-    )
-
-
-class MatchmakingConfig(_Strict):
-    pfsp: float = Field(0.5, ge=0, description="share of prioritized fictitious self-play")
-    uniform: float = Field(0.3, ge=0, description="share of uniform opponents")
-    latest: float = Field(0.2, ge=0, description="share of the other team's active members")
-    weighting: Literal["hard", "variance", "linear"] = Field(
-        "hard", description="PFSP weight of an opponent beaten at rate p: (1-p)^2, p(1-p), 1-p"
-    )
-    max_snapshots: Members = Field(8, ge=0, description="frozen snapshots kept per team")
-
-    @model_validator(mode="after")
-    def _some_weight(self) -> MatchmakingConfig:
-        if self.pfsp + self.uniform + self.latest <= 0:
-            raise ValueError("matchmaking: pfsp, uniform and latest cannot all be 0")
-        return self
-
-
-class RatingConfig(_Strict):
-    """openskill Plackett-Luce ratings (alignrl.league.ratings); its defaults."""
-
-    mu: float = Field(25.0, allow_inf_nan=False, description="mean rating of a new member")
-    sigma: float = Field(
-        25.0 / 3, gt=0, allow_inf_nan=False, description="spread (uncertainty) of a new rating"
-    )
-    beta: float = Field(
-        25.0 / 6, gt=0, allow_inf_nan=False, description="spread of one match's performance"
-    )
-    tau: float = Field(
-        25.0 / 300,
-        ge=0,
-        allow_inf_nan=False,
-        description="spread added before every match, so that a rating follows a member "
-        "that learns",
-    )
-    anchors: dict[str, float] | None = Field(
-        None,
-        description="classical controllers rated beside the aligners at a fixed mean, each "
-        "aligning the same columns from the same starts; null: the hyperbola fit at mu on a "
-        "one-knob task, none on the others; {}: none",
     )
 
 

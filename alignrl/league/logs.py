@@ -52,8 +52,10 @@ from alignrl.runs.state import (
     run_hparams,
 )
 
-__all__ = ["LeagueLogs", "member_hparams"]
+__all__ = ["DESIGN_COLUMNS", "LeagueLogs", "member_hparams"]
 
+# The columns of metrics/designs.csv before the design parameters, one row per match.
+DESIGN_COLUMNS = ("iteration", "aligner", "misaligner", "match", "aligner_payoff", "success")
 MEMBER_ROWS_PER_ITERATION = 10  # about this many updates.csv rows per member and iteration
 
 
@@ -156,8 +158,7 @@ class LeagueLogs:
         if not names or not result.designs:
             return
         if self.designs is None:
-            fields = ["iteration", "aligner", "misaligner", "match", "aligner_payoff",
-                      "success", *names]  # fmt: skip
+            fields = [*DESIGN_COLUMNS, *names]
             self.designs = CsvLog(self.run_dir / "metrics" / "designs.csv", fields, "iteration")
         rows = []
         for match, (design, payoff, success) in enumerate(
@@ -244,8 +245,11 @@ class LeagueLogs:
                     )
                 ]
             )
-            figures = {"return": result.returns, "success": result.successes,
-                       "acquisitions": result.acquisitions}  # fmt: skip
+            figures = {
+                "return": result.returns,
+                "success": result.successes,
+                "acquisitions": result.acquisitions,
+            }
             means = {name: float(np.mean(values)) for name, values in figures.items()}
             self.board(aligner).add_scalars("episode", means, env_steps)
 

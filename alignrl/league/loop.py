@@ -59,7 +59,8 @@ import yaml
 
 from alignrl.agents.agent import Agent
 from alignrl.checkpoints import CheckpointError, atomic_write_text
-from alignrl.config import ConfigError, dump_experiment
+from alignrl.config.experiment import dump_experiment
+from alignrl.config_reading import ConfigError
 from alignrl.envs import Curriculum
 from alignrl.intervals import success_text
 from alignrl.league.backends import Backend, backend_class
@@ -74,9 +75,9 @@ from alignrl.league.checkpointing import (
 from alignrl.league.config import LeagueConfig, Roster, parse_league
 from alignrl.league.logs import LeagueLogs
 from alignrl.league.matches import MatchResult, UniformStarts, WorkerFailedError
-from alignrl.league.matchmaking import Matchmaker, MatchmakingConfig, OpponentPool
+from alignrl.league.matchmaking import Matchmaker, OpponentPool
 from alignrl.league.pbt import choose_replacements, copy_id, copy_member, learning_rate
-from alignrl.league.ratings import PayoffTable, Rating, RatingConfig, Ratings
+from alignrl.league.ratings import PayoffTable, Rating, Ratings
 from alignrl.league.sessions import (
     VALIDATION,
     champion_test_session,
@@ -124,8 +125,7 @@ class League:
         self.rng = np.random.default_rng(config.seed)
         self.backend: Backend = backend_class(config.backend)(config)
         self.members: dict[str, Agent] = {}
-        rating = config.ratings
-        self.ratings = Ratings(RatingConfig(rating.mu, rating.sigma, rating.beta, rating.tau))
+        self.ratings = Ratings(config.ratings)
         anchors = config.anchor_ratings()
         clash = sorted(set(anchors) & {m.id for r in (aligners, misaligners) for m in r.members})
         if clash:
@@ -142,12 +142,7 @@ class League:
         self.anchor_record: dict[str, list[int]] = {anchor: [0, 0] for anchor in anchors}
         self.unanchored = 0
         self.pool = OpponentPool(config.matchmaking.max_snapshots)
-        mm = config.matchmaking
-        self.matchmaker = Matchmaker(
-            MatchmakingConfig(
-                {"pfsp": mm.pfsp, "uniform": mm.uniform, "latest": mm.latest}, mm.weighting
-            )
-        )
+        self.matchmaker = Matchmaker(config.matchmaking)
         for team, roster in self.rosters.items():
             for member in roster.members:
                 agent = Agent(member_spec(member, team, config), config.envs, config.device)
@@ -282,8 +277,11 @@ class League:
         return folder
 
     def _listed_snapshots(self) -> set[str]:
-        return {snapshot.id for team in ("aligner", "misaligner")
-                for snapshot in self.pool.snapshots(team)}  # fmt: skip
+        return {
+            snapshot.id
+            for team in ("aligner", "misaligner")
+            for snapshot in self.pool.snapshots(team)
+        }
 
     def _cut_back_to_checkpoint(self) -> None:
         """Before a resumed league continues: every file written after its checkpoint goes
@@ -346,8 +344,9 @@ class League:
                 aligner, self.uniform_starts, uniform, self.rng, {pairing.aligner}, on_episode
             )
             played = result.joined(extra)
-            self.logs.add_scalar("league/uniform_success_rate", extra.success_rate,
-                                 self.iteration + 1)  # fmt: skip
+            self.logs.add_scalar(
+                "league/uniform_success_rate", extra.success_rate, self.iteration + 1
+            )
         self.env_steps += sum(played.acquisitions)  # every image of every match
         self.iteration += 1
         # Ratings, payoffs and the success rate logged: the rated matches, the misaligner's.

@@ -28,14 +28,14 @@ no anchors.
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 
 from alignrl.agents.agent import Agent, MemberSpec
 from alignrl.apparatus.base import Apparatus, ApparatusError
-from alignrl.config import ConfigError
+from alignrl.config_reading import ConfigError
 from alignrl.envs.core import AlignmentEpisodes
 from alignrl.envs.design import Reference, can_twin, twin_of
 from alignrl.envs.duel import (
@@ -46,9 +46,9 @@ from alignrl.envs.duel import (
     misaligner_inputs,
 )
 from alignrl.league.ratings import anchor_scores
+from alignrl.transitions import Transition
 
 __all__ = [
-    "AlignerSteps",
     "Choice",
     "Chooser",
     "MatchResult",
@@ -200,22 +200,6 @@ class MatchResult:
 
 
 @dataclass
-class AlignerSteps:
-    """Aligner steps, one row each: of the unfinished matches at one step (`slots`), or of
-    one match from its first step to its last."""
-
-    slots: np.ndarray  # (T,) episode slot of each row
-    observation: np.ndarray  # (T, H, F) the history the aligner read
-    secret: np.ndarray  # (T, k) optimum - setting, for the critics
-    action: np.ndarray  # (T, k + 1)
-    pre_tanh: np.ndarray | None  # (T, k + 1) PPO's pre-squash sample where it travels along
-    reward: np.ndarray  # (T,)
-    next_observation: np.ndarray  # (T, H, F)
-    next_secret: np.ndarray  # (T, k)
-    done: np.ndarray  # (T,) bool
-
-
-@dataclass
 class Round:
     """One round of matches on slots 0..n-1, arrays indexed by slot."""
 
@@ -253,7 +237,7 @@ class MatchTrajectory:
     aligner_return: float
     success: bool
     acquisitions: int
-    steps: AlignerSteps  # from the first step to the last
+    steps: Transition  # the aligner's, from the first step to the last, with their slots
     rated: float  # the aligner's rated score
     design: np.ndarray  # (d,) the box fractions the designer chose (empty: starts only)
     # anchor -> (the aligner's score against it, whether the anchor met the spec)
@@ -324,7 +308,7 @@ def play_round(
     seeds: Sequence[int],
     choose_start: Chooser,
     choose_action: Chooser,
-    on_step: Callable[[AlignerSteps], None],
+    on_step: Callable[[Transition], None],
     anchors: Sequence[Reference] = (),
 ) -> Round:
     """One match per seed on slots 0..len(seeds)-1 of `duel`, played to the end; `on_step`
@@ -347,16 +331,16 @@ def play_round(
         reward, done = duel.rewards[ALIGNER][active], duel.terminations[ALIGNER][active]
         returns[active] += reward
         on_step(
-            AlignerSteps(
-                active,
+            Transition(
                 observation,
                 secret,
                 action,
-                pre_tanh,
                 reward,
                 duel.observe(ALIGNER, active),
                 duel.secrets(active),
                 done,
+                slots=active,
+                pre_tanh=pre_tanh,
             )
         )
         finish_order += [int(slot) for slot in active[done]]
@@ -393,9 +377,9 @@ def learn_from_starts(
     and nothing follows. Returns the updates' metrics."""
     count = len(rows)
     none = np.zeros((count, misaligner.spec.secret_dim), np.float32)
-    misaligner.observe(
-        rows, none, starts, rewards, rows, none, np.ones(count, bool), slots, pre_tanh=pre_tanh
-    )
+    done = np.ones(count, bool)
+    step = Transition(rows, none, starts, rewards, rows, none, done, slots=slots, pre_tanh=pre_tanh)
+    misaligner.observe(step)
     return misaligner.learn(rng, new_steps=count)
 
 
@@ -424,26 +408,9 @@ def _seeded_chooser(
     return choose
 
 
-def _per_match(steps: list[AlignerSteps], slot: int) -> AlignerSteps:
+def _per_match(steps: list[Transition], slot: int) -> Transition:
     """The rows of one slot's match, first step to last."""
-    picked = [(step, np.flatnonzero(step.slots == slot)) for step in steps]
-    picked = [(step, rows) for step, rows in picked if rows.size]
-
-    def column(name: str) -> np.ndarray:
-        return np.concatenate([getattr(step, name)[rows] for step, rows in picked])
-
-    with_pre_tanh = all(step.pre_tanh is not None for step, _ in picked)
-    return AlignerSteps(
-        column("slots"),
-        column("observation"),
-        column("secret"),
-        column("action"),
-        column("pre_tanh") if with_pre_tanh else None,
-        column("reward"),
-        column("next_observation"),
-        column("next_secret"),
-        column("done"),
-    )
+    return Transition.joined([step.rows(step.slots == slot) for step in steps])
 
 
 def record_matches(
@@ -453,7 +420,7 @@ def record_matches(
     misaligner: Agent,
     learns: tuple[bool, bool],
     deterministic: bool = False,
-    on_step: Callable[[AlignerSteps], None] | None = None,
+    on_step: Callable[[Transition], None] | None = None,
     anchors: Sequence[Reference] = (),
 ) -> list[MatchTrajectory]:
     """One match per seed, in rounds of `duel.n`, recorded in the order of `seeds`.
@@ -465,9 +432,9 @@ def record_matches(
     for first in range(0, len(seeds), duel.n):
         chunk = [int(seed) for seed in seeds[first : first + duel.n]]
         generators = [exploration_generator(seed) for seed in chunk]
-        steps: list[AlignerSteps] = []
+        steps: list[Transition] = []
 
-        def keep(step: AlignerSteps, steps: list[AlignerSteps] = steps) -> None:
+        def keep(step: Transition, steps: list[Transition] = steps) -> None:
             steps.append(step)
             if on_step:
                 on_step(step)
@@ -528,18 +495,9 @@ def learn_from_matches(
             on_episode(match.success)
         if aligner.id in learning:
             steps = match.steps
-            for t in range(len(steps.reward)):
-                one = slice(t, t + 1)
-                aligner.observe(
-                    steps.observation[one],
-                    steps.secret[one],
-                    steps.action[one],
-                    steps.reward[one],
-                    steps.next_observation[one],
-                    steps.next_secret[one],
-                    steps.done[one],
-                    pre_tanh=None if steps.pre_tanh is None else steps.pre_tanh[one],
-                )
+            for t in range(len(steps)):
+                # One step at a time, as slot 0: the worker's slots are not the driver's.
+                aligner.observe(replace(steps.rows(slice(t, t + 1)), slots=None))
                 result.updates[aligner.id] += aligner.learn(rng, new_steps=1)
         if misaligner.id in learning:
             result.updates[misaligner.id] += learn_from_starts(

@@ -19,13 +19,14 @@ from __future__ import annotations
 
 import bisect
 import functools
-import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass
+from typing import Annotated, Any, Literal
 
 import numpy as np
+from pydantic import Field, model_validator
 
+from alignrl.config_reading import Count, _Strict
 from alignrl.league.ratings import PayoffTable
 
 __all__ = [
@@ -46,6 +47,9 @@ __all__ = [
 # imports no torch.
 ALIGNER, MISALIGNER = "aligner", "misaligner"
 TEAMS = (ALIGNER, MISALIGNER)
+# The most members of a team: in its roster, kept best, frozen snapshots kept.
+MAX_MEMBERS = 1000
+Members = Annotated[Count, Field(le=MAX_MEMBERS)]
 SNAPSHOT_MARK = "@"  # "aligner-0@3": member aligner-0 frozen at iteration 3
 UNPLAYED_WIN_RATE = 0.5  # PFSP's prior for an opponent the learner never met
 
@@ -75,6 +79,7 @@ PFSP_WEIGHTINGS: dict[str, Callable[[np.ndarray], np.ndarray]] = {
     "variance": _variance,
     "linear": _linear,
 }
+PFSPWeighting = Literal[tuple(PFSP_WEIGHTINGS)]  # type: ignore[valid-type]
 
 
 # A strategy maps the learner's win rate against each candidate and which candidates are
@@ -113,34 +118,29 @@ STRATEGIES: dict[str, Callable[..., np.ndarray]] = {
 }
 
 
-@dataclass(frozen=True)
-class MatchmakingConfig:
-    # Mixture weights of the opponent strategies (normalised; a strategy left out weighs 0).
-    strategy_weights: dict[str, float] = field(
-        default_factory=lambda: {"pfsp": 0.5, "uniform": 0.3, "latest": 0.2}
-    )
-    pfsp_weighting: str = "hard"  # f(p): "hard" (1-p)^2, "variance" p(1-p), "linear" 1-p
+class MatchmakingConfig(_Strict):
+    """How each match's opponent is drawn: the mixture weights of the opponent strategies
+    (normalised; a strategy weighted 0 is left out), PFSP's weighting, and how many frozen
+    snapshots a team's pool keeps (the `matchmaking:` section of a league experiment)."""
 
-    def __post_init__(self) -> None:
-        for name, weight in self.strategy_weights.items():
-            if name not in STRATEGIES:
-                raise ValueError(
-                    f"matchmaking strategy {name!r} is unknown; known: {', '.join(STRATEGIES)}"
-                )
-            if not (math.isfinite(weight) and weight >= 0):
-                raise ValueError(f"matchmaking strategy {name!r} needs a weight >= 0, got {weight}")
-        if sum(self.strategy_weights.values()) <= 0:
-            raise ValueError(
-                f"matchmaking strategy weights {self.strategy_weights} sum to 0; give at least "
-                "one strategy a positive weight"
-            )
-        if self.pfsp_weighting not in PFSP_WEIGHTINGS:
-            raise ValueError(
-                f"PFSP weighting {self.pfsp_weighting!r} is unknown; known: "
-                f"{', '.join(PFSP_WEIGHTINGS)}"
-            )
-        # A copy, so that the caller's dict cannot change a config after the fact.
-        object.__setattr__(self, "strategy_weights", dict(self.strategy_weights))
+    pfsp: float = Field(0.5, ge=0, description="share of prioritized fictitious self-play")
+    uniform: float = Field(0.3, ge=0, description="share of uniform opponents")
+    latest: float = Field(0.2, ge=0, description="share of the other team's active members")
+    weighting: PFSPWeighting = Field(
+        "hard", description="PFSP weight of an opponent beaten at rate p: (1-p)^2, p(1-p), 1-p"
+    )
+    max_snapshots: Members = Field(8, ge=0, description="frozen snapshots kept per team")
+
+    @model_validator(mode="after")
+    def _some_weight(self) -> MatchmakingConfig:
+        if self.pfsp + self.uniform + self.latest <= 0:
+            raise ValueError("matchmaking: pfsp, uniform and latest cannot all be 0")
+        return self
+
+    @property
+    def strategy_weights(self) -> dict[str, float]:
+        """The weight of each strategy of STRATEGIES, by name."""
+        return {"pfsp": self.pfsp, "uniform": self.uniform, "latest": self.latest}
 
 
 @dataclass(frozen=True)
@@ -282,7 +282,7 @@ class Matchmaker:
 
     def __init__(self, config: MatchmakingConfig | None = None) -> None:
         self.config = config or MatchmakingConfig()
-        weighting = PFSP_WEIGHTINGS[self.config.pfsp_weighting]
+        weighting = PFSP_WEIGHTINGS[self.config.weighting]
         self._strategies = {
             name: (
                 functools.partial(pfsp_probabilities, weighting=weighting)

@@ -32,11 +32,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
 from typing import Any, NamedTuple
 
 import numpy as np
 from openskill.models import PlackettLuce
+from pydantic import Field
+
+from alignrl.config_reading import _Strict
 
 __all__ = [
     "ALIKE_RELATIVE",
@@ -74,22 +76,33 @@ class Rating(NamedTuple):
         return f"{self.mu:.1f} ± {self.sigma:.1f}"
 
 
-@dataclass(frozen=True)
-class RatingConfig:
-    mu: float = DEFAULT_MU  # a new member's mean rating
-    sigma: float = DEFAULT_MU / 3  # its spread
-    beta: float = DEFAULT_MU / 6  # the spread of one match's performance
-    tau: float = DEFAULT_MU / 300  # spread added before every match (members learn)
+class RatingConfig(_Strict):
+    """openskill Plackett-Luce ratings and their anchors (the `ratings:` section of a league
+    experiment); the defaults are openskill's."""
 
-    def __post_init__(self) -> None:
-        if not math.isfinite(self.mu):
-            raise ValueError(f"ratings: mu must be a finite number, got {self.mu}")
-        for name in ("sigma", "beta"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value > 0):
-                raise ValueError(f"ratings: {name} must be a positive number, got {value}")
-        if not (math.isfinite(self.tau) and self.tau >= 0):
-            raise ValueError(f"ratings: tau must be a number >= 0, got {self.tau}")
+    mu: float = Field(DEFAULT_MU, allow_inf_nan=False, description="mean rating of a new member")
+    sigma: float = Field(
+        DEFAULT_MU / 3,
+        gt=0,
+        allow_inf_nan=False,
+        description="spread (uncertainty) of a new rating",
+    )
+    beta: float = Field(
+        DEFAULT_MU / 6, gt=0, allow_inf_nan=False, description="spread of one match's performance"
+    )
+    tau: float = Field(
+        DEFAULT_MU / 300,
+        ge=0,
+        allow_inf_nan=False,
+        description="spread added before every match, so that a rating follows a member "
+        "that learns",
+    )
+    anchors: dict[str, float] | None = Field(
+        None,
+        description="classical controllers rated beside the aligners at a fixed mean, each "
+        "aligning the same columns from the same starts; null: the hyperbola fit at mu on a "
+        "one-knob task, none on the others; {}: none",
+    )
 
     @property
     def initial(self) -> Rating:

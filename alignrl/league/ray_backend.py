@@ -58,7 +58,6 @@ from alignrl.envs.task import Task
 from alignrl.league.config import LeagueConfig, RayWorkerConfig
 from alignrl.league.matches import (
     UNIFORM_FORMAT,
-    AlignerSteps,
     MatchResult,
     MatchTrajectory,
     UniformStarts,
@@ -69,6 +68,7 @@ from alignrl.league.matches import (
     record_matches,
 )
 from alignrl.memory import keep_freed_memory
+from alignrl.transitions import Transition
 
 __all__ = ["MatchWorker", "RayBackend", "split_matches"]
 
@@ -159,10 +159,10 @@ class MatchWorker:
             agent.load_policy_state(state)
         return agent
 
-    def _count(self, step: AlignerSteps) -> None:
+    def _count(self, step: Transition) -> None:
         if self._steps_to_failure is None:
             return
-        self._steps_to_failure -= len(step.reward)
+        self._steps_to_failure -= len(step)
         if self._steps_to_failure <= 0:
             os._exit(1)  # no cleanup, no exception: the way a crashed PC leaves
 

@@ -10,7 +10,8 @@ from __future__ import annotations
 
 from alignrl.agents.agent import Agent, MemberSpec
 from alignrl.checkpoints import CheckpointError
-from alignrl.config import ConfigError, LearnerConfig
+from alignrl.config.learner import LearnerConfig
+from alignrl.config_reading import ConfigError
 from alignrl.league.config import LeagueConfig, MemberConfig, Roster
 from alignrl.runs.training_runs import team_spec
 
@@ -23,8 +24,14 @@ def member_spec(member: MemberConfig, team: str, config: LeagueConfig) -> Member
 
 
 # Learner settings that shape a member's networks: a warm-started aligner keeps its source's.
-NETWORK_KEYS = ("algorithm", "encoder", "encoder_kwargs", "hidden", "secret_critics",
-                "shared_critic_encoder")  # fmt: skip
+NETWORK_KEYS = (
+    "algorithm",
+    "encoder",
+    "encoder_kwargs",
+    "hidden",
+    "secret_critics",
+    "shared_critic_encoder",
+)
 
 
 def warm_starts(

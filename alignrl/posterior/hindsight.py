@@ -12,6 +12,8 @@ from collections import deque
 
 import numpy as np
 
+from alignrl.apparatus.focus_curve import fit_focus_curve
+
 __all__ = ["PooledCurve"]
 
 
@@ -22,7 +24,8 @@ class PooledCurve:
     x the setting (a fraction of the interval), x0 the optimum, c the column's best width and
     a its focus curve's steepness. Both c and a belong to the column, not to the episode:
     they are pooled over the last `POOL` finished episodes (the medians of each episode's own
-    parabola in x through its readings w^2 within `FIT_SPAN` x its sharpest), and the reading
+    parabola in x through its readings w^2 within `FIT_SPAN` x its sharpest: the one
+    focus-curve fit, alignrl/apparatus/focus_curve.py), and the reading
     noise from pairs of readings at one setting (a stop and its verification image). An episode's
     optimum is then drawn from its posterior on a grid of the interval, so that a stop on a
     reading at the spec's edge is told "about this far from the optimum, on this side with
@@ -63,18 +66,10 @@ class PooledCurve:
     def _fit(self) -> tuple[float, float, float] | None:
         slopes, floors, log_ratios = [], [], []
         for x, w in self._episodes:
-            near = w <= self.FIT_SPAN * w.min()
-            if len(np.unique(x[near])) >= 3:
-                weight = 1.0 / w[near] ** 2  # relative noise: w^2 scatters as w^2
-                design = np.stack([x[near] ** 2, x[near], np.ones(near.sum())], 1)
-                solution = np.linalg.lstsq(
-                    design * weight[:, None], w[near] ** 2 * weight, rcond=None
-                )[0]
-                slope, linear, constant = solution
-                floor = constant - linear**2 / (4 * slope) if slope > 0 else -1.0
-                if floor > 0:  # a parabola opening upwards over a positive best width
-                    slopes.append(slope)
-                    floors.append(floor)
+            curve = fit_focus_curve(x, w, self.FIT_SPAN)
+            if curve is not None and curve.floor > 0:  # a positive best width
+                slopes.append(curve.slope)
+                floors.append(curve.floor)
             same = np.flatnonzero(np.diff(x) == 0)
             log_ratios.extend(np.log(w[same + 1] / w[same]))
         if len(slopes) < self.MIN_EPISODES // 4:

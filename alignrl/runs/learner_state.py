@@ -97,7 +97,7 @@ LEARNER_KEYS = (  # learner.json, in the order it is written
     "source",
     "written_by",
 )
-# The run settings learner.json records (those of alignrl.config.RunConfig that say what the
+# The run settings learner.json records (those of alignrl.config.run.RunConfig that say what the
 # member was trained on and for), besides its learner.
 RUN_KEYS = (
     "task",

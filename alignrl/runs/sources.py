@@ -36,7 +36,8 @@ from typing import Any
 
 from alignrl.agents.agent import MEMBER_FORMAT, POLICY_FORMAT, Agent, MemberSpec
 from alignrl.checkpoints import CheckpointError, load_checkpoint
-from alignrl.config import ConfigError, RunConfig, parse_config
+from alignrl.config.run import RunConfig
+from alignrl.config_reading import ConfigError, parse_config
 from alignrl.envs.task import Task
 from alignrl.runs.learner_state import (
     LEARNER_FILE,
@@ -124,7 +125,7 @@ class PolicySource:
     kind: "league", "training", "member" (a member file outside any run), "export" or
     "champion"; chosen_as: how the spec named it ("champion", "--member", "best checkpoint",
     "file", "exported policy", "shipped champion"). `config` holds the run settings
-    (alignrl.config.RunConfig: apparatus, task, history) of the run, of the card of an
+    (alignrl.config.run.RunConfig: apparatus, task, history) of the run, of the card of an
     export, or the defaults where none was found (config_file None).
     """
 
@@ -266,7 +267,7 @@ def resolve_source(spec: str | Path | Location, member: str | None = None) -> Po
     `member` (best/<id>.pt, else the newest checkpoint's file); a training run's
     checkpoints/best.pt; a member/checkpoint .pt file; the member of a safetensors export or
     of a shipped champion (champion:NAME), its acting network loaded; it acts with its run's
-    `acting_options` (alignrl/config.py)."""
+    `acting_options` (alignrl/config/run.py)."""
     location = spec if isinstance(spec, Location) else locate_source(spec, member)
     path = location.path
     if location.kind == "league":
@@ -450,7 +451,7 @@ def _file_source(path: Path) -> PolicySource:
     agent = _member(state, path)
     root = _league_root(path)
     if root is None:  # a member file on its own: the run settings are the defaults
-        from alignrl.config import parse_experiment
+        from alignrl.config.experiment import parse_experiment
 
         history = agent.spec.observation_shape[0]
         config = parse_experiment({"name": agent.id, "history": history}, str(path))

@@ -27,7 +27,8 @@ import numpy as np
 import torch
 
 from alignrl.checkpoints import atomic_write, atomic_write_text, remove_partial_writes
-from alignrl.config import ConfigError, ExperimentConfig, parse_experiment, read_yaml
+from alignrl.config.experiment import ExperimentConfig, parse_experiment
+from alignrl.config_reading import ConfigError, read_yaml
 from alignrl.envs.task import Task
 
 if TYPE_CHECKING:
@@ -392,7 +393,7 @@ def git_commit(folder: Path | None = None) -> str | None:
 
 
 def run_provenance(overrides: list[str], argv: list[str] | None = None) -> dict[str, Any]:
-    """How this process was started, for a run's config.yaml (alignrl.config.Provenance)."""
+    """How this process was started, for a run's config.yaml (alignrl.config.run.Provenance)."""
     import shlex
     import sys
 
@@ -402,7 +403,7 @@ def run_provenance(overrides: list[str], argv: list[str] | None = None) -> dict[
 
 def with_provenance(config: Any, overrides: list[str], argv: list[str] | None = None) -> Any:
     """`config` (a RunConfig) recording how its run was started."""
-    from alignrl.config import Provenance
+    from alignrl.config.run import Provenance
 
     provenance = Provenance(**run_provenance(overrides, argv))
     return config.model_copy(update={"provenance": provenance})

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from alignrl.config import ExperimentConfig
+from alignrl.config.experiment import ExperimentConfig
 from alignrl.metrics import (
     EPISODE_COLUMNS,
     EVALUATION_COLUMNS,

@@ -10,7 +10,9 @@ from pathlib import Path
 
 from alignrl.agents.agent import Agent, MemberSpec
 from alignrl.checkpoints import load_checkpoint
-from alignrl.config import ExperimentConfig, LearnerConfig, RunConfig, parse_experiment
+from alignrl.config.experiment import ExperimentConfig, parse_experiment
+from alignrl.config.learner import LearnerConfig
+from alignrl.config.run import RunConfig
 from alignrl.envs.alignment import aligner_spaces
 from alignrl.runs.state import config_of_checkpoint
 
@@ -64,7 +66,12 @@ def load_policy(path: str | Path, device: str = "cpu") -> tuple[Agent, Experimen
     agent = Agent(spec, device=device)
     saved = state["agent"]
     if saved.get("format") is None and "actor" in saved:  # alignrl-train-1: a bare SAC state
-        saved = {"format": "alignrl-member-1", "spec": spec.to_dict(), "learner": saved,
-                 "steps_seen": 0, "update_debt": 0.0}  # fmt: skip
+        saved = {
+            "format": "alignrl-member-1",
+            "spec": spec.to_dict(),
+            "learner": saved,
+            "steps_seen": 0,
+            "update_debt": 0.0,
+        }
     agent.load_state_dict(saved)
     return agent, config
