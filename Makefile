@@ -24,15 +24,16 @@ $(BENCH_STAMP): $(STAMP)
 	$(BIN)/pip install --quiet -e '.[dev,onnx,ray,bench]'
 	touch $(BENCH_STAMP)
 
-# The main job: the classical autofocus baselines on held-out scenarios, then a short league
-# of the default rosters (populations/) that ends with its leaderboard, its champion aligner
-# beside the same member untrained on the same held-out scenarios, and its report
-# (runs/make-run/league-make-run/report.md). Replaced on every `make run`.
+# The main job: the shipped champions beside the classical controllers on columns they never
+# trained on (`alignrl champions`: focus-v2 on the held-out instruments, the stigmation,
+# aperture and column champions on the second preset), then a short league of the default
+# rosters (populations/) that ends with its leaderboard, its champion aligner beside the same
+# member untrained and the classical controllers on the same held-out scenarios, and its
+# report (runs/make-run/league-make-run/report.md). Replaced on every `make run`.
 RUN_DIR := runs/make-run
 run: $(STAMP)
 	rm -rf $(RUN_DIR)
-	$(BIN)/alignrl baselines --apparatus csv:default \
-		--apparatus-args '{"noise": 0.02, "split": "test"}' --scenarios 50
+	$(BIN)/alignrl champions --scenarios 10
 	$(BIN)/alignrl league run experiments/league-make-run.yaml --runs-dir $(RUN_DIR)
 
 # The suite, slow tests included, on two workers; a test file stays on one worker

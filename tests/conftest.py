@@ -20,14 +20,8 @@ from typing import TYPE_CHECKING, Any
 import pytest
 import yaml
 
-from alignrl.memory import keep_freed_memory
-
 if TYPE_CHECKING:
     from alignrl.league.loop import League
-
-# As `alignrl` does at start: freed large arrays are reused, not faulted in again
-# (alignrl/memory.py). tests/test_memory.py checks both ways in processes of their own.
-keep_freed_memory()
 
 # A SAC and a PPO learner small enough to learn something in a few dozen env steps.
 SMALL_SAC = {

@@ -7,7 +7,6 @@ accepted are refused, exit 2, in one message naming what and where.
   ...): the key, the value and the bound; every shipped experiment and benchmark stays inside;
 * instrument family parameters of 1e300 (a family file, `--apparatus-args` of `family:` and
   `instrument:`): the parameter, the value, the physical range and the file or argument;
-* `ALIGNRL_MALLOC=potato`: the variable and the values it takes;
 * `python -m alignrl` run from the parent of a checkout folder named `alignrl`;
 * a held-out instrument copied into a training config with a parameter moved by 1e-7.
 
@@ -39,7 +38,6 @@ from alignrl.config_reading import (
 )
 from alignrl.league.config import MAX_ITERATIONS, MAX_MATCHES, load_league
 from alignrl.league.matchmaking import MAX_MEMBERS
-from alignrl.memory import without_malloc_choices
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -261,28 +259,18 @@ def test_a_family_file_beyond_the_physical_range_is_refused_naming_it(
     assert_refused(outcome, 2, str(path), "flat_fraction", "400 digits")
 
 
-# --- d. ALIGNRL_MALLOC ----------------------------------------------------------------------
-
-
 def _python(arguments: list[str], cwd: Path, **environment: str) -> subprocess.CompletedProcess:
     return subprocess.run(
         [sys.executable, *arguments],
         cwd=cwd,
-        env={**without_malloc_choices(os.environ), **environment},
+        env={**os.environ, **environment},
         capture_output=True,
         text=True,
         timeout=300,
     )
 
 
-def test_an_unknown_malloc_choice_is_refused_by_the_command(tmp_path: Path) -> None:
-    result = _python(["-m", "alignrl", "--version"], tmp_path, ALIGNRL_MALLOC="potato")
-    assert result.returncode == 2, result.stderr
-    assert "Traceback" not in result.stderr
-    assert "ALIGNRL_MALLOC='potato'" in result.stderr and "system" in result.stderr
-
-
-# --- e. python -m alignrl from a checkout's parent folder -------------------------------------
+# --- d. python -m alignrl from a checkout's parent folder -------------------------------------
 
 
 @pytest.mark.parametrize("folder", ["alignrl", "main"])

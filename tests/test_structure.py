@@ -29,7 +29,6 @@ LAYERS = {
     "alignrl.overlays": 0,
     "alignrl.intervals": 0,
     "alignrl.animation": 0,  # frames and GIFs of an alignment: numpy, matplotlib, Pillow
-    "alignrl.memory": 0,  # glibc's allocator tuned at start: freed arrays reused
     "alignrl.transitions": 0,  # the Transition record envs fill and learners store: numpy only
     "alignrl.apparatus": 1,
     "alignrl.posterior": 2,  # inference about a column from its readings (design.md)

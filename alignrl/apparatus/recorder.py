@@ -28,7 +28,6 @@ import numpy as np
 
 from alignrl.apparatus.base import Apparatus, ApparatusError, MeasurementError
 from alignrl.apparatus.scenarios import MIN_PAIRS, ScenarioRecord
-from alignrl.memory import keep_freed_memory
 
 __all__ = ["SweepPlan", "scenario_seed", "sweep", "sweep_plan"]
 
@@ -185,7 +184,6 @@ _worker_state: dict[str, Any] = {}
 
 
 def _worker_init(factory: Callable[[], Apparatus], plan: SweepPlan, base_seed: int) -> None:
-    keep_freed_memory()  # a spawned process, as `alignrl` itself (alignrl/memory.py)
     _worker_state.update(apparatus=factory(), plan=plan, base_seed=base_seed)
 
 

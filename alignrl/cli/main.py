@@ -14,6 +14,7 @@ from alignrl import __version__
 from alignrl.apparatus.base import ApparatusError
 from alignrl.apparatus.shield import DriverFailure, ShieldStop
 from alignrl.cli.calibrate import add_calibrate_parser
+from alignrl.cli.champions import add_champions_parser
 from alignrl.cli.common import (
     EXIT_DRIVER_FAILURE,
     EXIT_INTERNAL,
@@ -29,7 +30,6 @@ from alignrl.cli.parsing import CommandParser
 from alignrl.cli.record import add_record_parsers
 from alignrl.cli.sessions import add_session_parsers
 from alignrl.cli.training import add_training_parsers
-from alignrl.memory import keep_freed_memory
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -43,6 +43,7 @@ def build_parser() -> argparse.ArgumentParser:
     verbs = parser.add_subparsers(dest="verb", required=True, metavar="VERB")
     add_record_parsers(verbs)  # record, scenarios validate
     add_session_parsers(verbs)  # evaluate, baselines
+    add_champions_parser(verbs)  # champions
     add_training_parsers(verbs)  # train, adapt, report
     add_league_parsers(verbs)  # league run|resume|status, leaderboard
     add_deploy_parsers(verbs)  # align, export
@@ -55,11 +56,6 @@ def _terminated(signum: int, frame: object) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    try:
-        keep_freed_memory()  # large arrays freed at every step are reused (alignrl/memory.py)
-    except ValueError as error:  # ALIGNRL_MALLOC set to a value it does not take
-        print(f"alignrl: error: {error}", file=sys.stderr)
-        return EXIT_USAGE
     parser = build_parser()
     args = parser.parse_args(argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)  # recorded in a run's config

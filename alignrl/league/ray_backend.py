@@ -67,7 +67,6 @@ from alignrl.league.matches import (
     make_duel,
     record_matches,
 )
-from alignrl.memory import keep_freed_memory
 from alignrl.transitions import Transition
 
 __all__ = ["MatchWorker", "RayBackend", "split_matches"]
@@ -106,7 +105,6 @@ class MatchWorker:
         anchors: tuple[str, ...] = (),
     ) -> None:
         torch.set_num_threads(threads)
-        keep_freed_memory()  # a Ray worker is a process of its own
         self.index, self.apparatus = index, apparatus
         units = make_apparatus_copies(apparatus, apparatus_args, envs)
         self.episodes = AlignmentEpisodes(units, task, history)

@@ -1,0 +1,207 @@
+"""`alignrl champions`: the shipped champions beside the classical controllers, each on
+instruments it never trained on, measured now (the first part of `make run`).
+
+* focus: `champion:focus-v2` on every instrument of the held-out set (docs/physics.md,
+  "Instrument sets"), beside the hyperbola fit and golden-section on the same columns from
+  the same starts; its figures calibrated on each column (`alignrl calibrate`, minutes a
+  column) are the recorded ones, named as such;
+* stigmation, aperture and the whole column: their champions on `synthetic-b`, the second
+  preset (they trained on `synthetic`), beside the task's classical controllers: today's
+  figures, good or not.
+
+Readings are analytic (computed from the probe, no images) so that the whole comparison
+takes about a minute on two cores; `alignrl evaluate --set heldout` without `--analytic`
+runs the same on images.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from alignrl.cli.common import _emit
+from alignrl.cli.sessions import _progress, _trained_controller
+
+# Where a champion of each task is shown beside the classical controllers
+HELD_OUT_SET = "heldout"
+FOCUS = "champion:focus-v2"
+FOCUS_CLASSICAL = ("hyperbola", "golden-section")
+SECOND_PRESET = "synthetic-b"
+COLUMN_STAGES = (
+    "champion:column-focus-aperture-v1",
+    "champion:column-focus-aperture-v1",
+    "champion:column-focus-stigmation-v1",
+    "champion:column-focus-stigmation-v1",
+    "champion:column-focus-stigmation-v1",
+)
+COLUMN_NAME = "column-*-v1 (A A S S S)"  # the stages: focus-aperture twice, then -stigmation
+# task -> the champion's stages (one, or the column's sequence)
+ON_THE_SECOND_PRESET = {
+    "stigmation": ("champion:stigmation-v1",),
+    "aperture": ("champion:aperture-v1",),
+    "column": COLUMN_STAGES,
+}
+# Recorded, not measured here: a calibration takes minutes a column (docs/benchmarks.md,
+# "focus-v2 calibrated on the microscope")
+CALIBRATED = (
+    "focus-v2 calibrated on ten alignments of each held-out column (alignrl calibrate; "
+    "minutes a column, not run here): 699/700 on images at medians of 2 to 4 acquisitions "
+    "(docs/benchmarks.md)"
+)
+
+
+@dataclass(frozen=True)
+class Showcase:
+    """What `champions` measured: the focus set's results (champion first, then the
+    classical controllers), and per task on the second preset its sessions."""
+
+    focus: Sequence[Any]
+    tasks: dict[str, Sequence[Any]]
+
+
+def _controllers(policies: Sequence[str]) -> Any:
+    """The champion (or the column's stages in sequence), each stage named by its
+    champion's name, not its member's."""
+    from alignrl.evaluation.controllers import SequenceController
+
+    stages = tuple(
+        dataclasses.replace(_trained_controller(policy), name=policy.removeprefix("champion:"))
+        for policy in policies
+    )
+    if len(stages) == 1:
+        return stages[0]
+
+    @dataclasses.dataclass
+    class Column(SequenceController):
+        @property
+        def name(self) -> str:
+            return COLUMN_NAME
+
+    return Column(stages)
+
+
+def measure(scenarios: int, seed: int, bar: Any) -> Showcase:
+    """Every session of the module docstring, `scenarios` alignments each (per instrument
+    of the held-out set), at `seed`; `bar` counts the alignments."""
+    from alignrl.apparatus.instruments import instrument_names
+    from alignrl.apparatus.registry import make_apparatus
+    from alignrl.envs.task import get_task
+    from alignrl.evaluation.baselines import CLASSICAL, task_baselines
+    from alignrl.evaluation.instrument_sets import run_set
+    from alignrl.evaluation.session import run_session
+
+    focus_task = get_task("focus")
+    focus = [_controllers((FOCUS,)), *(CLASSICAL[name]() for name in FOCUS_CLASSICAL)]
+    count = len(instrument_names(HELD_OUT_SET))
+    sets = []
+    for controller in focus:
+        bar.set_description(f"{controller.name} on set:{HELD_OUT_SET} ({count} instruments)")
+        sets.append(
+            run_set(
+                controller,
+                HELD_OUT_SET,
+                focus_task,
+                scenarios=scenarios,
+                seed=seed,
+                analytic=True,
+                on_scenario=lambda _result: bar.update(1),
+            )
+        )
+    tasks = {}
+    for name, policies in ON_THE_SECOND_PRESET.items():
+        task = get_task(name)
+        controllers = [_controllers(policies), *(make() for make in task_baselines(name).values())]
+        sessions = []
+        for controller in controllers:
+            bar.set_description(f"{controller.name} ({name}) on {SECOND_PRESET}")
+            apparatus = make_apparatus(SECOND_PRESET, {"analytic": True})
+            sessions.append(
+                run_session(
+                    controller,
+                    apparatus,
+                    task,
+                    scenarios=scenarios,
+                    seed=seed,
+                    on_scenario=lambda _result: bar.update(1),
+                )
+            )
+        tasks[name] = sessions
+    return Showcase(tuple(sets), tasks)
+
+
+def alignments(scenarios: int) -> int:
+    """How many alignments `measure` runs."""
+    from alignrl.apparatus.instruments import instrument_names
+    from alignrl.evaluation.baselines import task_baselines
+
+    focus = scenarios * len(instrument_names(HELD_OUT_SET)) * (1 + len(FOCUS_CLASSICAL))
+    others = sum(1 + len(task_baselines(name)) for name in ON_THE_SECOND_PRESET)
+    return focus + scenarios * others
+
+
+def cmd_champions(args: argparse.Namespace) -> int:
+    from alignrl.evaluation import instrument_sets as sets
+    from alignrl.evaluation import report
+
+    if not 1 <= args.scenarios <= 1000:
+        raise ValueError(f"--scenarios must be in 1-1000, got {args.scenarios}")
+    bar = _progress(args, alignments(args.scenarios))
+    try:
+        shown = measure(args.scenarios, args.seed, bar)
+    except KeyboardInterrupt:
+        bar.close()
+        return 130
+    bar.close()
+    first = shown.focus[0]
+    lines = [
+        "the shipped champions beside the classical controllers, on columns no training run "
+        f"saw (analytic readings, seed {args.seed})",
+        "",
+        f"focus {sets.set_heading(first)}:",
+        "",
+        *sets.set_table(shown.focus),
+        "",
+        *(sets.set_summary(result) for result in shown.focus),
+        CALIBRATED,
+    ]
+    payload: dict[str, Any] = {
+        "seed": args.seed,
+        "scenarios": args.scenarios,
+        "focus": {result.controller: result.to_dict("test") for result in shown.focus},
+        "calibrated": CALIBRATED,
+    }
+    for name, sessions in shown.tasks.items():
+        lines += ["", f"{name} on {SECOND_PRESET}, the second preset (the champion trained on"]
+        lines += [f"synthetic), {args.scenarios} alignments, seed {args.seed}:", ""]
+        lines += [*report.summary_table(sessions), *report.session_notes(sessions)]
+        payload[name] = {
+            result.controller: report.session_summary(result, SECOND_PRESET, "test")
+            for result in sessions
+        }
+    _emit(payload, args.json, lines)
+    return 0
+
+
+def add_champions_parser(verbs: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    parser = verbs.add_parser(
+        "champions",
+        help="the shipped champions beside the classical controllers, on columns never trained on",
+        description="The shipped champions beside the classical controllers, each on columns "
+        "it never trained on, measured now: focus-v2 on every held-out instrument beside the "
+        "hyperbola fit and golden-section; the stigmation, aperture and column champions on "
+        "synthetic-b, the second preset, beside their tasks' classical controllers. Analytic "
+        "readings (no images); the first part of `make run`.",
+    )
+    parser.add_argument(
+        "--scenarios",
+        type=int,
+        default=10,
+        help="alignments per held-out instrument and per session on the second preset (default 10)",
+    )
+    parser.add_argument("--seed", type=int, default=0, help="the sessions' seed (default 0)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    parser.add_argument("--json", action="store_true", help="machine-readable summary")
+    parser.set_defaults(handler=cmd_champions)

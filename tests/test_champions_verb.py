@@ -1,0 +1,62 @@
+"""`alignrl champions` (make run's first part): every shipped champion beside its task's
+classical controllers, on the same columns from the same starts, none of them a column the
+champion trained on."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+
+import pytest
+
+from alignrl.apparatus.instruments import instrument_names
+from alignrl.cli.champions import COLUMN_NAME, FOCUS_CLASSICAL, HELD_OUT_SET, alignments
+from alignrl.cli.main import main
+from alignrl.evaluation.baselines import task_baselines
+
+
+@pytest.fixture(scope="module")
+def shown() -> tuple[dict, str]:
+    """The verb's JSON and its text, one alignment per column."""
+    found = []
+    for extra in (["--json"], []):
+        out = io.StringIO()
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(io.StringIO()):
+            assert main(["champions", "--scenarios", "1", "--seed", "4", "--quiet", *extra]) == 0
+        found.append(out.getvalue())
+    return json.loads(found[0]), found[1]
+
+
+def test_focus_v2_and_the_classical_fits_align_the_same_held_out_columns(shown) -> None:
+    payload, text = shown
+    focus = payload["focus"]
+    assert sorted(focus) == sorted(["focus-v2", *FOCUS_CLASSICAL])  # JSON keys sorted
+    instruments = list(instrument_names(HELD_OUT_SET))
+    for result in focus.values():
+        assert result["set"] == HELD_OUT_SET and result["seed"] == 4
+        assert [row["instrument"] for row in result["instruments"]] == instruments
+        assert result["total"]["alignments"] == len(instruments)
+    assert "| **total** " in text and "focus-v2 calibrated on ten alignments" in text
+    assert "not run here" in payload["calibrated"]
+
+
+def test_every_other_task_shows_its_champion_then_its_classical_controllers(shown) -> None:
+    payload, text = shown
+    for task, champion in (
+        ("stigmation", "stigmation-v1"),
+        ("aperture", "aperture-v1"),
+        ("column", COLUMN_NAME),
+    ):
+        sessions = payload[task]
+        assert sorted(sessions) == sorted([champion, *task_baselines(task)])
+        assert all(session["apparatus"] == "synthetic-b" for session in sessions.values())
+        assert f"{task} on synthetic-b, the second preset" in text
+    focus = len(instrument_names(HELD_OUT_SET)) * (1 + len(FOCUS_CLASSICAL))
+    others = sum(1 + len(task_baselines(task)) for task in ("stigmation", "aperture", "column"))
+    assert alignments(1) == focus + others  # what the progress bar counts
+
+
+def test_a_scenario_count_out_of_range_is_refused(capsys) -> None:
+    assert main(["champions", "--scenarios", "0", "--quiet"]) == 2
+    assert "--scenarios must be in 1-1000" in capsys.readouterr().err
