@@ -79,6 +79,9 @@ def test_a_tiny_league_rates_snapshots_copies_and_keeps_the_best(tmp_path: Path)
     )
     copies = {row["member"] for row in lineage}
     assert copies & set(league.members)  # the copies play on as members
+    # PBT every 4 iterations of 8: a copy at 4, none at the last, where no training follows
+    # and a copy would only duplicate its parent in the weakest's place
+    assert {int(row["iteration"]) for row in lineage} == {4}
     best = json.loads((run / "best" / "best.json").read_text())
     assert best and all((run / "best" / f"{row['member']}.pt").exists() for row in best)
     assert (run / "checkpoints" / "LATEST").read_text().strip() == "iteration-000008"

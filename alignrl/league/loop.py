@@ -562,7 +562,9 @@ class League:
             it, last = self.iteration, self.finished()
             if it % schedule.snapshot_every == 0:
                 self.snapshot()
-            if self.config.pbt.enabled and it % schedule.pbt_every == 0:
+            # No copy at the last iteration: no training follows, and a copy would only
+            # duplicate its parent (same weights, same rating) in the weakest's place.
+            if self.config.pbt.enabled and it % schedule.pbt_every == 0 and not last:
                 for change in self.exploit_and_explore():
                     if log:
                         log(
