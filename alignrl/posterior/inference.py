@@ -50,19 +50,38 @@ Three parts of alignrl ask it: the Bayesian autofocus (alignrl/evaluation/poster
 posterior`), the teacher of cloned aligners (benchmarks/imitation.py), and an episode's end
 (Task.finish_at_posterior, alignrl/envs/ending.py: a trained aligner's probes, ended where
 the posterior over the training box puts the best setting).
+
+What it costs (issue 61, item 4; `python -m benchmarks.posterior_cost`): every reading is
+weighed on every state ((K, Z, N): 1,024 columns x 1,836 optimum points for champion:focus-v2)
+and again, with every reading so far, where the columns are drawn again. The numbers are the
+plain formulas' (ColumnModels.reading, ScaleSums) bit for bit, computed a chunk of columns at
+a time (CHUNK_STATES) in buffers kept near the processor (`reading_into`, `scratch`), into
+two posterior buffers each instance owns (PosteriorBuffers; a copy makes its own); the
+first draw of columns and the prior are made once per process (`first_draw`, read-only),
+and the states that still count found once per reading for the stop and the probe alike.
 """
 
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.special import ndtr
 
 from alignrl.apparatus.family_box import FocusFamily
-from alignrl.posterior.models import FLAT_DECADES, ColumnModels, narrowest_spec
+from alignrl.posterior.models import (
+    FLAT_DECADES,
+    ColumnModels,
+    ReadingConstants,
+    first_draw,
+    narrowest_spec,
+    reading_into,
+    reading_work,
+)
 from alignrl.posterior.scale_sums import ScaleSums
+from alignrl.posterior.scoring import StateReadings, expected_entropy, outcome_chances
+from alignrl.posterior.workspace import PosteriorBuffers, read_only, remembered, scratch
 
 __all__ = ["PROBE_RULES", "SCALE_FREE", "SCORED_STATES", "STOP_STATES", "FamilyPosterior"]
 
@@ -77,13 +96,21 @@ STOP_SETTINGS = 81  # final settings a stop chooses among
 # Where a reading's approach is unknown, the branches of the backlash it may lie on (x the
 # lag): from below, from above, and the middle (a column left between them)
 BRANCHES = (1.0, -1.0, 0.0)
+# States weighed at a time (whole columns, at least one): a dozen buffers of this many numbers
+# stay near a core (its 1 MiB of L2 and the L3 on the 2-core machine this was measured on)
+CHUNK_STATES = 16384
+_priors: OrderedDict = OrderedDict()  # grids and priors, made once (`remembered`)
 
 
 def _systematic(weights: np.ndarray, draws: int, offset: float) -> np.ndarray:
     """Indices of `draws` systematic picks from `weights`, the first at `offset` (in [0, 1))
     of a pick's share."""
-    edges = np.cumsum(weights / weights.sum())
-    return np.minimum(np.searchsorted(edges, (np.arange(draws) + offset) / draws), weights.size - 1)
+    return _picks(np.cumsum(weights / weights.sum()), draws, offset)
+
+
+def _picks(edges: np.ndarray, draws: int, offset: float) -> np.ndarray:
+    """`_systematic` given the cumulative shares `edges`."""
+    return np.minimum(np.searchsorted(edges, (np.arange(draws) + offset) / draws), edges.size - 1)
 
 
 def _quantiles(u: np.ndarray, weight: np.ndarray, shares: list[float]) -> np.ndarray:
@@ -159,26 +186,46 @@ class FamilyPosterior:
             raise ValueError(f"probe_rule must be one of {PROBE_RULES}, got {self.probe_rule!r}")
         if not (math.isfinite(self.flat_decades) and self.flat_decades >= 0.0):
             raise ValueError(f"flat_decades must be finite and >= 0, got {self.flat_decades}")
-        self.models = ColumnModels.of(
-            self.family, self.draws, self.seed, self.model_noise, self.far_noise,
-            self.flat_decades,
-        )  # fmt: skip
+        drawn = (self.draws, self.seed, self.model_noise, self.far_noise, self.flat_decades)
+        self.models = first_draw(self.family, *drawn)
         self._initial = self.models
+        nodes, _ = np.polynomial.hermite_e.hermegauss(self.specimen_points)
+        self._scale_nodes = nodes[None, :, None]  # (1, Z, 1), x specimen_rel: the log scale
+        shaped = (self.spec_relative, self.optimum_prior, self.specimen_points)
+        key = (self.family.model_dump_json(), *drawn, *shaped)
+        self._grid, self._spacing, self._prior = remembered(_priors, key, self._grid_and_prior)
+        self._scale: ScaleSums | None = None
+        self._version = 0  # one more at every change of the posterior (what `_memo` keeps)
+
+    def _grid_and_prior(self) -> tuple[np.ndarray, float, np.ndarray]:
+        """The optimum's grid (N,), its spacing, and the prior (K, Z, N): flat over the
+        optimum's range, the specimen's scale as Gauss-Hermite weighs it (read-only)."""
         low, high = self.family.optimum_fraction if self.optimum_prior == "box" else (0.0, 1.0)
-        spacing = float(min(self.models.spec_half_width(self.spec_relative).min(),
-                            narrowest_spec(self.family, self.spec_relative)))  # fmt: skip
+        spacing = float(
+            min(
+                self.models.spec_half_width(self.spec_relative).min(),
+                narrowest_spec(self.family, self.spec_relative),
+            )
+        )
         spacing /= GRID_POINTS_PER_WINDOW
         spacing = max(spacing, (high - low + 0.1) / MAX_GRID)
         pad = 0.05 + 3.0 * spacing
-        self._grid = np.arange(low - pad, high + pad + spacing / 2, spacing)
-        self._spacing = spacing
-        nodes, weights = np.polynomial.hermite_e.hermegauss(self.specimen_points)
-        self._scale_nodes = nodes[None, :, None]  # (1, Z, 1), x specimen_rel: the log scale
-        prior_u = ((self._grid >= low) & (self._grid <= high)).astype(float)
+        grid = np.arange(low - pad, high + pad + spacing / 2, spacing)
+        _, weights = np.polynomial.hermite_e.hermegauss(self.specimen_points)
+        prior_u = ((grid >= low) & (grid <= high)).astype(float)
         prior = (weights / weights.sum())[None, :, None] * prior_u[None, None, :]
-        self._prior = np.broadcast_to(prior, (self.models.count, *prior.shape[1:])).copy()
-        self._prior /= self._prior.sum()
-        self._scale: ScaleSums | None = None
+        prior = np.broadcast_to(prior, (self.models.count, *prior.shape[1:])).copy()
+        prior /= prior.sum()
+        read_only(grid, prior)
+        return grid, spacing, prior
+
+    def __getstate__(self) -> dict:
+        """A copy (copy.copy, pickle) takes the state but not the buffers: it makes its own
+        (`_own`) before it writes, and keeps nothing of this one's `_memo`."""
+        state = self.__dict__.copy()
+        state.pop("_owned", None)
+        state.pop("_cache", None)
+        return state
 
     # --- one reading at a time -------------------------------------------------------------
 
@@ -186,10 +233,13 @@ class FamilyPosterior:
         """Forget every reading: a new alignment starts from the prior."""
         self.models = self._initial
         self._rng = np.random.default_rng(self.seed)
-        self._posterior = self._prior.copy()
+        owned = self._own()
+        self._posterior = owned.posteriors[0]
+        np.copyto(self._posterior, self._prior)
         self._readings: list[tuple[float, float, float]] = []
-        self._scale = ScaleSums.empty(self._prior.shape) if self.scale_free else None
+        self._scale = self._fresh_scale() if self.scale_free else None
         self.log_evidence = np.zeros(self.models.count)
+        self._version += 1
 
     def use_columns(self, rows: np.ndarray, far_noise: np.ndarray | None = None) -> None:
         """Weigh the columns at `rows` (K, len(PAIR_FIELDS)) of fractions of the box, equally
@@ -199,6 +249,7 @@ class FamilyPosterior:
         self._initial = ColumnModels.at(self.family, rows, self.model_noise, far)
         self._prior = np.broadcast_to(self._prior[:1], (len(rows), *self._prior.shape[1:])).copy()
         self._prior /= self._prior.sum()
+        self._version += 1
 
     def observe(self, setting: float, reading: float, side: float = 1.0) -> None:
         """A reading (px; NaN: no edges) taken at `setting`, a fraction of the interval,
@@ -206,13 +257,15 @@ class FamilyPosterior:
         from above, 0 unknown (a column as it was found, anywhere within its backlash: read
         as the mixture of both branches and their middle, BRANCHES)."""
         self._readings.append((float(setting), float(reading), float(side)))
-        posterior = self._posterior * self._likelihood(*self._readings[-1])
+        self._own(keep=True)
+        posterior = self._weigh(self._posterior, *self._readings[-1])
         if self.columns_apart:
             posterior = self._weighed_apart(posterior)
         posterior = self._drifted(posterior)
         if self._renewable(posterior):
             posterior = self._renew(posterior, self._readings, self._rng)
         self._posterior = posterior
+        self._version += 1
 
     def decide(self) -> tuple[float, bool]:
         """(setting, done): where to take the next reading, or, done, the setting most likely
@@ -231,6 +284,31 @@ class FamilyPosterior:
         `relative_stop`, as a share of the chance at the optimum itself)."""
         return self._final(self._posterior)
 
+    # --- the buffers ----------------------------------------------------------------------
+
+    def _own(self, keep: bool = False) -> PosteriorBuffers:
+        """This instance's buffers, made where it has none (new, or a copy of another: with
+        `keep`, the posterior and the scale's sums copied into them)."""
+        owned = self.__dict__.get("_owned")
+        shape = self._posterior.shape if keep else self._prior.shape
+        if owned is not None and owned.posteriors[0].shape == shape:
+            return owned
+        owned = self._owned = PosteriorBuffers.make(shape, self.scale_free)
+        if keep:
+            self._posterior = owned.holding(self._posterior)
+            if self._scale is not None and owned.sums is not None:
+                sums = (self._scale.sum0, self._scale.sum1)
+                self._scale = ScaleSums(*owned.holding_sums(*sums), self._scale.readings)
+        return owned
+
+    def _fresh_scale(self) -> ScaleSums:
+        """ScaleSums.empty in this instance's buffers."""
+        return ScaleSums(*self._owned.holding_sums(0.0, 0.0))
+
+    def _memo(self) -> dict:
+        """What is kept of the present posterior (`_version`) and its states."""
+        return self.__dict__.setdefault("_cache", {})
+
     # --- the model ------------------------------------------------------------------------
 
     def _errors(
@@ -243,7 +321,8 @@ class FamilyPosterior:
     def _likelihood(self, setting: float, reading: float, side: float = 1.0) -> np.ndarray:
         """Per state, the chance of `reading` (px; NaN: no edges) at `setting` approached
         from `side` (0: unknown, _on_branches); scale_free, given the readings before it,
-        which it then joins."""
+        which it then joins. The plain formulas, whole arrays at a time: `_weigh` computes
+        the same numbers chunk by chunk (side 0: with these)."""
         if side == 0.0:
             return self._on_branches(setting, reading)
         return self._on_branch(setting, reading, side)
@@ -256,8 +335,10 @@ class FamilyPosterior:
             chances = [self._on_branch(setting, reading, branch) for branch in BRANCHES]
             return sum(chances) / len(BRANCHES)
         scales = self.models.specimen_rel * self._scale_nodes
-        branches = [self.models.reading(self._errors(setting, self._grid, branch), scales)
-                    for branch in BRANCHES]  # fmt: skip
+        branches = [
+            self.models.reading(self._errors(setting, self._grid, branch), scales)
+            for branch in BRANCHES
+        ]
         if not math.isfinite(reading):
             return sum(none for none, _, _ in branches) / len(BRANCHES)
         return self._scale.add_either(
@@ -281,38 +362,94 @@ class FamilyPosterior:
         density = np.exp(-0.5 * ((reading - mean) / spread) ** 2) / spread
         return (1.0 - none) * density
 
+    def _chunks(self) -> list[tuple[slice, ReadingConstants]]:
+        """The columns a few at a time (CHUNK_STATES states), with their reading constants."""
+        _, specimens, points = self._prior.shape
+        return self.models.chunks(max(1, CHUNK_STATES // (specimens * points)))
+
+    def _weigh(self, posterior: np.ndarray, setting: float, reading: float, side: float):
+        """`posterior` x the _likelihood of a reading, into the other posterior buffer: the
+        same numbers as the plain formulas, a chunk of columns at a time (module docstring);
+        scale_free, the reading joins the scale's sums."""
+        weighed = self._owned.other(posterior)
+        if side == 0.0:  # an alignment's first reading at most: the plain formulas
+            return np.multiply(posterior, self._on_branches(setting, reading), out=weighed)
+        start = np.asarray(setting)[..., None, None, None] - side * self.models.lag
+        factor = np.exp(self.models.specimen_rel * self._scale_nodes)  # (K, Z, 1)
+        if factor.shape[1] == 1 and np.all(factor == 1.0):
+            factor = None  # x 1: the same numbers
+        scale, measured = self._scale, math.isfinite(reading)
+        chunks = self._chunks()
+        size = chunks[0][0].stop  # columns in a chunk (the last may hold fewer)
+        shape, states = (size, 1, self._grid.size), (size, *posterior.shape[1:])
+        buffers = [*reading_work(shape, states, extra=3), scratch("error", shape)]
+        for rows, constants in chunks:
+            count = rows.stop - rows.start
+            work = buffers if count == size else [buffer[:count] for buffer in buffers]
+            error = np.subtract(start[rows], self._grid, out=work[9])
+            none, mean, spread = reading_into(
+                constants, error, None if factor is None else factor[rows], work
+            )
+            if not measured:
+                chance = none
+            elif scale is not None:
+                residual = np.subtract(math.log(reading), np.log(mean, out=work[6]), out=work[6])
+                variance = np.square(np.divide(spread, mean, out=spread), out=spread)
+                density = scale.predictive_into(rows, residual, variance, [work[5], work[7]])
+                scale.add_into(rows, residual, variance, work[8])
+                chance = np.subtract(1.0, none, out=none)
+                if density is not None:
+                    chance = np.multiply(chance, density, out=density)
+            else:
+                density = np.divide(np.subtract(reading, mean, out=work[6]), spread, out=work[6])
+                np.square(density, out=density)
+                np.multiply(-0.5, density, out=density)
+                np.exp(density, out=density)
+                np.divide(density, spread, out=density)
+                chance = np.multiply(np.subtract(1.0, none, out=none), density, out=density)
+            np.multiply(posterior[rows], chance, out=weighed[rows])
+        if measured and scale is not None:
+            scale.counted()
+        return weighed
+
     def _weighed_apart(self, posterior: np.ndarray) -> np.ndarray:
         """`columns_apart`: each column's chance of the reading joins its `log_evidence`, and
         each column holds its own share again (a column that ruled its every state out
-        starts from the prior; its evidence says how unlikely it is)."""
+        starts from the prior; its evidence says how unlikely it is). In place."""
         totals = posterior.sum(axis=(1, 2))
         # each column held 1 / K of the weight before the reading: its own chance is K x
         self.log_evidence += np.log(np.maximum(totals, 1e-300)) + math.log(self.models.count)
         kept = (totals > 0)[:, None, None]
-        posterior = posterior / np.where(kept, totals[:, None, None], 1.0)
+        np.divide(posterior, np.where(kept, totals[:, None, None], 1.0), out=posterior)
         if not kept.all():
-            posterior = np.where(kept, posterior, self._prior * self.models.count)
+            np.copyto(posterior, self._prior * self.models.count, where=~kept)
         return posterior
 
     def _drifted(self, posterior: np.ndarray) -> np.ndarray:
         """The posterior normalised, then each column's optimum blurred by its drift over
         one acquisition: passes of a three-point kernel whose variances add up to the
-        drift's (in grid steps squared)."""
+        drift's (in grid steps squared). In place, a chunk of columns at a time."""
         total = posterior.sum()
         if not total > 0:  # every state ruled out: the model is wrong here; start again
-            return self._prior.copy()
-        posterior = posterior / total
+            np.copyto(posterior, self._prior)
+            return posterior
         variance = (self.models.drift / self._spacing) ** 2  # (K, 1, 1)
         passes = math.ceil(float(variance.max()))  # at most 1 grid step squared per pass
         if variance.max() < 0.01:
-            return posterior
+            return np.divide(posterior, total, out=posterior)
         share = 0.5 * variance / passes  # to each neighbour, per pass
-        spread = np.empty_like(posterior)  # each grid point's two neighbours, summed
-        for _ in range(passes):
-            np.add(posterior[..., :-2], posterior[..., 2:], out=spread[..., 1:-1])
-            spread[..., 0], spread[..., -1] = posterior[..., 1], posterior[..., -2]
-            posterior = (1.0 - 2.0 * share) * posterior + np.multiply(share, spread, out=spread)
-        return posterior / posterior.sum()
+        keep = 1.0 - 2.0 * share
+        chunks = self._chunks()
+        neighbours = scratch("spread", posterior[chunks[0][0]].shape)  # two, summed
+        for rows, _ in chunks:
+            part = np.divide(posterior[rows], total, out=posterior[rows])
+            spread = neighbours[: rows.stop - rows.start]
+            for _ in range(passes):
+                np.add(part[..., :-2], part[..., 2:], out=spread[..., 1:-1])
+                spread[..., 0], spread[..., -1] = part[..., 1], part[..., -2]
+                np.multiply(share[rows], spread, out=spread)
+                np.add(np.multiply(keep[rows], part, out=part), spread, out=part)
+        return np.divide(posterior, posterior.sum(), out=posterior)
 
     def _renewable(self, posterior: np.ndarray) -> bool:
         """Whether the columns' weights have collapsed onto a few (module docstring)."""
@@ -322,55 +459,79 @@ class FamilyPosterior:
         return 1.0 / float(np.sum(weights**2)) < self.renew_below * self.models.count
 
     def _renew(
-        self, posterior: np.ndarray, readings: list[tuple[float, float]], rng: np.random.Generator
+        self, posterior: np.ndarray, readings: list[tuple[float, ...]], rng: np.random.Generator
     ) -> np.ndarray:
-        """Columns drawn again around the likely ones, every reading weighed on them."""
+        """Columns drawn again around the likely ones, every reading weighed on them (in
+        this instance's buffers, `posterior` one of them)."""
         picks = _systematic(posterior.sum(axis=(1, 2)), self.models.count, rng.random())
         rows = self.models.rows[picks] + self.jitter * rng.standard_normal(
             self.models.rows[picks].shape
         )
         self.models = ColumnModels.at(
-            self.family, np.clip(rows, 0.0, 1.0), self.model_noise, self.far_noise,
+            self.family,
+            np.clip(rows, 0.0, 1.0),
+            self.model_noise,
+            self.far_noise,
             self.flat_decades,
-        )  # fmt: skip
-        posterior = self._prior.copy()
+        )
+        np.copyto(posterior, self._prior)
         if self._scale is not None:
-            self._scale = ScaleSums.empty(self._prior.shape)
+            self._scale = self._fresh_scale()
         for reading in readings:
-            posterior = self._drifted(posterior * self._likelihood(*reading))
+            posterior = self._drifted(self._weigh(posterior, *reading))
         return posterior
 
-    def _live(self, posterior: np.ndarray) -> tuple[np.ndarray, ...]:
-        """Indices (k, z, n) and weights of the states that still count."""
-        k, z, n = np.nonzero(posterior > LIVE * posterior.max())
-        return k, z, n, posterior[k, z, n]
+    # --- the states that count, and what the next reading would tell -----------------------
+
+    def _live_states(self, posterior: np.ndarray) -> tuple[np.ndarray, np.ndarray, list]:
+        """The flat indices (C order) and weights of the states that still count, and a list
+        that holds their cumulative shares once `_scored` asks: found once per posterior
+        (`_memo`) for the stop and the probe alike."""
+        key = (self._version, id(posterior))
+        memo = self._memo() if posterior is self.__dict__.get("_posterior") else {}
+        if memo.get("live", (None,))[0] != key:
+            flat = np.flatnonzero(posterior > LIVE * posterior.max())
+            memo["live"] = (key, (flat, posterior.reshape(-1)[flat], []))
+        return memo["live"][1]
 
     def _scored(self, posterior: np.ndarray, most: int) -> tuple[np.ndarray, ...]:
         """The live states and their weights, systematically resampled to at most `most`."""
-        k, z, n, weight = self._live(posterior)
-        if k.size > most:
-            picks = _systematic(weight, most, 0.5)
-            k, z, n = k[picks], z[picks], n[picks]
+        flat, weight, edges = self._live_states(posterior)
+        if flat.size > most:
+            if not edges:
+                edges.append(np.cumsum(weight / weight.sum()))
+            flat = flat[_picks(edges[0], most, 0.5)]
             weight = np.full(most, 1.0 / most)
-        return k, z, n, weight / weight.sum()
+        return (*np.unravel_index(flat, posterior.shape), weight / weight.sum())
+
+    def _states(self, k: np.ndarray, z: np.ndarray, n: np.ndarray) -> StateReadings:
+        """The reading model of states (k, z, n), gathered once for those arrays (`_memo`:
+        the stop's chunks, the probe's)."""
+        memo = self._memo().get("states", (None,) * 5)
+        if all(
+            mine is theirs for mine, theirs in zip(memo[:4], (k, z, n, self.models), strict=True)
+        ):
+            return memo[4]
+        states = StateReadings.of(
+            self.models, k, self._grid[n], self._scale_nodes[0, z, 0], self.spec_relative
+        )
+        self._memo()["states"] = (k, z, n, self.models, states)
+        return states
 
     def _state_reading(
-        self, settings: np.ndarray, k: np.ndarray, z: np.ndarray, n: np.ndarray,
+        self,
+        settings: np.ndarray | None,
+        k: np.ndarray,
+        z: np.ndarray,
+        n: np.ndarray,
         scaled: bool = False,
-    ):  # fmt: skip
+    ) -> tuple[np.ndarray, ...]:
         """The reading model at `settings` (M,) for states (S,): arrays (M, S), or (1, S) at
         each state's optimum (`settings` None); `scaled` (scale_free): in the pixels of the
-        readings so far, as each state's scale puts them."""
-        models = self.models.picked(k)
-        error = np.zeros((1, k.size))  # settings None: each state's own optimum
-        if settings is not None:
-            error = settings[:, None] - models.lag[None, :] - self._grid[n][None, :]
-        none, mean, spread = models.reading(error, models.specimen_rel * self._scale_nodes[0, z, 0])
-        if scaled and self._scale is not None:
-            shift, variance = self._scale.estimate(k, z, n)
-            spread = mean * np.sqrt((spread / mean) ** 2 + variance) * np.exp(shift)
-            mean = mean * np.exp(shift)
-        return none, mean, spread
+        readings so far, as each state's scale puts them. Buffers the next call overwrites."""
+        scaled = scaled and self._scale is not None
+        shift = self._scale.estimate(k, z, n) if scaled else None
+        return self._states(k, z, n).reading(settings, shift)
 
     def _candidates(self, u: np.ndarray, weight: np.ndarray, lag: float) -> np.ndarray:
         """Settings a probe may go to: a grid over the interval, and around the quantiles
@@ -400,23 +561,17 @@ class FamilyPosterior:
             k, z, n, weight, u = k[order], z[order], n[order], weight[order], u[order]
             cells = np.flatnonzero(np.diff(n, prepend=-1))
         if self.probe_rule == "chance":  # the final settings after the reading, per state
-            passes = self._passes(self._final_settings(k, n, weight, FINAL_SETTINGS), k, z, n)
+            finals = self._final_settings(k, n, weight, FINAL_SETTINGS)
+            passes = self._passes(finals, k, z, n).copy()
         best, best_value = float(settings[0]), math.inf
         for chunk in np.array_split(settings, max(1, settings.size // 16)):
-            none, mean, spread = self._state_reading(chunk, k, z, n, scaled=True)
-            below = ndtr((edges[None, None, :] - mean[..., None]) / spread[..., None])
-            bins = np.diff(below, axis=-1, prepend=0.0, append=1.0)  # (M, S, B)
-            bins = bins * (1.0 - none)[..., None]
-            outcomes = np.concatenate([bins, none[..., None]], axis=-1)  # (M, S, B + 1)
-            joint = outcomes * weight[None, :, None]
+            joint = outcome_chances(
+                *self._state_reading(chunk, k, z, n, scaled=True), edges, weight
+            )
             if passes is not None:  # minus the expected chance of the best final setting
                 value = -np.einsum("msb,fs->mbf", joint, passes).max(axis=2).sum(axis=1)
             elif cells is not None:  # the optimum's expected entropy over its grid points
-                mass = np.add.reduceat(joint, cells, axis=1)  # (M, C, B + 1)
-                outcome = mass.sum(axis=1)
-                value = np.sum(outcome * np.log(np.maximum(outcome, 1e-300)), axis=1) - np.sum(
-                    mass * np.log(np.maximum(mass, 1e-300)), axis=(1, 2)
-                )
+                value = expected_entropy(joint, cells)
             else:
                 mass = joint.sum(axis=1)
                 first = np.einsum("msb,s->mb", joint, u)
@@ -436,10 +591,9 @@ class FamilyPosterior:
         return np.linspace(span[0], span[1], count) + lag
 
     def _passes(self, settings: np.ndarray, k: np.ndarray, z: np.ndarray, n: np.ndarray):
-        """Each state's chance of passing at `settings` (None: its optimum): (M, S)."""
-        none, mean, spread = self._state_reading(settings, k, z, n)
-        spec = self.spec_relative * self.models.best_px()[k, 0, 0]
-        return (1.0 - none) * ndtr((spec[None, :] - mean) / spread)
+        """Each state's chance of passing at `settings` (None: its optimum): (M, S), a buffer
+        the next call overwrites."""
+        return self._states(k, z, n).passing(settings)
 
     def _final(self, posterior: np.ndarray) -> tuple[float, float]:
         """The setting most likely to pass the verification, and that chance (`final`)."""

@@ -11,16 +11,26 @@ model's noise and what it does not know of a real column (`model_noise`, `far_no
 
 `focus_box` is the training box (alignrl/apparatus/families/focus.yaml), `widened` a box
 reaching further, the prior for columns beyond the ones a policy trained on.
+
+How the posterior computes with them cheaply and bit for bit as `reading` (issue 61, item
+4): `reading_into` repeats `reading`'s operations into buffers (`ReadingConstants`: what it
+computes of the parameters alone, once per column); `StateReadings` is the model of a
+posterior's states (S,), what its stop and probe ask (`outcome_chances`, `expected_entropy`);
+`first_draw` makes the columns a posterior first draws once per process, `scratch` and
+`PosteriorBuffers` hold the arrays it computes into.
 """
 
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 from dataclasses import dataclass, replace
+from functools import cached_property
+from typing import NamedTuple
 
 import numpy as np
 
-from alignrl.apparatus.family import NO_EDGES_SPREAD, column_at, even_fractions
+from alignrl.apparatus.family import NO_EDGES_SPREAD, even_fractions
 from alignrl.apparatus.family_box import (
     BOUNDED,
     LOG_SCALE,
@@ -31,14 +41,19 @@ from alignrl.apparatus.family_box import (
 )
 from alignrl.apparatus.probe import focus_sigma_px, levelled_px
 from alignrl.apparatus.quality import TEN_NINETY_PER_SIGMA
+from alignrl.posterior.workspace import read_only, remembered, scratch
 
 __all__ = [
     "FAMILY_REACH",
     "FLAT_DECADES",
     "MODEL_FIELDS",
     "ColumnModels",
+    "ReadingConstants",
+    "first_draw",
     "focus_box",
     "narrowest_spec",
+    "reading_into",
+    "reading_work",
     "widened",
 ]
 
@@ -126,9 +141,14 @@ class ColumnModels:
 
     @classmethod
     def of(
-        cls, family: FocusFamily, draws: int, seed: int, model_noise: float, far_noise: float = 0.0,
+        cls,
+        family: FocusFamily,
+        draws: int,
+        seed: int,
+        model_noise: float,
+        far_noise: float = 0.0,
         flat_decades: float = 0.0,
-    ) -> ColumnModels:  # fmt: skip
+    ) -> ColumnModels:
         """One model where `family` is a single column in every parameter the readings
         depend on; else `draws` columns drawn from it: a scrambled Sobol' sequence over the
         box's fractions (generator `seed`), which spreads them over every parameter's range
@@ -141,20 +161,24 @@ class ColumnModels:
 
     @classmethod
     def at(
-        cls, family: FocusFamily, rows: np.ndarray, model_noise: float,
-        far_noise: float | np.ndarray = 0.0, flat_decades: float = 0.0,
-    ) -> ColumnModels:  # fmt: skip
-        """The columns at `rows` (K, len(PAIR_FIELDS)) of fractions of the box (column_at);
-        with `flat_decades`, a row's flat-bottom fraction u places it at 10^(-flat_decades
-        (1 - u)) of the box's range (log-uniform over those decades, FLAT_DECADES) rather
-        than at u; `far_noise` one share for all, or one per row (K,)."""
+        cls,
+        family: FocusFamily,
+        rows: np.ndarray,
+        model_noise: float,
+        far_noise: float | np.ndarray = 0.0,
+        flat_decades: float = 0.0,
+    ) -> ColumnModels:
+        """The columns at `rows` (K, len(PAIR_FIELDS)) of fractions of the box (as
+        alignrl/apparatus/family.py's column_at places one, `_placed`); with `flat_decades`,
+        a row's flat-bottom fraction u places it at 10^(-flat_decades (1 - u)) of the box's
+        range (log-uniform over those decades, FLAT_DECADES) rather than at u; `far_noise`
+        one share for all, or one per row (K,)."""
         placed = np.array(rows, float)
         if flat_decades:
             flat = PAIR_FIELDS.index("flat_fraction")
             placed[:, flat] = 10.0 ** (-flat_decades * (1.0 - placed[:, flat]))
-        columns = [column_at(family, dict(zip(PAIR_FIELDS, row, strict=True)), 0) for row in placed]
         values = {
-            name: np.array([getattr(draw, attribute) for draw in columns], float)[:, None, None]
+            name: _placed(family, attribute, placed[:, PAIR_FIELDS.index(attribute)])
             for name, attribute in MODEL_FIELDS.items()
         }
         far = np.asarray(far_noise, float).reshape(-1, 1, 1) if np.ndim(far_noise) else far_noise
@@ -168,6 +192,27 @@ class ColumnModels:
         """The width a frame in focus reads, noise-free (K, 1, 1)."""
         return levelled_px(TEN_NINETY_PER_SIGMA * self.floor, self.saturation)
 
+    @cached_property
+    def constants(self) -> ReadingConstants:
+        """What `reading` computes of the parameters alone, once (`reading_into`)."""
+        root = np.sqrt(np.asarray(self.asymmetry, dtype=np.float64))
+        return ReadingConstants(
+            steeper=self.gain * root,
+            gentler=self.gain * (1.0 / root),
+            flat=self.flat,
+            power=self.power,
+            floor_power=self.floor**self.power,
+            inverse_power=1.0 / self.power,
+            no_edges=self.no_edges,
+            no_edges_spread=NO_EDGES_SPREAD * self.no_edges,
+            saturation=self.saturation,
+            best=self.best_px(),
+            far_noise=self.far_noise if np.any(self.far_noise) else None,
+            noise_rel=self.noise_rel,
+            noise_px_squared=self.noise_px**2,
+            model_squared=self.model_noise**2,
+        )
+
     def spec_half_width(self, relative: float) -> np.ndarray:
         """How far from the optimum (fractions) the probe stays within `relative` x its
         floor, on the steeper side (K, 1, 1)."""
@@ -179,6 +224,15 @@ class ColumnModels:
         named = [*MODEL_FIELDS, *(["far_noise"] if np.ndim(self.far_noise) else [])]
         picked = {name: getattr(self, name)[columns, 0, 0] for name in named}
         return replace(self, **picked, rows=self.rows[columns])
+
+    def chunks(self, size: int) -> list[tuple[slice, ReadingConstants]]:
+        """The columns in slices of `size`, each with its `constants` (K, 1, 1 sliced)."""
+        cached = self.__dict__.setdefault("_chunks", {})
+        if size not in cached:
+            starts = range(0, self.count, size)
+            slices = [slice(start, min(start + size, self.count)) for start in starts]
+            cached[size] = [(rows, self.constants.of_columns(rows)) for rows in slices]
+        return cached[size]
 
     def reading(self, error: np.ndarray, scale: np.ndarray) -> tuple[np.ndarray, ...]:
         """At focus errors `error` (fractions) and specimen scales `scale` (the log of the
@@ -200,6 +254,133 @@ class ColumnModels:
             relative = relative + (self.far_noise * np.log(levelled / self.best_px())) ** 2
         spread = np.sqrt((mean * self.noise_rel) ** 2 + self.noise_px**2 + relative * mean**2)
         return none, mean, spread
+
+
+class ReadingConstants(NamedTuple):
+    """What ColumnModels.reading computes of a column's parameters alone, each broadcasting
+    against the focus errors (K, 1, 1 for columns; (S,) for states): `reading_into` computes
+    the rest."""
+
+    steeper: np.ndarray  # gain x sqrt(asymmetry): the gain above the optimum
+    gentler: np.ndarray  # gain / sqrt(asymmetry)
+    flat: np.ndarray
+    power: np.ndarray
+    floor_power: np.ndarray  # floor ** power
+    inverse_power: np.ndarray  # 1 / power
+    no_edges: np.ndarray
+    no_edges_spread: np.ndarray  # NO_EDGES_SPREAD x no_edges
+    saturation: np.ndarray
+    best: np.ndarray  # best_px()
+    far_noise: float | np.ndarray | None  # None: none
+    noise_rel: np.ndarray
+    noise_px_squared: np.ndarray
+    model_squared: float
+
+    def of_columns(self, rows: slice) -> ReadingConstants:
+        """Those of the columns `rows` (each array K, 1, 1 sliced)."""
+        return ReadingConstants(*(_part(value, rows) for value in self))
+
+    def of_states(self, columns: np.ndarray) -> ReadingConstants:
+        """Those of the states of `columns` (S,): the same numbers ColumnModels.picked's
+        `constants` would compute."""
+        return ReadingConstants(*(_part(value, columns, states=True) for value in self))
+
+
+def reading_into(
+    constants: ReadingConstants, error: np.ndarray, factor: np.ndarray | None, work: list
+) -> tuple[np.ndarray, ...]:
+    """ColumnModels.reading at focus errors `error` (a buffer it overwrites) times the
+    specimen's `factor` (np.exp(scale); None where it is exactly 1 and widens nothing: a
+    factor of 1 changes no number), computed with the same operations in the same order (the
+    same numbers, bit for bit) into the buffers of `work`: a bool and two floats of
+    `error`'s shape, then three floats of the states' shape (error's, widened by `factor`).
+    Returns (none, mean, spread), views of `work` and `error`."""
+    c = constants
+    above, gains, level = work[0], work[1], work[2]
+    np.greater(error, 0, out=above)
+    np.copyto(gains, c.gentler)
+    np.copyto(gains, c.steeper, where=above)
+    np.abs(error, out=error)
+    np.subtract(error, c.flat, out=error)
+    np.maximum(0.0, error, out=error)
+    np.multiply(gains, error, out=error)  # the blur
+    np.power(error, c.power, out=error)
+    np.add(c.floor_power, error, out=error)
+    np.power(error, c.inverse_power, out=error)
+    true = np.multiply(TEN_NINETY_PER_SIGMA, error, out=error)
+    none = np.subtract(true, c.no_edges, out=gains)
+    np.multiply(0.5, none, out=none)
+    np.divide(none, c.no_edges_spread, out=none)
+    np.tanh(none, out=none)
+    np.add(1.0, none, out=none)
+    np.multiply(0.5, none, out=none)
+    np.divide(true, c.saturation, out=level)
+    np.tanh(level, out=level)
+    np.multiply(c.saturation, level, out=level)
+    mean = level if factor is None else np.multiply(level, factor, out=work[3])
+    relative: float | np.ndarray = c.model_squared
+    if c.far_noise is not None:
+        relative = np.divide(level, c.best, out=true)
+        np.log(relative, out=relative)
+        np.multiply(c.far_noise, relative, out=relative)
+        np.square(relative, out=relative)
+        np.add(c.model_squared, relative, out=relative)
+    spread = np.multiply(mean, c.noise_rel, out=work[4])
+    np.square(spread, out=spread)
+    np.add(spread, c.noise_px_squared, out=spread)
+    squared = np.square(mean, out=work[5])
+    np.multiply(relative, squared, out=squared)
+    np.add(spread, squared, out=spread)
+    np.sqrt(spread, out=spread)
+    return none, mean, spread
+
+
+def reading_work(
+    shape: tuple[int, ...], states: tuple[int, ...], extra: int = 0
+) -> list[np.ndarray]:
+    """`reading_into`'s buffers (`scratch`) for errors of `shape` and states of `states`, and
+    `extra` more of the states' shape after them."""
+    return [
+        scratch("above", shape, bool),
+        scratch("gains", shape),
+        scratch("level", shape),
+        *(scratch(f"state{index}", states) for index in range(3 + extra)),
+    ]
+
+
+_FIRST_DRAWS: OrderedDict = OrderedDict()  # first_draw's, per process
+
+
+def first_draw(family: FocusFamily, *options: float) -> ColumnModels:
+    """ColumnModels.of(family, *options), made once per process (read-only: every posterior
+    of those options starts from the same columns)."""
+
+    def make() -> tuple[ColumnModels]:
+        models = ColumnModels.of(family, *options)
+        read_only(*(value for value in vars(models).values() if isinstance(value, np.ndarray)))
+        return (models,)
+
+    return remembered(_FIRST_DRAWS, (family.model_dump_json(), *options), make)[0]
+
+
+def _part(value: object, index: slice | np.ndarray, states: bool = False) -> object:
+    """`value` (a (K, 1, 1) array, or a number or None: all alike) at `index`."""
+    if not isinstance(value, np.ndarray) or value.ndim == 0:
+        return value
+    return value[index, 0, 0] if states else value[index]
+
+
+def _placed(family: FocusFamily, name: str, fractions: np.ndarray) -> np.ndarray:
+    """Parameter `name` of the columns at `fractions` (K,) of the box, (K, 1, 1): the numbers
+    alignrl/apparatus/family.py's column_at gives, one row at a time (math.exp and
+    math.log on a log scale, as it takes them)."""
+    low, high = getattr(family, name)
+    if name in LOG_SCALE:
+        logs = math.log(low) + fractions * (math.log(high) - math.log(low))
+        values = np.array([math.exp(each) for each in logs.tolist()], float)
+    else:
+        values = low + fractions * (high - low)
+    return values.reshape(-1, 1, 1)
 
 
 def focus_box(

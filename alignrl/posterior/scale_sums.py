@@ -59,6 +59,38 @@ class ScaleSums:
         self.add(centre, sum(variances) / count + spread)
         return density / count
 
+    def predictive_into(
+        self, rows: slice, residual: np.ndarray, variance: np.ndarray, work: list[np.ndarray]
+    ) -> np.ndarray | None:
+        """`predictive` of the states of columns `rows` (the same numbers, into `work`: two
+        buffers of `residual`'s shape); None before any reading (the constant 1)."""
+        if not self.readings:
+            return None
+        sum0, total, density = self.sum0[rows], work[0], work[1]
+        np.divide(1.0, sum0, out=total)
+        np.add(variance, total, out=total)
+        np.divide(self.sum1[rows], sum0, out=density)
+        np.subtract(residual, density, out=density)
+        np.square(density, out=density)
+        np.multiply(-0.5, density, out=density)
+        np.divide(density, total, out=density)
+        np.exp(density, out=density)
+        np.sqrt(total, out=total)
+        return np.divide(density, total, out=density)
+
+    def add_into(
+        self, rows: slice, residual: np.ndarray, variance: np.ndarray, work: np.ndarray
+    ) -> None:
+        """`add` for the states of columns `rows` alone, in place (the same numbers; `work`:
+        a buffer of `residual`'s shape); `counted` once every row has its reading."""
+        sum0, sum1 = self.sum0[rows], self.sum1[rows]
+        np.add(sum0, np.divide(1.0, variance, out=work), out=sum0)
+        np.add(sum1, np.divide(residual, variance, out=work), out=sum1)
+
+    def counted(self) -> None:
+        """A reading `add_into` gave every state joins the count."""
+        self.readings += 1
+
     def estimate(self, k: np.ndarray, z: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, ...]:
         """(log scale, its variance) of states (S,)."""
         if not self.readings:
