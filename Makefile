@@ -33,7 +33,7 @@ $(BENCH_STAMP): $(STAMP)
 RUN_DIR := runs/make-run
 run: $(STAMP)
 	rm -rf $(RUN_DIR)
-	$(BIN)/alignrl champions --scenarios 10
+	$(BIN)/alignrl champions --scenarios 5
 	$(BIN)/alignrl league run experiments/league-make-run.yaml --runs-dir $(RUN_DIR)
 
 # The suite, slow tests included, on two workers; a test file stays on one worker

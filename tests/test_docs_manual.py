@@ -513,7 +513,7 @@ def test_only_the_volatile_fields_are_loose() -> None:
 
 def test_make_run_is_read_from_the_makefile() -> None:
     script = make_run_recipe()
-    assert script.startswith("rm -rf runs/make-run && alignrl champions --scenarios 10")
+    assert script.startswith("rm -rf runs/make-run && alignrl champions --scenarios 5")
     assert "alignrl league run experiments/league-make-run.yaml --runs-dir runs/make-run" in script
 
 
