@@ -93,8 +93,8 @@ def _judge(args: argparse.Namespace, name: str) -> dict[str, Any]:
         "policy": args.policy,
         "alignments": args.alignments,
         "from_above": args.from_above,
-        "stop": controller.task.stop_when_sure,
-        "far_noise": controller.task.posterior_far_noise,
+        "stop": controller.task.ending.settings.stop_when_sure,
+        "far_noise": controller.task.ending.settings.far_noise,
         "far_noise_searched": calibrated.calibration.far_noise_searched,
         # every image the calibration took and read: the alignments' acquisitions, their
         # verifications and the readings from above

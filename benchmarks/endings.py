@@ -31,7 +31,9 @@ import sys
 
 from alignrl.apparatus.instruments import HELD_OUT_SET
 from alignrl.deploy.policy import load_deployable
-from alignrl.envs.task import MAX_MOVE_FLOOR, POSTERIOR_OPTIONS, Task, get_task
+from alignrl.envs.endings import POSTERIOR_OPTIONS, with_ending
+from alignrl.envs.option_table import MAX_MOVE_FLOOR
+from alignrl.envs.task import Task, get_task
 from alignrl.evaluation.controllers import PolicyController
 from alignrl.evaluation.instrument_sets import run_set, set_summary, set_table
 
@@ -41,12 +43,12 @@ def floors(task: Task, values: list[float], below: bool = False) -> list[tuple[s
     with `below` every reading approached from below; without it, a task that ends at the
     posterior (whose reading model needs them from below) ends at the fit instead)."""
     label = ", every reading from below" if below else ""
-    if not below and task.finish_at_posterior:
-        task = dataclasses.replace(without_posterior(task), finish_at_fit=True)
+    if not below and task.ending.at == "posterior":
+        task = with_ending(without_posterior(task), finish_at_fit=True)
     return [
         (
             f"moves at least {v:g}{label}",
-            dataclasses.replace(task, move_floor=v, approach_from_below=below),
+            with_ending(dataclasses.replace(task, move_floor=v), approach_from_below=below),
         )
         for v in values
     ]
@@ -54,27 +56,27 @@ def floors(task: Task, values: list[float], below: bool = False) -> list[tuple[s
 
 def without_posterior(task: Task) -> Task:
     """`task` ending anywhere but at the posterior: finish_at_posterior and the options that
-    ask that posterior (alignrl/envs/task.py, POSTERIOR_OPTIONS) at their defaults."""
-    return dataclasses.replace(task, finish_at_posterior=False, **POSTERIOR_OPTIONS)
+    ask that posterior (alignrl/envs/endings.py, POSTERIOR_OPTIONS) at their defaults."""
+    return with_ending(task, finish_at_posterior=False, **POSTERIOR_OPTIONS)
 
 
 def endings(task: Task, windows: list[float]) -> list[tuple[str, Task]]:
     """(label, the policy's task with that ending) for every ending compared; the ending at
     the posterior takes every stop as the policy asks (no probe_until_sure)."""
-    plain = dataclasses.replace(without_posterior(task), finish_at_fit=False, stop_at_best=True)
-    fitted = dataclasses.replace(plain, finish_at_fit=True)
+    plain = with_ending(without_posterior(task), finish_at_fit=False, stop_at_best=True)
+    fitted = with_ending(plain, finish_at_fit=True)
     return [
         ("as trained", task),
-        ("narrowest, straight back", dataclasses.replace(plain, backlash_overshoot=0.0)),
+        ("narrowest, straight back", with_ending(plain, backlash_overshoot=0.0)),
         ("narrowest", plain),
-        *((f"fit within {w:g}x", dataclasses.replace(fitted, finish_window=w)) for w in windows),
+        *((f"fit within {w:g}x", with_ending(fitted, finish_window=w)) for w in windows),
         (
             "as trained, every reading from below",
-            dataclasses.replace(task, approach_from_below=True),
+            with_ending(task, approach_from_below=True),
         ),
         (
             "at the posterior, every reading from below",
-            dataclasses.replace(plain, approach_from_below=True, finish_at_posterior=True),
+            with_ending(plain, approach_from_below=True, finish_at_posterior=True),
         ),
     ]
 

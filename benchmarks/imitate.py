@@ -87,12 +87,15 @@ def _demonstrations(paths: list[str], config) -> Demonstrations:
     actions moved from the fit where its last move starts there (moved_from_fit)."""
     parts = [Demonstrations.load(path) for path in paths]
     task = config.resolved_task()
-    if task.max_step and (task.fit_features or task.finish_at_fit):
+    if task.max_step and (task.fit_features or task.ending.at == "fit"):
         raise SystemExit("steps are changed afterwards for max_step_fraction tasks only")
-    if task.finish_at_fit:
+    if task.ending.at == "fit":
         parts = [
             part.moved_from_fit(
-                task.max_step_fraction, task.action_power, task.finish_window, task.final_move_reach
+                task.max_step_fraction,
+                task.action_power,
+                task.ending.finish_window,
+                task.ending.final_move_reach,
             )
             for part in parts
         ]
@@ -178,7 +181,7 @@ def _agreement(args: argparse.Namespace) -> None:
     # the present setting).
     task = config.resolved_task()
     stops = test.label[:, 1] > 0
-    reach = np.full((int(stops.sum()), 1), task.max_step_fraction * task.final_move_reach)
+    reach = np.full((int(stops.sum()), 1), task.max_step_fraction * task.ending.final_move_reach)
     ends = knob_change(test.label[stops, :1], reach, task.action_power)[:, 0]
     print("\n| last move | stops | end error, median | p90 | within 0.005 of the interval |")
     print("| --- | --- | --- | --- | --- |")

@@ -12,7 +12,7 @@ its own mistakes, not only to follow a path it never leaves).
 `PosteriorTeacher` turns the posterior's settings into the env's actions: a probe becomes the
 move that lands there (the inverse of Task.knob_change, within the task's maximum step and
 above its floor), a stop becomes the stopping action whose move ends the episode at the
-posterior's best setting (Task.final_move), once it is within one move (of the fit's optimum
+posterior's best setting (final_move), once it is within one move (of the fit's optimum
 where the task's last move starts there: finish_at_fit). The teacher reads the
 readings in px, as the env measures them; a unit-free policy sees their ratios only, so the
 teacher that a network can follow is the posterior in an unknown pixel scale
@@ -69,7 +69,7 @@ class PosteriorTeacher:
         if episodes.k != 1:
             raise ValueError("the posterior teaches one-knob focus tasks only")
         task = env.task
-        if not (task.final_move and task.approach_from_below):
+        if not (task.ending.final_move and task.ending.approach_from_below):
             raise ValueError(
                 "a posterior teacher needs task_options.final_move (it ends between its "
                 "readings) and approach_from_below (its reading model)"
@@ -103,11 +103,13 @@ class PosteriorTeacher:
 
     def _last_moves(self, indices: np.ndarray, targets: np.ndarray) -> tuple[np.ndarray, ...]:
         """The stopping knob actions that end `indices` at `targets` (fractions of the
-        interval) from the task's stop origins (Task.final_move; finish_at_fit), and where
+        interval) from the task's stop origins (final_move; finish_at_fit), and where
         each target lies within the last move's reach."""
         episodes = self.env.episodes
         origins = (episodes.stop_origins(indices) - episodes.low[indices]) / episodes.span[indices]
-        reach = (episodes.max_step / episodes.span)[indices, 0] * self.env.task.final_move_reach
+        reach = (episodes.max_step / episodes.span)[
+            indices, 0
+        ] * self.env.task.ending.final_move_reach
         moves = np.clip(targets, 0.0, 1.0) - origins[:, 0]
         actions = [action_for_move(float(move), float(most), self.power, 0.0)
                    for move, most in zip(moves, reach, strict=True)]  # fmt: skip
@@ -199,7 +201,7 @@ class Demonstrations:
         stopping action (the teacher's label, and the action taken) says the same end as a
         move from where a fit of the episode's readings puts the optimum (a bracketed one,
         within `window` x the narrowest; alignrl/envs/ending.py) instead of from the present
-        setting, a move of `reach` x `max_step` at most (Task.final_move_reach). `max_step`:
+        setting, a move of `reach` x `max_step` at most (final_move_reach). `max_step`:
         one maximum step, a fraction of the interval; `power`: the task's action_power. An
         end beyond one last move of the fit is clipped to it (the episode then ends at the
         fit's side of it), and a fit is made on the readings the history still holds. Steps
@@ -308,9 +310,14 @@ def collect(
     arrays = {name: np.concatenate(values) for name, values in rows.items()}
     for name in ("observation", "next_observation"):
         arrays[name] = arrays[name].astype(np.float32)
-    return Demonstrations(**arrays, episodes=finished, successes=successes,
-                          acquisitions=tuple(acquisitions),
-                          ends_from_fit=env.task.final_move and env.task.finish_at_fit)  # fmt: skip
+    ending = env.task.ending
+    return Demonstrations(
+        **arrays,
+        episodes=finished,
+        successes=successes,
+        acquisitions=tuple(acquisitions),
+        ends_from_fit=ending.final_move and ending.at == "fit",
+    )
 
 
 def clone(

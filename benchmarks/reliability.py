@@ -88,7 +88,7 @@ def stated_chances(
     """Every reading of `episodes` episodes of the policy on `apparatus_spec` (its ending
     posterior must be on: `finish_at_posterior`)."""
     policy, task, column, engine = one_slot(policy_spec, apparatus_spec, images)
-    if not task.finish_at_posterior:
+    if task.ending.at != "posterior":
         raise ValueError(f"{policy_spec} ends without a posterior: it states no chance")
     rows: list[Stated] = []
     for episode in range(episodes):

@@ -9,6 +9,7 @@ import pytest
 
 import benchmarks.endings as endings_module
 from alignrl.deploy.policy import load_deployable
+from alignrl.envs.endings import with_ending
 from alignrl.envs.task import get_task
 from benchmarks.endings import endings, floors, main
 
@@ -19,7 +20,7 @@ def light_champion(monkeypatch: pytest.MonkeyPatch) -> None:
     its 1,024: the same tables, in far less computing (its posterior is asked at every reading
     of its walk)."""
     champion = load_deployable("champion:focus-v2")
-    task = dataclasses.replace(champion.task, posterior_draws=16)
+    task = with_ending(champion.task, posterior_draws=16)
     light = dataclasses.replace(champion, task=task)
     monkeypatch.setattr(endings_module, "load_deployable", lambda spec: light)
 
@@ -32,14 +33,14 @@ def test_each_ending_changes_only_what_happens_once_the_policy_stops() -> None:
         "as trained, every reading from below", "at the posterior, every reading from below",
     ]  # fmt: skip
     assert compared[0][1] is trained
-    assert compared[1][1].backlash_overshoot == 0 and not compared[1][1].finish_at_fit
-    assert [task.finish_window for _, task in compared[3:5]] == [3.0, 10.0]
-    assert compared[5][1] == dataclasses.replace(trained, approach_from_below=True)
-    assert compared[6][1] == dataclasses.replace(
+    assert compared[1][1].ending.backlash_overshoot == 0 and compared[1][1].ending.at != "fit"
+    assert [task.ending.finish_window for _, task in compared[3:5]] == [3.0, 10.0]
+    assert compared[5][1] == with_ending(trained, approach_from_below=True)
+    assert compared[6][1] == with_ending(
         compared[2][1], approach_from_below=True, finish_at_posterior=True
     )
     for _, task in compared[1:5]:
-        assert task.stop_at_best
+        assert task.ending.stop_at_best
         assert (task.knobs, task.episode_steps, task.action_power) == (
             trained.knobs, trained.episode_steps, trained.action_power,
         )  # fmt: skip
@@ -70,7 +71,7 @@ def test_floor_rows_change_only_how_far_each_move_goes(
     ]
     ((label, below),) = floors(trained, [0.0], below=True)
     assert label == "moves at least 0, every reading from below"
-    assert below == dataclasses.replace(trained, approach_from_below=True)
+    assert below == with_ending(trained, approach_from_below=True)
     argv = ["--policy", "champion:focus-v2", "--analytic", "--scenarios", "1", "--floors", "0.02"]
     assert main([*argv, "--floors-only", "--below"]) == 0
     header = next(line for line in capsys.readouterr().out.splitlines() if "| instrument" in line)
@@ -99,9 +100,10 @@ def test_the_posteriors_options_leave_with_it() -> None:
     assert compared["as trained"] is trained
     for label in ("narrowest", "fit within 3x", "at the posterior, every reading from below"):
         task = compared[label]
-        assert (task.probe_until_sure, task.stop_when_sure, task.posterior_draws) == (0, 0, 256)
-    assert compared["at the posterior, every reading from below"].finish_at_posterior
-    assert not compared["fit within 3x"].finish_at_posterior
+        settings = task.ending.settings
+        assert (settings.probe_until_sure, settings.stop_when_sure, settings.draws) == (0, 0, 256)
+    assert compared["at the posterior, every reading from below"].ending.at == "posterior"
+    assert compared["fit within 3x"].ending.at == "fit"
     ((_, fitted),) = floors(trained, [0.02])
-    assert fitted.finish_at_fit and not fitted.finish_at_posterior
-    assert fitted.probe_until_sure == 0
+    assert fitted.ending.at == "fit" and fitted.ending.posterior is None
+    assert fitted.ending.settings.probe_until_sure == 0

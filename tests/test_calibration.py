@@ -225,7 +225,7 @@ def test_the_task_reads_a_calibrated_column_and_refuses_a_wrong_one() -> None:
     values = tuple(COLUMN[name] for name in COLUMN_FIELDS)
     options = TaskOptions(posterior_column=COLUMN)
     task = options.apply(champion)
-    assert task.posterior_column == values
+    assert task.ending.settings.column == values
     ends = EpisodeEnds(1, 1, task)
     ends.restart(np.array([0]))
     ends.note(np.array([0]), np.array([[50.0]]), np.array([4.0]), np.array([True]),
@@ -235,7 +235,7 @@ def test_the_task_reads_a_calibrated_column_and_refuses_a_wrong_one() -> None:
     assert posterior._readings == [(0.5, 4.0, 0.0)]  # the column as found: side unknown
     # far readings trusted as the policy's task says (a column given by hand to the
     # champion: its 0.1; an export of alignrl calibrate: the far noise it was fitted with)
-    assert posterior.far_noise == champion.posterior_far_noise == 0.1
+    assert posterior.far_noise == champion.ending.settings.far_noise == 0.1
     with pytest.raises(ValueError, match=r"posterior_column.*finish_at_posterior"):
         options.apply(get_task("focus"))
     with pytest.raises(ValueError, match=r"missing: curve_power.*unknown: power"):
@@ -291,19 +291,21 @@ def test_calibrate_adapts_a_champion_on_a_driver_without_an_optimum(
     assert set(result["column"]) == set(COLUMN_FIELDS)
     calibrated = load_deployable(str(out))
     found = [result["column"][name] for name in COLUMN_FIELDS]
-    assert np.allclose(calibrated.task.posterior_column, found, rtol=1e-8)
+    assert np.allclose(calibrated.task.ending.settings.column, found, rtol=1e-8)
     # it stops at the calibrated chance, where the champion it came from stops at its own
     champion = load_deployable(str(light_export)).task
-    assert (champion.stop_when_sure, champion.probe_until_sure) == (0.98, 0.98)
-    stops = (calibrated.task.stop_when_sure, calibrated.task.probe_until_sure)
+    sure = champion.ending.settings
+    assert (sure.stop_when_sure, sure.probe_until_sure) == (0.98, 0.98)
+    settings = calibrated.task.ending.settings
+    stops = (settings.stop_when_sure, settings.probe_until_sure)
     assert stops == (CALIBRATED_STOP, CALIBRATED_STOP) == (0.9, 0.9)
     # its far readings trusted as when its column was fitted, where the champion's box
     # posterior trusts them less: fitted with the column, unless given (--far-noise)
-    assert champion.posterior_far_noise == 0.1
+    assert champion.ending.settings.far_noise == 0.1
     record = json.loads((out / "calibration.json").read_text())
     assert record["far_noise_searched"] == list(FAR_NOISE_SEARCHED)
     assert result["far_noise"] == record["far_noise"] in FAR_NOISE_SEARCHED
-    assert calibrated.task.posterior_far_noise == pytest.approx(record["far_noise"], rel=1e-8)
+    assert calibrated.task.ending.settings.far_noise == pytest.approx(record["far_noise"], rel=1e-8)
     assert record["alignments"] == 4 and record["column"] == result["column"]
     # each alignment ends with two readings from above (its backlash), after those from below:
     # the CLI's default is the library's

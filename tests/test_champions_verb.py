@@ -9,8 +9,10 @@ import io
 import json
 
 import pytest
+from tqdm import tqdm
 
 from alignrl.apparatus.instruments import instrument_names
+from alignrl.cli import champions
 from alignrl.cli.champions import COLUMN_NAME, FOCUS_CLASSICAL, HELD_OUT_SET, alignments
 from alignrl.cli.main import main
 from alignrl.evaluation.baselines import task_baselines
@@ -18,13 +20,18 @@ from alignrl.evaluation.baselines import task_baselines
 
 @pytest.fixture(scope="module")
 def shown() -> tuple[dict, str]:
-    """The verb's JSON and its text, one alignment per column."""
+    """The verb's JSON and its text, one alignment per column: the sessions run once, then
+    the verb prints them both ways."""
+    measured = champions.measure(1, 4, tqdm(disable=True))
     found = []
-    for extra in (["--json"], []):
-        out = io.StringIO()
-        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(io.StringIO()):
-            assert main(["champions", "--scenarios", "1", "--seed", "4", "--quiet", *extra]) == 0
-        found.append(out.getvalue())
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(champions, "measure", lambda scenarios, seed, bar: measured)
+        for extra in (["--json"], []):
+            out = io.StringIO()
+            with contextlib.redirect_stdout(out), contextlib.redirect_stderr(io.StringIO()):
+                argv = ["champions", "--scenarios", "1", "--seed", "4", "--quiet", *extra]
+                assert main(argv) == 0
+            found.append(out.getvalue())
     return json.loads(found[0]), found[1]
 
 

@@ -183,9 +183,9 @@ def test_an_oracle_aligner_succeeds_on_the_column_task() -> None:
         ({"measures": ("directional",)}, "measures must name 'width'"),
         ({"measures": ("width", "focus")}, "measures must name"),
         ({"measures": ("width", "wobble", "wobble")}, "each once"),
-        ({"wobble_spec_px": 0.0}, "wobble_spec_px must be positive"),
+        ({"wobble_spec_px": 0.0}, "wobble_spec_px must be above 0"),
         ({"directional_relative": 1.0}, "directional_relative must be above 1"),
-        ({"wobble_weight": -1.0}, "wobble_weight is a magnitude"),
+        ({"wobble_weight": -1.0}, "wobble_weight must be at least 0"),
     ],
 )
 def test_bad_task_measures_are_refused(changes: dict, fragment: str) -> None:

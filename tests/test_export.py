@@ -286,7 +286,7 @@ def league_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
             "iterations": 2,
             "matches": 4,
             "snapshot_every": 100,
-            "pbt_every": 2,
+            "pbt_every": 1,  # a copy at iteration 1; none at the last (alignrl/league/loop.py)
             "evaluate_every": 2,
             "eval_scenarios": 2,
             "checkpoint_every": 2,
@@ -577,9 +577,9 @@ def test_a_run_acts_with_its_acting_options_once_trained(
     from alignrl.runs.training_runs import load_policy
 
     _, trained = load_policy(runs / "acting")
-    assert trained.resolved_task().stop_at_best and trained.resolved_task().move_floor == 0
+    assert trained.resolved_task().ending.stop_at_best and trained.resolved_task().move_floor == 0
     source = resolve_source(runs / "acting")
-    assert not source.task.stop_at_best and source.task.move_floor == 0.02
+    assert not source.task.ending.stop_at_best and source.task.move_floor == 0.02
     assert source.task.max_step_fraction == 0.1  # the training's options stay
     out = tmp_path / "exported"
     command = ["export", str(runs / "acting"), "--format", "safetensors", "--out", str(out)]

@@ -12,7 +12,8 @@ from alignrl.apparatus.registry import make_apparatus
 from alignrl.config.task_options import TaskOptions
 from alignrl.envs.core import AlignmentEpisodes
 from alignrl.envs.ending import EpisodeEnds, resample_for
-from alignrl.envs.task import POSTERIOR_PROBE_RULES, get_task
+from alignrl.envs.option_table import POSTERIOR_PROBE_RULES
+from alignrl.envs.task import get_task
 from alignrl.posterior.inference import (
     PROBE_RULES,
     SCALE_FREE,
@@ -294,7 +295,7 @@ def test_far_noise_reaches_the_episodes_posterior() -> None:
 
 def test_the_episodes_posterior_levels_its_readings_off_where_the_task_says() -> None:
     episodes, _, _ = _walked(_task(stop_at_best=True, posterior_saturation_px=[10, 80]))
-    assert episodes.ends.task.posterior_saturation_px == (10.0, 80.0)
+    assert episodes.ends.settings.saturation_px == (10.0, 80.0)
     saturation = episodes.ends._posterior(0).models.saturation
     assert 10.0 - 1e-9 <= saturation.min() < 0.9 * focus_box().saturation_px[0]
     assert saturation.max() <= 80.0 + 1e-9
@@ -322,8 +323,6 @@ def test_the_posteriors_settings_are_refused_out_of_range(option, bad) -> None:
 
 
 NEEDING_THE_POSTERIOR = [
-    {"posterior_from_below": True},
-    {"posterior_on_sides": True},
     {"posterior_probe_rule": "entropy"},
     {"posterior_saturation_px": (10.0, 80.0)},
     {"posterior_far_noise": 0.1},
@@ -367,49 +366,6 @@ def test_align_goes_on_while_the_posterior_turns_stops_into_readings(
     assert 3 <= result["acquisitions"] <= task.episode_steps + 1  # went on past the 1st stop
     assert result["reason"].startswith(reason)
     assert result["success"]  # ended where the sure posterior puts focus
-
-
-def test_the_posterior_can_leave_out_the_column_as_found() -> None:
-    """posterior_from_below: the opening reading, where the column was found (on a branch of
-    its backlash no one knows), stays the episode's record but never reaches the posterior;
-    every reading approached from below does. Without it, the posterior reads them all."""
-    read = {}
-    for from_below in (False, True):
-        episodes, slot, _ = _started(_task(stop_at_best=True, posterior_from_below=from_below))
-        assert episodes.ends.approach[0, 0] == 0  # the column as found: no side known
-        opened = len(episodes.ends._posterior(0)._readings)
-        episodes.step(slot, np.array([[-0.5, -1.0]]))
-        assert episodes.ends.readings[0][-1].side[0] == 1  # from below (approach_from_below)
-        read[from_below] = (opened, len(episodes.ends._posterior(0)._readings))
-        assert len(episodes.ends.readings[0]) == 2  # the record keeps both
-    assert read == {False: (1, 2), True: (0, 1)}
-
-
-def test_the_posterior_on_sides_reads_the_column_as_found_on_an_unknown_side() -> None:
-    """posterior_on_sides: the opening reading (the column as found) reaches the posterior on
-    an unknown side (0) and every reading approached from below as from below; without it,
-    every reading as from below."""
-    sides = {}
-    for on_sides in (False, True):
-        episodes, slot, _ = _started(_task(stop_at_best=True, posterior_on_sides=on_sides))
-        episodes.step(slot, np.array([[0.5, -1.0]]))
-        posterior = episodes.ends._posterior(0)
-        sides[on_sides] = [side for _, _, side in posterior._readings]
-    assert sides == {False: [1.0, 1.0], True: [0.0, 1.0]}
-
-
-def test_the_posterior_from_below_reads_a_setting_at_the_lower_end_on_its_branch() -> None:
-    """A setting at the interval's lower end cannot be approached from below (nothing lies
-    below it): written from above, posterior_from_below reads it on that branch rather than
-    never (which left the walk asking for it again until the budget ran out)."""
-    episodes, slot, _ = _started(_task(stop_at_best=True, posterior_from_below=True))
-    posterior = episodes.ends._posterior(0)
-    for _ in range(4):  # down as far as the moves go: the lower end
-        episodes.step(slot, np.array([[-1.0, -1.0]]))
-    assert float(episodes.ends.written[0, 0]) == float(episodes.low[0, 0])
-    assert episodes.ends.approach[0, 0] == -1  # written from above
-    sides = [side for _, _, side in posterior._readings]
-    assert sides and sides[-1] == -1.0 and 0.0 not in sides
 
 
 def test_the_way_back_to_the_posteriors_setting_arrives_from_below() -> None:

@@ -21,6 +21,7 @@ from alignrl.checkpoints import load_checkpoint
 from alignrl.cli import main
 from alignrl.config.experiment import load_experiment
 from alignrl.deploy.policy import load_deployable
+from alignrl.envs.endings import ending_options, with_ending
 from alignrl.envs.task import get_task
 from alignrl.evaluation.controllers import PolicyController
 from alignrl.evaluation.session import run_session
@@ -53,8 +54,9 @@ def test_the_shipped_champion_acts_as_its_experiment_file_says() -> None:
     task = resolve_source(CHAMPION).task
     chosen = {name: value for name, value in acting.items() if value is not None}
     assert chosen["posterior_probe_rule"] == "entropy"
-    for name, value in chosen.items():
-        assert getattr(task, name) == value, name
+    flat = {**ending_options(task.ending, every=True), "move_floor": task.move_floor}
+    for name, value in chosen.items():  # the ending's options as its flat names
+        assert flat[name] == (tuple(value) if isinstance(value, list) else value), name
 
 
 def test_adapt_from_the_champion_on_a_driver_without_an_optimum(
@@ -88,7 +90,7 @@ def test_adapt_from_the_champion_on_a_driver_without_an_optimum(
 def test_the_champion_aligns_alike_in_any_units() -> None:
     policy = load_deployable(CHAMPION)
     # its posterior of 16 columns, not 1,024: units mean as little to it, in less computing
-    policy = dataclasses.replace(policy, task=dataclasses.replace(policy.task, posterior_draws=16))
+    policy = dataclasses.replace(policy, task=with_ending(policy.task, posterior_draws=16))
     base = load_family(INSTRUMENT_DIR / VALIDATION_SET / "val-mid.yaml")
     other = _scaled(base, volts=9.0, shift=-5000.0, pixels=1.7)
     results = []

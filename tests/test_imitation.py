@@ -210,7 +210,7 @@ def test_a_last_move_from_the_fit_ends_where_the_teacher_asks() -> None:
     plain = _env(envs=2, history=12)
     base = collect(plain, PosteriorTeacher(plain, _small_posterior), episodes=6, seed=5)
     step = float(plain.episodes.max_step[0, 0] / plain.episodes.span[0, 0])
-    moved = base.moved_from_fit(step, plain.task.action_power, plain.task.finish_window)
+    moved = base.moved_from_fit(step, plain.task.action_power, plain.task.ending.finish_window)
     stops = np.flatnonzero(base.label[:, 1] > 0)
     assert np.any(np.abs(moved.label[stops, 0] - base.label[stops, 0]) > 1e-3)
     assert moved.ends_from_fit and not base.ends_from_fit
@@ -236,7 +236,7 @@ def test_finish_at_fit_needs_an_end_to_start_from() -> None:
     with pytest.raises(ValueError, match="finish_at_fit"):
         TaskOptions(finish_at_fit=True).apply(get_task("focus"))
     task = TaskOptions(finish_at_fit=True, final_move=True).apply(get_task("focus"))
-    assert task.finish_at_fit and task.final_move
+    assert task.ending.at == "fit" and task.ending.final_move
 
 
 def test_the_teachers_ends_land_where_its_posterior_would_end() -> None:

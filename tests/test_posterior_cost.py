@@ -17,6 +17,7 @@ import pytest
 
 import benchmarks.posterior_cost as cost_module
 from alignrl.deploy.policy import load_deployable
+from alignrl.envs.endings import with_ending
 from alignrl.posterior.inference import SCALE_FREE, FamilyPosterior
 from alignrl.posterior.models import ColumnModels, focus_box
 from benchmarks.posterior_cost import main
@@ -154,9 +155,7 @@ def test_the_first_draw_and_prior_are_made_once_and_kept_read_only() -> None:
 def light_champion(monkeypatch: pytest.MonkeyPatch) -> None:
     """champion:focus-v2 with a posterior of 16 columns in place of its 1,024."""
     champion = load_deployable("champion:focus-v2")
-    light = dataclasses.replace(
-        champion, task=dataclasses.replace(champion.task, posterior_draws=16)
-    )
+    light = dataclasses.replace(champion, task=with_ending(champion.task, posterior_draws=16))
     monkeypatch.setattr(cost_module, "load_deployable", lambda spec: light)
 
 

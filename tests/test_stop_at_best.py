@@ -4,8 +4,6 @@ evaluation session and through a driver that refuses the write back."""
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pytest
 
@@ -13,6 +11,7 @@ from alignrl.apparatus.base import ApparatusError
 from alignrl.apparatus.registry import make_apparatus
 from alignrl.config.task_options import TaskOptions
 from alignrl.envs.core import AlignmentEpisodes
+from alignrl.envs.endings import with_ending
 from alignrl.envs.task import get_task
 
 WALK = [0.5, 0.5, 0.5, 0.5]  # four moves of half a maximum step upwards, then stop
@@ -102,7 +101,7 @@ def test_a_refused_write_back_leaves_the_last_reading_and_says_why() -> None:
 
 def test_only_a_width_task_may_end_at_its_best() -> None:
     with pytest.raises(ValueError, match="stop_at_best returns to the narrowest reading"):
-        dataclasses.replace(get_task("stigmation"), stop_at_best=True)
+        with_ending(get_task("stigmation"), stop_at_best=True)
 
 
 def test_a_policy_in_a_session_leaves_the_column_at_its_narrowest_reading() -> None:
@@ -157,7 +156,7 @@ def test_the_way_back_takes_up_backlash_as_the_narrowest_reading_was_approached(
     assert unit.focus_error() == pytest.approx(narrowest_error, abs=1e-9)
     assert episodes.setting[0, 0] == pytest.approx(episodes.ends.narrowest(0).setting[0])
     # Without the overshoot the same setting is reached from above: off by the backlash.
-    direct = dataclasses.replace(task, backlash_overshoot=0.0)
+    direct = with_ending(task, backlash_overshoot=0.0)
     _, plain, plain_error = _walk_with_errors(direct)
     lag = 2 * plain.draw.hysteresis_fraction * plain.draw.width
     assert plain.focus_error() - plain_error == pytest.approx(lag, rel=1e-6)

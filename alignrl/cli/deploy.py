@@ -19,7 +19,7 @@ from alignrl.cli.common import (
     _seed,
 )
 from alignrl.cli.gifs import add_gif_options, check_gif, write_gif
-from alignrl.envs.task import ACTING_OPTIONS
+from alignrl.envs.option_table import ACTING_OPTIONS
 
 
 def _count(number: int, noun: str) -> str:

@@ -9,65 +9,38 @@ from typing import Any, Literal
 
 from pydantic import Field, create_model
 
-from alignrl.config_reading import MAX_EPISODE_STEPS, Count, _Strict
-from alignrl.envs.task import ACTING_OPTIONS, POSTERIOR_PROBE_RULES
+from alignrl.config_reading import Count, _Strict
+from alignrl.envs.endings import ENDING_OPTIONS, ending_from_options
+from alignrl.envs.option_table import ACTING_OPTIONS, OPTIONS, Option
 
 __all__ = ["ActingOptions", "TaskOptions"]
 
-ProbeRule = Literal[POSTERIOR_PROBE_RULES]  # type: ignore[valid-type]
+
+def _annotation(name: str, option: Option) -> Any:
+    """The type a file's value of option `name` takes (None: unset)."""
+    if option.choices:
+        return Literal[option.choices] | None  # type: ignore[valid-type]
+    kinds: dict[type, Any] = {bool: bool, int: Count, float: float}
+    special: dict[str, Any] = {
+        "posterior_saturation_px": tuple[float, float],  # (low, high) px
+        "posterior_column": dict[str, float],  # a mapping in a file, a tuple in the task
+    }
+    return (special[name] if option.kind is tuple else kinds[option.kind]) | None
 
 
-class TaskOptions(_Strict):
-    """Changes to a named task; unset fields keep the task's own values."""
+# Every field from the one table of task options (alignrl/envs/option_table.py): its type,
+# bounds and description; unset (None) keeps the task's own value.
+_FIELDS: dict[str, Any] = {
+    name: (
+        _annotation(name, option),
+        Field(None, description=option.meaning, **option.pydantic_bounds()),
+    )
+    for name, option in OPTIONS.items()
+}
 
-    episode_steps: Count | None = Field(
-        None, ge=1, le=MAX_EPISODE_STEPS, description="acquisitions after the first"
-    )
-    max_step_fraction: float | None = Field(None, gt=0, le=2, description="action scale")
-    acquisition_cost: float | None = Field(None, ge=0, description="reward cost per image")
-    out_of_bounds_penalty: float | None = Field(None, ge=0, description="bound penalty")
-    final_reward_scale: float | None = Field(None, gt=0, description="final reward factor")
-    final_reward_form: Literal["difference", "log_ratio"] | None = Field(
-        None, description="final reward on widths in px (difference) or on their logs"
-    )
-    success_bonus: float | None = Field(None, ge=0, description="optional shaping at success")
-    bonus_relative: float | None = Field(None, gt=1, description="bonus within x best width")
-    verify_final: bool | None = Field(None, description="judge the end on one more image")
-    quality_reference: Literal["fixed", "first"] | None = Field(
-        None, description="quality relative to quality_ref_px (fixed) or the first width"
-    )
-    fit_features: bool | None = Field(None, description="3 features of a local focus-curve fit")
-    fit_window: float | None = Field(None, gt=1, description="fit within x narrowest reading")
-    action_power: float | None = Field(None, ge=1, le=4, description="step: sign(a)|a|^power")
-    stop_at_best: bool | None = Field(None, description="end at the narrowest reading's setting")
-    backlash_overshoot: float | None = Field(None, ge=0, le=0.5, description="way back: past by")
-    finish_at_fit: bool | None = Field(None, description="way back to / last move from a fit")
-    finish_at_posterior: bool | None = Field(None, description="as finish_at_fit: posterior")
-    stop_when_sure: float | None = Field(None, ge=0, lt=1, description="posterior stops at")
-    probe_until_sure: float | None = Field(None, ge=0, lt=1, description="stop taken from")
-    posterior_draws: Count | None = Field(None, ge=16, le=4096, description="posterior's columns")
-    posterior_far_noise: float | None = Field(None, ge=0, le=1, description="posterior's far_noise")
-    posterior_walk_after: Count | None = Field(
-        None, ge=0, le=100, description="posterior walks from"
-    )
-    posterior_walk_unmeasured: bool | None = Field(None, description="and while none measured")
-    posterior_no_edges: bool | None = Field(None, description="posterior reads no-edge frames")
-    posterior_from_below: bool | None = Field(None, description="posterior: readings from below")
-    posterior_on_sides: bool | None = Field(None, description="posterior: readings on their sides")
-    posterior_probe_rule: ProbeRule | None = Field(None, description="where its walk probes")
-    posterior_saturation_px: tuple[float, float] | None = Field(None, description="level off, px")
-    posterior_column: dict[str, float] | None = Field(None, description="calibrated column")
-    finish_window: float | None = Field(None, gt=1, description="finish fit: within x narrowest")
-    approach_from_below: bool | None = Field(None, description="every reading reached from below")
-    move_floor: float | None = Field(None, ge=0, le=0.2, description="least move, of the interval")
-    final_move: bool | None = Field(None, description="the stopping action's move ends it")
-    final_move_reach: float | None = Field(None, gt=0, le=1, description="x max_step, last move")
-    success_relative: float | None = Field(None, gt=1, description="threshold x best width")
-    success_absolute_px: float | None = Field(None, gt=0, description="absolute spec, px")
-    directional_relative: float | None = Field(None, gt=1, description="directional spec x best")
-    wobble_amplitude_v: float | None = Field(None, gt=0, description="wobble swing each way, V")
-    wobble_spec_px: float | None = Field(None, gt=0, description="spec of the wobble shift, px")
-    wobble_weight: float | None = Field(None, ge=0, description="cost px per px of wobble shift")
+
+class _TaskOptions(_Strict):
+    """TaskOptions' method; its fields are _FIELDS."""
 
     def apply(self, task: Any) -> Any:
         """The task with these changes (a new object; the registry's task is untouched)."""
@@ -93,6 +66,9 @@ class TaskOptions(_Strict):
                 )
         if self.posterior_column is not None:  # a mapping in a file, a tuple in the task
             changes["posterior_column"] = column_values(self.posterior_column)
+        ending = {name: changes.pop(name) for name in ENDING_OPTIONS if name in changes}
+        if ending:  # the flat names, parsed into the task's one Ending record
+            changes["ending"] = ending_from_options(ending, task.ending)
         success = task.success
         if self.success_relative is not None:
             success = dataclasses.replace(success, relative=self.success_relative)
@@ -100,6 +76,13 @@ class TaskOptions(_Strict):
             success = dataclasses.replace(success, absolute_px=self.success_absolute_px)
         return dataclasses.replace(task, success=success, **changes)
 
+
+TaskOptions = create_model(  # type: ignore[call-overload]
+    "TaskOptions",
+    __base__=_TaskOptions,
+    __doc__="Changes to a named task; unset fields keep the task's own values.",
+    **_FIELDS,
+)
 
 # What a trained policy may act with beyond its training's options (never what it observes).
 _ACTING = {

@@ -2,7 +2,7 @@
 calibrating the posterior that walks and ends its alignments (issue 21).
 
 The policy (a champion or any export whose task ends at the focus posterior,
-Task.finish_at_posterior, and approaches every setting from below) runs a session of
+finish_at_posterior, and approaches every setting from below) runs a session of
 `alignments` on the apparatus, every write through the shield as in `alignrl evaluate`; the
 readings of those alignments calibrate the column's reading model
 (alignrl/posterior/calibration.py: no optimum needed, a driver that cannot tell its own is
@@ -118,13 +118,14 @@ def calibrated_overrides(
 
 
 def _check_policy(spec: str, task: Any) -> None:
-    if len(task.knobs) != 1 or not (task.finish_at_posterior and task.approach_from_below):
+    posterior, below = task.ending.at == "posterior", task.ending.approach_from_below
+    if len(task.knobs) != 1 or not (posterior and below):
         raise ValueError(
             f"{spec}: calibrate adapts a one-knob focus policy whose alignments end at its "
             f"posterior and approach every setting from below (task options "
             f"finish_at_posterior and approach_from_below, as champion:focus-v2); this one's "
             f"task aligns {', '.join(task.knobs)} with finish_at_posterior="
-            f"{task.finish_at_posterior}, approach_from_below={task.approach_from_below}"
+            f"{posterior}, approach_from_below={below}"
         )
 
 
@@ -234,7 +235,7 @@ def run_calibration(
         name=plan.spec, act=policy.act, task=policy.task, history=policy.history
     )
     knob = policy.task.knobs[0]
-    overshoot = policy.task.backlash_overshoot
+    overshoot = policy.task.ending.backlash_overshoot
     above: list[list[tuple[float, float, float]]] = []
 
     def after(record: Any) -> None:

@@ -304,7 +304,7 @@ def with_acting_options(source: PolicySource, overrides: Sequence[str]) -> Polic
     observes), checked by the same strict model as a run's config; anything else is an
     ExportError naming it."""
     from alignrl.config_reading import ConfigError, overridden, parse_config
-    from alignrl.envs.task import ACTING_OPTIONS
+    from alignrl.envs.option_table import ACTING_OPTIONS
 
     if not overrides:
         return source

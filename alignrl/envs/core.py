@@ -12,9 +12,10 @@ An episode (seed section 4.3):
    scale x (edge width before - edge width after) is paid then. With the task's
    `verify_final`, "after" is one more image acquired at the final setting (as an
    evaluation's verification), not the last reading the aligner stopped at. With its
-   `stop_at_best`, the final setting is where the episode's narrowest reading was taken
-   (written back without an acquisition, arriving from the side the reading was approached
-   from: `backlash_overshoot`), as a classical autofocus ends.
+   ending at its narrowest reading (`Task.ending`, alignrl/envs/endings.py), the final
+   setting is where the episode's narrowest reading was taken (written back without an
+   acquisition, arriving from the side the reading was approached from:
+   `backlash_overshoot`), as a classical autofocus ends (alignrl/envs/ending.py).
 
 Observations are histories of H steps, oldest first, zero-padded at the front; each row is
 FEATURES: [valid, knob settings (k, in [-1, 1]), log(width / ref), measured, last action
@@ -60,9 +61,9 @@ from alignrl.apparatus.base import (
 from alignrl.apparatus.measures import measure_directional, measure_wobble
 from alignrl.envs import rewards
 from alignrl.envs.context import align_others
-from alignrl.envs.ending import EpisodeEnds
+from alignrl.envs.ending import EndPlan, EpisodeEnds
 from alignrl.envs.fit_features import FIT_FEATURES, fit_features
-from alignrl.envs.task import Task, knob_change
+from alignrl.envs.task import Task
 
 __all__ = ["AlignmentEpisodes", "EpisodeInfo", "align_others", "feature_layout", "known_optimum"]
 
@@ -116,7 +117,7 @@ class EpisodeInfo:
     out_of_bounds: int = 0
     failed_measurements: int = 0
     last_error: str = ""
-    ended_at_fit: bool = False  # Task.ends_at_estimate: the way back went to the estimate
+    ended_at_fit: bool = False  # Ending.at_estimate: the way back went to the estimate
 
 
 class AlignmentEpisodes:
@@ -150,7 +151,7 @@ class AlignmentEpisodes:
         # apparatus's, in order (and one write per reading: not approach_from_below).
         same_knobs = all(tuple(u.knobs) == tuple(task.knobs) for u in self.apparatus)
         self._batched = answers_batched(self.apparatus) and same_knobs
-        self._batched &= not task.approach_from_below
+        self._batched &= not task.ending.approach_from_below
         self.history = np.zeros((self.n, history, self.n_features), np.float32)
         # The reading quality observations are relative to (Task.quality_reference): the
         # fixed quality_ref_px, or each episode's first measured width (unit-free).
@@ -169,7 +170,7 @@ class AlignmentEpisodes:
         self.bonus_threshold = np.full(self.n, np.nan)  # px; the success bonus is paid within
         self.best_width = np.full(self.n, np.nan)  # px at the optimum; NaN where unknown
         # Where the episodes end: the narrowest reading, the sides knobs were written from
-        # (Task.stop_at_best, backlash_overshoot, finish_at_fit: alignrl/envs/ending.py).
+        # (Task.ending: alignrl/envs/endings.py; visited as alignrl/envs/ending.py says).
         self.ends = EpisodeEnds(self.n, self.k, task)
         self.steps = np.zeros(self.n, np.int64)
         self.acquisitions = np.zeros(self.n, np.int64)
@@ -333,9 +334,10 @@ class AlignmentEpisodes:
         actions = np.clip(np.asarray(actions, float).reshape(len(indices), self.k + 1), -1, 1)
         if not np.all(self.active[indices]):
             raise RuntimeError("step called on an episode that has ended: reset it first")
-        stop = actions[:, self.k] > 0
-        probes = self.ends.probes(indices, stop, self.steps[indices], self.low, self.high)
-        stop &= ~np.isin(indices, list(probes))
+        # The ending, before the moves: which stop, where the posterior reads instead
+        stop, probes = self.ends.before(
+            indices, actions[:, self.k] > 0, self.steps[indices], self.low, self.high
+        )
         reward = np.zeros(len(indices))
         moving = indices[~stop]
         if moving.size:
@@ -357,16 +359,17 @@ class AlignmentEpisodes:
             for position, index in enumerate(moving):
                 self.info[index].out_of_bounds += int(hit_bound[position])
         done = stop | (self.steps[indices] >= task.episode_steps)
-        if task.stop_when_sure:  # the posterior is sure: a stop whose last move is 0
-            sure = ~done & np.array([self.ends.sure(index) for index in indices], bool)
-            done, stop = done | sure, stop | sure
-            actions[sure, : self.k] = 0.0
+        # The ending, after the readings: which are done, and how each finished one ends
+        done, stop, plans = self.ends.after(
+            indices, done, stop, actions[:, : self.k], *self._limits
+        )
         finished = indices[done]
-        if task.final_move and np.any(stop):
-            hit_bound = self._move_last(indices[stop], actions[stop, : self.k])
+        self._end(plans)
+        if task.ending.final_move and np.any(stop):  # the last moves, as planned
+            hit_bound = np.array([plan.hit_bound for plan in plans])
             reward[stop] += rewards.bound_penalty(hit_bound, task.out_of_bounds_penalty)
-        if task.stop_at_best and finished.size:
-            self._go_to_end(finished)
+        if task.ending.stop_at_best and finished.size:  # the way back: its reading stands
+            self.cost[finished] = self._costs(finished)
         if task.verify_final and finished.size:
             # One more image where the aligner left the column: the verification an
             # evaluation takes. Rewards and success are judged on it, not on the reading the
@@ -389,56 +392,35 @@ class AlignmentEpisodes:
             info.width_px = float(self.width[index])
         return reward, done
 
+    @property
+    def _limits(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Every episode's setting, interval and largest step (its units), as the ending
+        plans with them."""
+        return self.setting, self.low, self.high, self.max_step
+
     def stop_origins(self, indices: np.ndarray) -> np.ndarray:
-        """(len(indices), k), units: where a stopping action's move starts (Task.final_move):
-        with finish_at_fit, the fitted optimum where the readings bracket one, with
-        finish_at_posterior the posterior's best setting; else the present setting."""
-        origins = self.setting[indices].copy()
-        if not self.task.ends_at_estimate:
-            return origins
-        for position, index in enumerate(indices):
-            estimate = self.ends.estimated(index, self.low[index], self.high[index])
-            if estimate is not None:
-                origins[position] = np.clip(estimate, self.low[index], self.high[index])
-        return origins
+        """(len(indices), k), units: where a stopping action's move starts (Task.ending's
+        final_move: EpisodeEnds.origins)."""
+        return self.ends.origins(indices, self.setting, self.low, self.high)
 
-    def _move_last(self, indices: np.ndarray, actions: np.ndarray) -> np.ndarray:
-        """Task.final_move: the stopping actions of `indices` move their knobs one last time
-        (from stop_origins, final_move_reach x max_step; no floor), clipped at the interval's
-        bounds, with no acquisition. A write the apparatus refuses leaves the knobs where they
-        got to, the error in the info. Returns where a move hit a bound."""
-        reach = self.max_step[indices] * self.task.final_move_reach
-        target = self.stop_origins(indices) + knob_change(actions, reach, self.task.action_power)
-        clipped = np.clip(target, self.low[indices], self.high[indices])
-        for position, index in enumerate(indices):
-            limits = self.low[index], self.high[index]
-            try:
-                for setting in self.ends.writes_to(index, clipped[position], *limits):
-                    self.setting[index] = self._write(index, setting)
-            except ApparatusError as error:
-                self.info[index].last_error = str(error)
-            self.info[index].out_of_bounds += int(np.any(clipped[position] != target[position]))
-        return np.any(clipped != target, axis=1)
-
-    def _go_to_end(self, indices: np.ndarray) -> None:
-        """Write the setting each episode ends at (Task.stop_at_best: its narrowest reading's,
-        or a fit's: alignrl/envs/ending.py) where the last step left elsewhere; the narrowest
-        reading stands as the final one unless the task verifies. No acquisition. A write the
-        apparatus refuses stops the way back where it got to (the setting shows where), its
-        last reading standing, and the error in its info."""
-        for index in indices:
-            plan = self.ends.plan(index, self.setting[index], self.low[index], self.high[index])
-            if plan is None:
-                continue  # nothing measured, or already there
+    def _end(self, plans: list[EndPlan]) -> None:
+        """Make the writes each finished episode ends with (EpisodeEnds.after), no
+        acquisition: a last move, or the way back to the narrowest reading or an estimate,
+        whose reading then stands as the final one unless the task verifies. A write the
+        apparatus refuses leaves the knobs where they got to (the setting shows where), the
+        last reading standing, and the error in the info."""
+        for plan in plans:
+            index = plan.index
             try:
                 for setting in plan.writes:
                     self.setting[index] = self._write(index, setting)
             except ApparatusError as error:
                 self.info[index].last_error = str(error)
-                continue
-            self.width[index] = plan.width
-            self.info[index].ended_at_fit = plan.fitted
-        self.cost[indices] = self._costs(indices)
+            else:
+                if not np.isnan(plan.width):  # the way back: that reading stands
+                    self.width[index] = plan.width
+                    self.info[index].ended_at_fit = plan.fitted
+            self.info[index].out_of_bounds += int(plan.hit_bound)
 
     def _costs(self, indices: np.ndarray) -> np.ndarray:
         """The task's cost (px) of the latest measurement of `indices`: the width, plus the
@@ -569,7 +551,7 @@ class AlignmentEpisodes:
         positions = (self.setting[indices] - self.low[indices]) / self.span[indices]
         rows[:, layout["knobs"]] = np.clip(2.0 * positions - 1.0, -1.0, 1.0)
         measured = np.isfinite(widths)
-        if self.task.stop_at_best or self.task.ends_at_estimate:
+        if self.task.ending.notes_readings:
             opening = self.steps[indices] == 0
             self.ends.note(indices, self.setting[indices], widths, measured, opening, positions)
         reference = self.quality_ref[indices]

@@ -19,7 +19,7 @@ Three features, appended to the newest row of the history:
     fit_floor   log(w0 / the newest width), clipped to [FIT_FLOOR_MIN, 0]: how much
                 narrower the fit says the column can get; FIT_FLOOR_MIN where w0^2 <= 0.
 
-The same fit ends an episode where the task says so (`Task.finish_at_fit`,
+The same fit ends an episode where the task says so (finish_at_fit,
 `bracketed_optimum`): over all of the episode's readings within FINISH_WINDOW x the narrowest,
 its optimum where readings lie on both sides of it.
 
@@ -39,7 +39,7 @@ __all__ = ["FINISH_WINDOW", "FIT_FEATURES", "bracketed_optimum", "fit_features"]
 
 FIT_FEATURES = 3
 LOCAL_RATIO = 3.0  # rows within this x the narrowest reading take part in the fit
-# The end of an episode (Task.finish_at_fit) fits every reading within this x the narrowest:
+# The end of an episode (finish_at_fit) fits every reading within this x the narrowest:
 # of 2, 3, 5, 10, 20 and every reading, the best on the validation instruments
 # (docs/benchmarks.md, "Ending at a fit of the readings").
 FINISH_WINDOW = 10.0
@@ -96,6 +96,6 @@ def bracketed_optimum(
 ) -> float | None:
     """Where the focus-curve fit of an episode's readings puts the optimum, if readings on
     both sides of it took part (an interpolation, never an extrapolation beyond them); else
-    None. What `Task.finish_at_fit` ends at (alignrl/envs/core.py)."""
+    None. What finish_at_fit ends at (alignrl/envs/core.py)."""
     curve = fit_focus_curve(settings, widths, window, resolution=_MIN_SPREAD)
     return curve.optimum if curve is not None and curve.brackets else None

@@ -26,11 +26,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from alignrl.envs.fit_features import FINISH_WINDOW, FIT_FEATURES
+from alignrl.envs.endings import Ending
+from alignrl.envs.fit_features import FIT_FEATURES
+from alignrl.envs.option_table import OPTIONS
 from alignrl.envs.success import Criterion, SuccessRule
 
 __all__ = [
-    "ACTING_OPTIONS",
     "MEASURES",
     "TASKS",
     "Criterion",
@@ -42,26 +43,6 @@ __all__ = [
 
 MEASURES = ("width", "directional", "wobble")
 DIRECTIONAL_BINS = 4  # edge-normal orientation bins of quality.directional_widths
-QUALITY_REFERENCES = ("fixed", "first")  # what quality observations are relative to
-REWARD_FORMS = ("difference", "log_ratio")  # how the final reward counts widths (rewards.py)
-MAX_ACTION_POWER = 4.0  # above it the smallest useful changes need actions within a hair of 0
-# The task options that change how a trained policy's moves reach the column and how its
-# episode ends, never what it observes: an export may set them (alignrl export --set).
-ACTING_OPTIONS = (
-    "move_floor", "stop_at_best", "backlash_overshoot", "finish_at_fit", "finish_at_posterior",
-    "stop_when_sure", "probe_until_sure", "posterior_draws", "posterior_far_noise",
-    "posterior_walk_after", "posterior_walk_unmeasured", "posterior_no_edges",
-    "posterior_from_below", "posterior_on_sides", "posterior_probe_rule",
-    "posterior_saturation_px", "posterior_column", "finish_window", "approach_from_below",
-    "final_move", "final_move_reach",
-)  # fmt: skip
-# The posterior of finish_at_posterior: the columns it draws (FamilyPosterior.draws)
-POSTERIOR_DRAWS, MIN_POSTERIOR_DRAWS, MAX_POSTERIOR_DRAWS = 256, 16, 4096
-# Where its walk probes: FamilyPosterior's PROBE_RULES (alignrl/posterior/inference.py,
-# left unimported here for its scipy; tests/test_finish_at_posterior.py holds them equal)
-POSTERIOR_PROBE_RULES = ("variance", "chance", "entropy")
-MAX_FAR_NOISE = 1.0  # its posterior_far_noise: beyond it a reading far from focus says nothing
-MAX_MOVE_FLOOR = 0.2  # a share of the interval: beyond it no column could be brought to focus
 
 
 def knob_change(
@@ -140,126 +121,30 @@ class Task:
     # 1 is linear (the seed); above 1 the same reach with finer changes near 0, where a
     # steep column's last moves must land within a fraction of a percent of the interval.
     action_power: float = 1.0
-    # An episode that ends (stop or step limit) leaves the knob where its narrowest reading
-    # was taken, as a classical autofocus does, not where the last step took it: a probe
-    # beyond the best costs an acquisition but never the result. Width-only tasks.
-    stop_at_best: bool = False
-    # The way back to the narrowest reading arrives at each knob's setting from the side that
-    # reading was approached from, going past it first by this share of the interval where
-    # it would come back from the other side (backlash and lens hysteresis put the focus
-    # elsewhere otherwise); 0 returns in one write.
-    backlash_overshoot: float = 0.02
-    # With stop_at_best: where a focus-curve fit of the episode's readings places the optimum
-    # between readings (alignrl/envs/fit_features.py, bracketed_optimum), the way back goes
-    # there instead of to the narrowest reading. No reading is taken there: the final one is
-    # the verification's (verify_final), or the narrowest stands. With final_move: the
-    # stopping action's move starts from that optimum, not from the present setting (the
-    # policy corrects the fit). One-knob width tasks.
-    finish_at_fit: bool = False
-    # As finish_at_fit, with the setting that the scale-free Bayesian autofocus over the
-    # focus training box (alignrl/posterior/inference.py) holds most likely to pass,
-    # given the episode's measured readings, in place of the fit's optimum: the policy
-    # probes and stops, the posterior says where it ends. Focus tasks approached from below
-    # (its reading model); a fraction of a second of computing per episode end.
-    finish_at_posterior: bool = False
-    # With finish_at_posterior: an episode also ends (as a stop whose last move is 0) once
-    # that best setting passes with this probability (a calibrated posterior_column's: x the
-    # chance at the optimum itself, FamilyPosterior.relative_stop); 0: only the policy stops.
-    stop_when_sure: float = 0.0
-    # With finish_at_posterior: a stop is taken only once the posterior is that sure of its
-    # best setting (as stop_when_sure); before, the stopping action reads once more where it would
-    # probe next (and the policy acts on); 0: every stop is taken.
-    probe_until_sure: float = 0.0
-    # With finish_at_posterior: the columns that posterior draws from the box (and draws
-    # again around the likely ones as readings come): more columns, a chance nearer the truth
-    # where few readings are near focus, at a computing cost in proportion.
-    posterior_draws: int = POSTERIOR_DRAWS
-    # With finish_at_posterior: its readings far from focus trusted less (FamilyPosterior.
-    # far_noise; posterior-robust's 0.1 for readings measured on images).
-    posterior_far_noise: float = 0.0
-    # With finish_at_posterior: from an episode's posterior_walk_after-th reading on (taken,
-    # measured or not), every move goes where the posterior would probe next, not where the
-    # policy asks (its stops stand as before); 0: the policy walks throughout.
-    posterior_walk_after: int = 0
-    # With finish_at_posterior: while no reading of the episode has been measured (every
-    # frame so far without edges), every move goes where the posterior would probe next too:
-    # the policy has no reading to act on, the posterior knows focus lies away from there.
-    posterior_walk_unmeasured: bool = False
-    # With finish_at_posterior: readings without edges tell the posterior that focus is far
-    # from there (as posterior-robust reads them); else it is fed measured readings alone.
-    posterior_no_edges: bool = False
-    # With finish_at_posterior: the posterior reads only the readings approached from below,
-    # not the opening one, taken on whichever branch of its backlash or hysteresis the column
-    # was found (the narrowest reading may still be that one); False: every reading.
-    posterior_from_below: bool = False
-    # With finish_at_posterior: the posterior reads each reading on the side it was
-    # approached from, the opening one (the column as found) on an unknown side: the mixture
-    # of the backlash's branches (FamilyPosterior.observe, side 0); False: every reading as
-    # approached from below.
-    posterior_on_sides: bool = False
-    # With finish_at_posterior: where its walk probes (FamilyPosterior.probe_rule): "variance",
-    # the least expected variance of the optimum; "entropy", the least expected entropy of
-    # it (the most expected information); "chance", the final setting's greatest chance.
-    posterior_probe_rule: str = "variance"
-    # With finish_at_posterior: where its columns' readings level off (px, low and high, drawn
-    # log-uniformly) in place of the box's saturation_px, which its analytic readings follow:
-    # edge widths measured on images level off from 15 px (grids, bars); (): the box's.
-    posterior_saturation_px: tuple[float, ...] = ()
-    # With finish_at_posterior: the posterior reads in the one column calibrated on the
-    # microscope (alignrl/posterior/calibration.py: COLUMN_FIELDS' values in order, `alignrl
-    # calibrate`), in that column's own pixels, not in the scale-free training box; (): the box.
-    posterior_column: tuple[float, ...] = ()
-    finish_window: float = FINISH_WINDOW  # that fit takes the readings within this x the narrowest
-    # Every setting a reading is taken at is reached from below, as a microscopist approaches
-    # focus from one side: a step down first goes past its target by backlash_overshoot x the
-    # interval (kept inside it) and comes back up, so that backlash and lens hysteresis put
-    # every reading, and the way back, on one branch of the focus curve. No acquisition on
-    # the way (alignrl/envs/ending.py, EpisodeEnds.writes_to).
-    approach_from_below: bool = False
+    # How an episode ends: where it leaves the knob (its last setting, its narrowest reading,
+    # a focus-curve fit's optimum or a posterior's best setting), by its last move or a way
+    # back, and how settings are approached (alignrl/envs/endings.py, `Ending`).
+    ending: Ending = field(default_factory=Ending)
     # Every move goes at least this share of the interval further in its own direction
     # (Task.knob_change): a policy trained on the box's columns stops short near a bound and
     # under-brackets steep ones with its last, shortest moves. 0: the seed's moves.
     move_floor: float = 0.0
-    # The stopping action's knob components are one last move (as any move, but without the
-    # floor), written without an acquisition: the policy says where its episode ends, between
-    # its readings (a Bayesian autofocus ends at its posterior's best setting, not at a
-    # reading). The final reading is the verification's (verify_final, or a session's); the
-    # last reading stands until then. Not with stop_at_best, which says where instead.
-    final_move: bool = False
-    # The last move's reach as a share of max_step (action_power as any move's): below 1, a
-    # finer last move for a policy that corrects an estimate (finish_at_fit) by a little.
-    final_move_reach: float = 1.0
 
     def __post_init__(self) -> None:
         if not self.knobs:
             raise ValueError(f"task {self.name!r} names no knob")
-        if self.episode_steps < 1:
-            raise ValueError(f"task {self.name!r}: episode_steps must be at least 1")
-        if not 0 < self.max_step_fraction <= 2:
-            raise ValueError(f"task {self.name!r}: max_step_fraction must be in (0, 2]")
-        if not 0 <= self.move_floor <= MAX_MOVE_FLOOR:
-            raise ValueError(f"task {self.name!r}: move_floor must be in [0, {MAX_MOVE_FLOOR}]")
+        for name, option in OPTIONS.items():  # each within its bounds (option_table.py)
+            problem = option.problem(name, getattr(self, name)) if option.part == "task" else None
+            if problem is not None:
+                raise ValueError(f"task {self.name!r}: {problem}")
         for knob, step in self.max_step.items():
             if knob not in self.knobs:
                 raise ValueError(f"task {self.name!r}: max_step names {knob!r}, not a task knob")
             if not step > 0:
                 raise ValueError(f"task {self.name!r}: max_step of {knob!r} must be positive")
-        if self.out_of_bounds_penalty < 0 or self.acquisition_cost < 0 or self.success_bonus < 0:
-            raise ValueError(f"task {self.name!r}: penalties and costs are magnitudes (>= 0)")
-        if self.bonus_relative is not None and not self.bonus_relative > 1:
-            raise ValueError(f"task {self.name!r}: bonus_relative must be above 1 (x best width)")
-        if not self.quality_ref_px > 0 or not self.no_edges_px > 0:
-            raise ValueError(f"task {self.name!r}: quality_ref_px and no_edges_px must be > 0")
-        if self.final_reward_form not in REWARD_FORMS:
-            raise ValueError(
-                f"task {self.name!r}: final_reward_form must be one of "
-                f"{', '.join(REWARD_FORMS)}, got {self.final_reward_form!r}"
-            )
-        if self.quality_reference not in QUALITY_REFERENCES:
-            raise ValueError(
-                f"task {self.name!r}: quality_reference must be one of "
-                f"{', '.join(QUALITY_REFERENCES)}, got {self.quality_reference!r}"
-            )
+        for name in ("quality_ref_px", "no_edges_px", "wobble_ref_px"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"task {self.name!r}: {name} must be positive")
         unknown = [name for name in self.measures if name not in MEASURES]
         if unknown or "width" not in self.measures or len(set(self.measures)) != len(self.measures):
             raise ValueError(
@@ -271,98 +156,7 @@ class Task:
                 f"task {self.name!r}: fit_features fits a focus curve along one knob; the task "
                 f"moves {len(self.knobs)} ({', '.join(self.knobs)})"
             )
-        if not self.fit_window > 1:
-            raise ValueError(f"task {self.name!r}: fit_window must be above 1 (x narrowest)")
-        if self.stop_at_best and self.measures != ("width",):
-            raise ValueError(
-                f"task {self.name!r}: stop_at_best returns to the narrowest reading, a task "
-                f"that measures the width alone; it measures {', '.join(self.measures)}"
-            )
-        if self.finish_at_fit and not (
-            (self.stop_at_best or self.final_move) and len(self.knobs) == 1
-        ):
-            raise ValueError(
-                f"task {self.name!r}: finish_at_fit ends the way back to the narrowest reading "
-                f"(stop_at_best), or starts the last move (final_move), at a focus-curve fit "
-                f"along one knob; the task has stop_at_best={self.stop_at_best}, "
-                f"final_move={self.final_move} and {len(self.knobs)} knobs"
-            )
-        if self.finish_at_posterior and not (
-            (self.stop_at_best or self.final_move) and self.knobs == ("defocus",)
-            and self.approach_from_below and not self.finish_at_fit
-        ):  # fmt: skip
-            raise ValueError(
-                f"task {self.name!r}: finish_at_posterior ends the way back (stop_at_best), or "
-                f"starts the last move (final_move), where the focus posterior puts the best "
-                f"setting, in place of finish_at_fit; it needs the defocus knob alone, every "
-                f"reading approached from below (approach_from_below) and no finish_at_fit; "
-                f"the task has stop_at_best={self.stop_at_best}, final_move={self.final_move}, "
-                f"knobs {', '.join(self.knobs)}, approach_from_below={self.approach_from_below}"
-                f" and finish_at_fit={self.finish_at_fit}"
-            )
-        column = self._column_problem()
-        for option, good, meaning in (
-            ("stop_when_sure", 0 <= self.stop_when_sure < 1, "the chance, in [0, 1), at which "
-             "it ends an episode"),
-            ("probe_until_sure", 0 <= self.probe_until_sure < 1, "the chance, in [0, 1), it "
-             "must give its best setting before a stop is taken"),
-            ("posterior_draws", MIN_POSTERIOR_DRAWS <= self.posterior_draws <= MAX_POSTERIOR_DRAWS,
-             f"how many columns it draws, {MIN_POSTERIOR_DRAWS}-{MAX_POSTERIOR_DRAWS}"),
-            ("posterior_far_noise", 0 <= self.posterior_far_noise <= MAX_FAR_NOISE,
-             f"how much less it trusts far readings, in [0, {MAX_FAR_NOISE:g}]"),
-            ("posterior_walk_after", 0 <= self.posterior_walk_after <= self.episode_steps,
-             f"the reading it walks from, in [0, episode_steps={self.episode_steps}]"),
-            ("posterior_walk_unmeasured", True, "whether it walks while nothing is measured"),
-            ("posterior_no_edges", True, "whether it reads frames without edges"),
-            ("posterior_from_below", True, "whether it reads only readings from below"),
-            ("posterior_on_sides", True, "whether it reads readings on their sides"),
-            ("posterior_probe_rule", self.posterior_probe_rule in POSTERIOR_PROBE_RULES,
-             f"where its walk probes, one of {', '.join(POSTERIOR_PROBE_RULES)}"),
-            ("posterior_saturation_px", not (saturation := self.posterior_saturation_px) or (
-                len(saturation) == 2 and 0 < saturation[0] <= saturation[1] < math.inf),
-             "where its columns' readings level off, (low, high) px with 0 < low <= high"),
-            ("posterior_column", column is None, "a column calibrated on the microscope "
-             f"(alignrl calibrate){'' if column is None else ': ' + column}"),
-        ):  # fmt: skip
-            value = getattr(self, option)
-            if not good or (value != POSTERIOR_OPTIONS[option] and not self.finish_at_posterior):
-                raise ValueError(
-                    f"task {self.name!r}: {option} is {meaning}, by the posterior of "
-                    f"finish_at_posterior; got {value} "
-                    f"(finish_at_posterior={self.finish_at_posterior})"
-                )
-        if not 0.0 < self.final_move_reach <= 1.0 or (
-            self.final_move_reach != 1.0 and not self.final_move
-        ):
-            raise ValueError(
-                f"task {self.name!r}: final_move_reach is the last move's share of max_step, "
-                f"in (0, 1], with final_move; got {self.final_move_reach} "
-                f"(final_move={self.final_move})"
-            )
-        if self.final_move and self.stop_at_best:
-            raise ValueError(
-                f"task {self.name!r}: final_move ends where the stopping action moves, "
-                "stop_at_best at the narrowest reading: choose one"
-            )
-        if not self.finish_window > 1:
-            raise ValueError(f"task {self.name!r}: finish_window must be above 1 (x narrowest)")
-        if not 0.0 <= self.backlash_overshoot <= 0.5:
-            raise ValueError(
-                f"task {self.name!r}: backlash_overshoot must be in [0, 0.5] (a share of the "
-                f"interval), got {self.backlash_overshoot}"
-            )
-        if not 1.0 <= self.action_power <= MAX_ACTION_POWER:
-            raise ValueError(
-                f"task {self.name!r}: action_power must be in [1, {MAX_ACTION_POWER:g}], "
-                f"got {self.action_power}"
-            )
-        if not self.directional_relative > 1:
-            raise ValueError(f"task {self.name!r}: directional_relative must be above 1")
-        for name in ("wobble_amplitude_v", "wobble_spec_px", "wobble_ref_px"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"task {self.name!r}: {name} must be positive")
-        if self.wobble_weight < 0:
-            raise ValueError(f"task {self.name!r}: wobble_weight is a magnitude (>= 0)")
+        self._check_ending()
         for knob, offset in self.context.items():
             if knob in self.knobs:
                 raise ValueError(
@@ -387,15 +181,31 @@ class Task:
                     f"({', '.join(self.measures)}), each once; got {list(self.judged)}"
                 )
 
-    def _column_problem(self) -> str | None:
-        """What is wrong with posterior_column, or None (the box, or a calibrated column)."""
-        if not self.posterior_column:
-            return None
-        from alignrl.posterior.calibration import COLUMN_FIELDS, column_problem
-
-        if len(self.posterior_column) != len(COLUMN_FIELDS):
-            return f"{len(COLUMN_FIELDS)} values ({', '.join(COLUMN_FIELDS)})"
-        return column_problem(dict(zip(COLUMN_FIELDS, self.posterior_column, strict=True)))
+    def _check_ending(self) -> None:
+        """Refuse an ending this task cannot have (the ending checks itself: endings.py)."""
+        ending = self.ending
+        if ending.stop_at_best and self.measures != ("width",):
+            raise ValueError(
+                f"task {self.name!r}: stop_at_best returns to the narrowest reading, a task "
+                f"that measures the width alone; it measures {', '.join(self.measures)}"
+            )
+        if ending.at == "fit" and len(self.knobs) != 1:
+            raise ValueError(
+                f"task {self.name!r}: finish_at_fit ends at a focus-curve fit along one knob; "
+                f"the task has {len(self.knobs)} knobs"
+            )
+        if ending.at == "posterior" and self.knobs != ("defocus",):
+            raise ValueError(
+                f"task {self.name!r}: finish_at_posterior ends where the focus posterior puts "
+                f"the best setting; it needs the defocus knob alone, the task has knobs "
+                f"{', '.join(self.knobs)}"
+            )
+        if ending.settings.walk_after > self.episode_steps:
+            raise ValueError(
+                f"task {self.name!r}: posterior_walk_after, the reading the posterior walks "
+                f"from, must be at most episode_steps={self.episode_steps}; got "
+                f"{ending.settings.walk_after}"
+            )
 
     def knob_change(
         self, actions: np.ndarray, max_step: np.ndarray, span: np.ndarray
@@ -409,12 +219,6 @@ class Task:
         """The task as an evaluation session or `align` runs a policy on it: without the
         training verification image (`verify_final`), since they verify themselves."""
         return dataclasses.replace(self, verify_final=False) if self.verify_final else self
-
-    @property
-    def ends_at_estimate(self) -> bool:
-        """Whether episodes end at an estimate from their readings (finish_at_fit or
-        finish_at_posterior: alignrl/envs/ending.py, EpisodeEnds.estimated)."""
-        return self.finish_at_fit or self.finish_at_posterior
 
     @property
     def directional(self) -> bool:
@@ -540,13 +344,6 @@ class Task:
             for k in self.knobs
         )
 
-
-# The options that ask that posterior, at their defaults (each needs finish_at_posterior)
-POSTERIOR_OPTIONS = {
-    option.name: option.default
-    for option in dataclasses.fields(Task)
-    if option.name in ("stop_when_sure", "probe_until_sure") or option.name.startswith("posterior_")
-}
 
 TASKS: dict[str, Task] = {
     "focus": Task(name="focus", knobs=("defocus",)),
