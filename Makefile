@@ -40,8 +40,9 @@ run: $(STAMP)
 # (--dist loadfile), so a file's module fixtures are built once. The tests marked long
 # (minutes of one worker each: `make run` with the commands that read its league, the
 # README's held-out table of the champion, the crash windows' kills at every other write) run in `make docs-check`, `make crash-check` and
-# `make test-all` instead; the two marked learning (a whole training run and an adaptation that
-# must end well above an untrained learner, about 40 s each) in `make learning-check`.
+# `make test-all` instead; the three marked learning (whole training runs on focus and on the
+# stigmators and an adaptation, each of which must end well above an untrained learner, 20 to
+# 40 s each; `make test` keeps a shorter check of each kind) in `make learning-check`.
 PYTEST := $(BIN)/pytest -n 2 --dist loadfile
 test: $(STAMP)
 	$(BIN)/ruff check alignrl tests benchmarks docs/examples docs/gen_configs.py
