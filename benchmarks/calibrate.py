@@ -150,15 +150,19 @@ def main(argv: list[str] | None = None) -> int:
     results = [_judge(args, name) for name in names]
     readings = "analytic readings" if args.analytic else "images"
     judged = f"judged on {args.scenarios} (seed {args.seed}), {readings}"
-    print(f"{args.policy} calibrated on {args.alignments} alignments per instrument "
-          f"(seed {VALIDATION_SEED}), {judged}")  # fmt: skip
+    print(
+        f"{args.policy} calibrated on {args.alignments} alignments per instrument "
+        f"(seed {VALIDATION_SEED}), {judged}"
+    )
     print()
     print("| instrument | calibration session (steps) | far noise | calibrated |")
     print("| --- | --- | --- | --- |")
     for result in results:
         shown = success_text(result["calibration_successes"], result["alignments"])
-        print(f"| {result['instrument']} | {shown} at {result['calibration_median']:g} "
-              f"({result['steps']}) | {result['far_noise']:.3g} | {_cell(result)} |")  # fmt: skip
+        print(
+            f"| {result['instrument']} | {shown} at {result['calibration_median']:g} "
+            f"({result['steps']}) | {result['far_noise']:.3g} | {_cell(result)} |"
+        )
     total = sum(result["successes"] for result in results)
     print(f"| **total** | | | {success_text(total, args.scenarios * len(results))} |")
     return 0

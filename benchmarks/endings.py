@@ -114,8 +114,10 @@ def main(argv: list[str] | None = None) -> int:
         result = run_set(controller, args.set, judged, args.scenarios, args.seed, args.analytic)
         print(set_summary(result), file=sys.stderr, flush=True)
         results.append(result)
-    print(f"{policy.name} on set:{args.set} ({'analytic' if args.analytic else 'images'}), "
-          f"{args.scenarios} scenarios each, seed {args.seed}")  # fmt: skip
+    print(
+        f"{policy.name} on set:{args.set} ({'analytic' if args.analytic else 'images'}), "
+        f"{args.scenarios} scenarios each, seed {args.seed}"
+    )
     print("\n".join(set_table(results)))
     return 0
 

@@ -105,9 +105,10 @@ def _demonstrations(paths: list[str], config) -> Demonstrations:
         plain = feature_layout(1)["steps_left"].stop
         parts = [
             part.with_fit_features(2.0 * task.max_step_fraction, task.fit_window)
-            if part.observation.shape[2] == plain else part
+            if part.observation.shape[2] == plain
+            else part
             for part in parts
-        ]  # fmt: skip
+        ]
     return Demonstrations.joined(parts)
 
 
@@ -120,10 +121,16 @@ def _clone(args: argparse.Namespace) -> None:
     learner = trainer.agent.learner
     start = time.monotonic()
     loss = clone(
-        learner.actor, data, args.epochs, config.seed, continue_weight=args.continue_weight,
-        learning_rate=args.learning_rate, anneal=args.anneal, end_weight=args.end_weight,
+        learner.actor,
+        data,
+        args.epochs,
+        config.seed,
+        continue_weight=args.continue_weight,
+        learning_rate=args.learning_rate,
+        anneal=args.anneal,
+        end_weight=args.end_weight,
         log=lambda epoch, value: print(f"epoch {epoch + 1}: loss {value:.4f}", flush=True),
-    )  # fmt: skip
+    )
     trainer.agent.observe(
         Transition(
             data.observation,
@@ -157,8 +164,15 @@ def _agreement(args: argparse.Namespace) -> None:
     judged, fitted = order[: len(order) // 10], order[len(order) // 10 :]
     spec = member_spec(config)
     actor = Actor(*spec.observation_shape, spec.action_dim, spec.learner_config())
-    clone(actor, data.rows(fitted), args.epochs, config.seed, learning_rate=args.learning_rate,
-          anneal=args.anneal, end_weight=args.end_weight)  # fmt: skip
+    clone(
+        actor,
+        data.rows(fitted),
+        args.epochs,
+        config.seed,
+        learning_rate=args.learning_rate,
+        anneal=args.anneal,
+        end_weight=args.end_weight,
+    )
     test = data.rows(judged)
     with torch.no_grad():
         mean, _ = actor(torch.as_tensor(test.observation))
@@ -190,8 +204,10 @@ def _agreement(args: argparse.Namespace) -> None:
         ("none", np.zeros_like(ends)),
     ):
         error = np.abs(end - ends)
-        print(f"| {name} | {stops.sum()} | {np.median(error):.4f} | "
-              f"{np.percentile(error, 90):.4f} | {np.mean(error < 0.005):.0%} |")  # fmt: skip
+        print(
+            f"| {name} | {stops.sum()} | {np.median(error):.4f} | "
+            f"{np.percentile(error, 90):.4f} | {np.mean(error < 0.005):.0%} |"
+        )
     beyond = np.mean(np.abs(test.label[stops, 0]) >= 1.0)
     print(f"\nthe teacher's ends beyond one last move's reach (clipped to it): {beyond:.1%}")
 
@@ -205,14 +221,17 @@ def main(argv: list[str] | None = None) -> int:
     one.add_argument("--seed", type=int, default=1)
     one.add_argument("--student", help="a run whose best.pt acts (a DAgger round)")
     one.add_argument(
-        "--teacher-ends", action="store_true",
+        "--teacher-ends",
+        action="store_true",
         help="the student's stops end where the teacher would end (a diagnosis: its probes "
         "and stops, with the teacher's last move)",
-    )  # fmt: skip
+    )
     one.add_argument(
-        "--teacher", choices=("scale-free", "posterior"), default="scale-free",
+        "--teacher",
+        choices=("scale-free", "posterior"),
+        default="scale-free",
         help="the box posterior in an unknown pixel scale (default), or in the box's pixels",
-    )  # fmt: skip
+    )
     one.add_argument("--out", required=True)
     two = verbs.add_parser("clone", help="fit a new run's actor to collected labels")
     two.add_argument("--config", required=True)
@@ -220,9 +239,11 @@ def main(argv: list[str] | None = None) -> int:
     two.add_argument("--epochs", type=int, default=30)
     two.add_argument("--runs-dir", default="runs")
     two.add_argument(
-        "--continue-weight", type=float, default=1.0,
+        "--continue-weight",
+        type=float,
+        default=1.0,
         help="weight of the stop component where the teacher goes on (benchmarks.imitation.clone)",
-    )  # fmt: skip
+    )
     three = verbs.add_parser("agreement", help="how well the teacher can be followed")
     three.add_argument("--config", required=True)
     three.add_argument("--data", action="append", required=True)
@@ -231,13 +252,16 @@ def main(argv: list[str] | None = None) -> int:
         verb.add_argument("--set", action="append", default=[], help="config override key=value")
         verb.add_argument("--learning-rate", type=float, default=1e-3)
         verb.add_argument(
-            "--end-weight", type=float, default=1.0,
+            "--end-weight",
+            type=float,
+            default=1.0,
             help="weight of the last move's knob error where the teacher stops (clone)",
-        )  # fmt: skip
+        )
         verb.add_argument(
-            "--anneal", action="store_true",
+            "--anneal",
+            action="store_true",
             help="the learning rate falls to zero along a half cosine (benchmarks.imitation.clone)",
-        )  # fmt: skip
+        )
     args = parser.parse_args(argv)
     {"collect": _collect, "clone": _clone, "agreement": _agreement}[args.verb](args)
     return 0

@@ -47,8 +47,15 @@ __all__ = ["Demonstrations", "PosteriorTeacher", "clone", "collect"]
 LABEL_LIMIT = 0.98  # teacher actions are fitted within (-this, this): tanh never reaches 1
 # The per-step arrays of Demonstrations, in order.
 STEP_FIELDS = (
-    "observation", "label", "action", "reward", "next_observation", "done", "secret", "next_secret",
-)  # fmt: skip
+    "observation",
+    "label",
+    "action",
+    "reward",
+    "next_observation",
+    "done",
+    "secret",
+    "next_secret",
+)
 
 
 def action_for_move(move: float, max_step: float, power: float, floor: float) -> float:
@@ -111,8 +118,10 @@ class PosteriorTeacher:
             indices, 0
         ] * self.env.task.ending.final_move_reach
         moves = np.clip(targets, 0.0, 1.0) - origins[:, 0]
-        actions = [action_for_move(float(move), float(most), self.power, 0.0)
-                   for move, most in zip(moves, reach, strict=True)]  # fmt: skip
+        actions = [
+            action_for_move(float(move), float(most), self.power, 0.0)
+            for move, most in zip(moves, reach, strict=True)
+        ]
         return np.array(actions), np.abs(moves) <= reach
 
     def actions(self) -> np.ndarray:
@@ -130,8 +139,10 @@ class PosteriorTeacher:
         targets = np.clip(targets, 0.0, 1.0)
         moves = targets - episodes.positions()[:, 0]
         out = np.zeros((self.env.num_envs, 2))
-        out[:, 0] = [action_for_move(float(move), float(most), self.power, self.floor)
-                     for move, most in zip(moves, max_steps, strict=True)]  # fmt: skip
+        out[:, 0] = [
+            action_for_move(float(move), float(most), self.power, self.floor)
+            for move, most in zip(moves, max_steps, strict=True)
+        ]
         out[:, 1] = -1.0
         ending = np.flatnonzero(done)
         last, within = self._last_moves(ending, targets[ending])
@@ -162,26 +173,32 @@ class Demonstrations:
     def save(self, path: str) -> None:
         arrays = {name: getattr(self, name) for name in STEP_FIELDS}
         np.savez_compressed(
-            path, **arrays, episodes=self.episodes, successes=self.successes,
-            acquisitions=np.array(self.acquisitions, np.int64), ends_from_fit=self.ends_from_fit,
-        )  # fmt: skip
+            path,
+            **arrays,
+            episodes=self.episodes,
+            successes=self.successes,
+            acquisitions=np.array(self.acquisitions, np.int64),
+            ends_from_fit=self.ends_from_fit,
+        )
 
     @classmethod
     def load(cls, path: str) -> Demonstrations:
         with np.load(path, allow_pickle=False) as data:
             fields = {name: data[name] for name in STEP_FIELDS}
             return cls(
-                **fields, episodes=int(data["episodes"]), successes=int(data["successes"]),
+                **fields,
+                episodes=int(data["episodes"]),
+                successes=int(data["successes"]),
                 acquisitions=tuple(int(a) for a in data["acquisitions"]),
                 ends_from_fit=bool(data["ends_from_fit"]) if "ends_from_fit" in data else False,
-            )  # fmt: skip
+            )
 
     def rows(self, rows: np.ndarray) -> Demonstrations:
         """The steps `rows` alone (episode counts are left out)."""
         return Demonstrations(
             **{name: getattr(self, name)[rows] for name in STEP_FIELDS},
             ends_from_fit=self.ends_from_fit,
-        )  # fmt: skip
+        )
 
     def with_fit_features(self, step: float, window: float) -> Demonstrations:
         """These steps as a task with `fit_features` would have shown them: every history
@@ -212,16 +229,19 @@ class Demonstrations:
         for name in ("label", "action"):
             actions = getattr(self, name).copy()
             for row in np.flatnonzero(actions[:, 1] > 0):
-                actions[row, 0] = _from_fit(self.observation[row], actions[row, 0], max_step,
-                                            power, window, reach)  # fmt: skip
+                actions[row, 0] = _from_fit(
+                    self.observation[row], actions[row, 0], max_step, power, window, reach
+                )
             moved[name] = actions
         return replace(self, **moved, ends_from_fit=True)
 
     @classmethod
     def joined(cls, parts: list[Demonstrations]) -> Demonstrations:
         if len({part.ends_from_fit for part in parts}) > 1:
-            raise ValueError("steps whose ends move from a fit and steps whose ends do not: "
-                             "move the others first (moved_from_fit)")  # fmt: skip
+            raise ValueError(
+                "steps whose ends move from a fit and steps whose ends do not: "
+                "move the others first (moved_from_fit)"
+            )
         arrays = {
             name: np.concatenate([getattr(part, name) for part in parts]) for name in STEP_FIELDS
         }
@@ -235,9 +255,13 @@ class Demonstrations:
 
 
 def _from_fit(
-    history: np.ndarray, action: float, max_step: float, power: float, window: float,
+    history: np.ndarray,
+    action: float,
+    max_step: float,
+    power: float,
+    window: float,
     reach: float,
-) -> float:  # fmt: skip
+) -> float:
     """The stopping action from the fit's optimum that ends where `action` from the present
     setting ends (Demonstrations.moved_from_fit)."""
     layout = feature_layout(1)
@@ -264,10 +288,12 @@ def _with_fit_features(histories: np.ndarray, step: float, window: float) -> np.
         written[:, rows - 1 - row :] = histories[:, : row + 1]
         valid = written[:, -1, layout["valid"].start] > 0
         features = fit_features(
-            written[valid, :, layout["knobs"].start], written[valid, :, layout["quality"].start],
+            written[valid, :, layout["knobs"].start],
+            written[valid, :, layout["quality"].start],
             written[valid, :, layout["valid"].start] * written[valid, :, layout["measured"].start],
-            steps[valid], window,
-        )  # fmt: skip
+            steps[valid],
+            window,
+        )
         out[valid, row, width:] = features
     return out
 
@@ -292,8 +318,9 @@ def collect(
         label = teacher.actions()
         action = label if student is None else np.asarray(student(observation), np.float64)
         next_observation, reward, done, _, infos = env.step(action)
-        last = np.where(done[:, None, None], infos.get("final_observation", next_observation),
-                        next_observation)  # fmt: skip
+        last = np.where(
+            done[:, None, None], infos.get("final_observation", next_observation), next_observation
+        )
         next_secret = infos.get("final_secret", infos["secret"])
         step = (observation, label, action, reward, last, done, secret, next_secret)
         for name, value in zip(STEP_FIELDS, step, strict=True):

@@ -193,10 +193,20 @@ def plot(bins: list[Bin], path: Path, title: str) -> None:
         label="readings binned by chance",
     )
     for each in filled:
-        axes.annotate(str(each.count), (each.stated, each.found), fontsize=7,
-                      xytext=(4, -10), textcoords="offset points")  # fmt: skip
-    axes.set(xlabel="chance stated after a reading", ylabel="share that passed there",
-             xlim=(0, 1.02), ylim=(0, 1.02), title=title)  # fmt: skip
+        axes.annotate(
+            str(each.count),
+            (each.stated, each.found),
+            fontsize=7,
+            xytext=(4, -10),
+            textcoords="offset points",
+        )
+    axes.set(
+        xlabel="chance stated after a reading",
+        ylabel="share that passed there",
+        xlim=(0, 1.02),
+        ylim=(0, 1.02),
+        title=title,
+    )
     axes.legend(loc="upper left", fontsize=8, markerscale=0.4)
     figure.tight_layout()
     figure.savefig(path, dpi=120)
@@ -207,9 +217,10 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--policy", default="champion:focus-v2")
     parser.add_argument(
-        "--apparatus", default="family:focus",
+        "--apparatus",
+        default="family:focus",
         help="family:focus (the training box) or instrument:NAME (a validation instrument)",
-    )  # fmt: skip
+    )
     parser.add_argument("--episodes", type=int, default=100)
     parser.add_argument("--seed", type=int, default=100)
     parser.add_argument("--images", action="store_true", help="rendered frames, not analytic")
@@ -237,8 +248,10 @@ def main(argv: list[str] | None = None) -> int:
     (args.out / "reliability.json").write_text(json.dumps(written, indent=1))
     reading = "images" if args.images else "analytic"
     plot(bins, args.out / "reliability.png", f"{args.policy} on {args.apparatus} ({reading})")
-    print(f"{args.policy} on {args.apparatus}, {args.episodes} episodes from seed {args.seed} "
-          f"({reading})\n")  # fmt: skip
+    print(
+        f"{args.policy} on {args.apparatus}, {args.episodes} episodes from seed {args.seed} "
+        f"({reading})\n"
+    )
     print(table(bins, rows, stops))
     return 0
 

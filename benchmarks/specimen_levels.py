@@ -57,9 +57,11 @@ def fitted_level(true_px: np.ndarray, measured_px: np.ndarray) -> tuple[float, f
 
 
 def specimen_level(
-    specimen: str, draws: int = 4, doses: tuple[float, ...] = (100.0, 400.0),
+    specimen: str,
+    draws: int = 4,
+    doses: tuple[float, ...] = (100.0, 400.0),
     blurs: tuple[float, ...] = BLURS_SIGMA_PX,
-) -> SpecimenLevel:  # fmt: skip
+) -> SpecimenLevel:
     """One specimen kind's row (module docstring); seeded, so the same every run."""
     levels, errors, widest, blank = [], [], 0.0, 0
     for draw in range(draws):
@@ -84,9 +86,15 @@ def specimen_level(
     if not levels:
         raise ValueError(f"{specimen}: no frame with edges to fit a level to")
     return SpecimenLevel(
-        specimen, min(levels), max(levels), float(np.median(levels)), float(np.median(errors)),
-        widest, len(levels), blank,
-    )  # fmt: skip
+        specimen,
+        min(levels),
+        max(levels),
+        float(np.median(levels)),
+        float(np.median(errors)),
+        widest,
+        len(levels),
+        blank,
+    )
 
 
 def table(rows: list[SpecimenLevel]) -> list[str]:
@@ -116,8 +124,10 @@ def main(argv: list[str] | None = None) -> int:
     specimens = args.specimen or list(SPECIMENS)
     unknown = [name for name in specimens if name not in SPECIMENS]
     if unknown:
-        print(f"no such specimen: {', '.join(unknown)} (known: {', '.join(SPECIMENS)})",
-              file=sys.stderr)  # fmt: skip
+        print(
+            f"no such specimen: {', '.join(unknown)} (known: {', '.join(SPECIMENS)})",
+            file=sys.stderr,
+        )
         return 2
     doses = tuple(args.dose or (100.0, 400.0))
     if args.draws < 1 or not all(np.isfinite(dose) and dose > 0 for dose in doses):

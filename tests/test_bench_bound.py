@@ -33,9 +33,13 @@ def test_oracle_rows_are_written_read_back_and_shown_beside(
     saved = json.loads((tmp_path / "bound" / "oracle.json").read_text())
     assert saved["controller"] == "oracle" and saved["set"] == "validation"
     assert [item["instrument"] for item in saved["instruments"]] == [
-        "val-backlash", "val-low-bound", "val-mid", "val-shallow-hysteretic", "val-steep",
+        "val-backlash",
+        "val-low-bound",
+        "val-mid",
+        "val-shallow-hysteretic",
+        "val-steep",
         "val-texture-noisy",
-    ]  # fmt: skip
+    ]
     assert first["instrument"] == ["oracle"]
     assert first["**total**"][0].startswith(f"{saved['total']['successes']}/12")
 

@@ -29,9 +29,14 @@ def test_each_ending_changes_only_what_happens_once_the_policy_stops() -> None:
     trained = get_task("focus")
     compared = endings(trained, [3.0, 10.0])
     assert [label for label, _ in compared] == [
-        "as trained", "narrowest, straight back", "narrowest", "fit within 3x", "fit within 10x",
-        "as trained, every reading from below", "at the posterior, every reading from below",
-    ]  # fmt: skip
+        "as trained",
+        "narrowest, straight back",
+        "narrowest",
+        "fit within 3x",
+        "fit within 10x",
+        "as trained, every reading from below",
+        "at the posterior, every reading from below",
+    ]
     assert compared[0][1] is trained
     assert compared[1][1].ending.backlash_overshoot == 0 and compared[1][1].ending.at != "fit"
     assert [task.ending.finish_window for _, task in compared[3:5]] == [3.0, 10.0]
@@ -42,8 +47,10 @@ def test_each_ending_changes_only_what_happens_once_the_policy_stops() -> None:
     for _, task in compared[1:5]:
         assert task.ending.stop_at_best
         assert (task.knobs, task.episode_steps, task.action_power) == (
-            trained.knobs, trained.episode_steps, trained.action_power,
-        )  # fmt: skip
+            trained.knobs,
+            trained.episode_steps,
+            trained.action_power,
+        )
 
 
 def test_the_endings_table_has_a_column_per_ending(
@@ -54,9 +61,15 @@ def test_the_endings_table_has_a_column_per_ending(
     out = capsys.readouterr().out
     header = next(line for line in out.splitlines() if line.startswith("| instrument"))
     cells = [cell.strip() for cell in header.strip("|").split("|")]
-    assert cells == ["instrument", "as trained", "narrowest, straight back", "narrowest",
-                     "fit within 10x", "as trained, every reading from below",
-                     "at the posterior, every reading from below"]  # fmt: skip
+    assert cells == [
+        "instrument",
+        "as trained",
+        "narrowest, straight back",
+        "narrowest",
+        "fit within 10x",
+        "as trained, every reading from below",
+        "at the posterior, every reading from below",
+    ]
     assert "val-steep" in out and "**total**" in out
 
 
@@ -76,8 +89,9 @@ def test_floor_rows_change_only_how_far_each_move_goes(
     assert main([*argv, "--floors-only", "--below"]) == 0
     header = next(line for line in capsys.readouterr().out.splitlines() if "| instrument" in line)
     assert [cell.strip() for cell in header.strip("|").split("|")] == [
-        "instrument", "moves at least 0.02, every reading from below",
-    ]  # fmt: skip
+        "instrument",
+        "moves at least 0.02, every reading from below",
+    ]
     assert main([*argv[:-1], "0.5"]) == 2
     assert "every floor must be in [0, 0.2]" in capsys.readouterr().err
 
@@ -93,9 +107,12 @@ def test_the_posteriors_options_leave_with_it() -> None:
     from alignrl.config.task_options import TaskOptions
 
     trained = TaskOptions(
-        approach_from_below=True, stop_at_best=True, finish_at_posterior=True,
-        probe_until_sure=0.9, posterior_draws=64,
-    ).apply(get_task("focus"))  # fmt: skip
+        approach_from_below=True,
+        stop_at_best=True,
+        finish_at_posterior=True,
+        probe_until_sure=0.9,
+        posterior_draws=64,
+    ).apply(get_task("focus"))
     compared = dict(endings(trained, [3.0]))
     assert compared["as trained"] is trained
     for label in ("narrowest", "fit within 3x", "at the posterior, every reading from below"):

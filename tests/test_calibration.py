@@ -92,8 +92,12 @@ def _sweeps(
 def test_the_evidence_prefers_the_column_the_readings_came_from() -> None:
     sweeps = _sweeps(COLUMN, 12)
     scores = {}
-    changes = {"true": {}, "steeper": {"blur_px_per_interval": 80.0},
-               "wider": {"floor_sigma_px": 2.0}, "flat": {"curve_power": 3.0}}  # fmt: skip
+    changes = {
+        "true": {},
+        "steeper": {"blur_px_per_interval": 80.0},
+        "wider": {"floor_sigma_px": 2.0},
+        "flat": {"curve_power": 3.0},
+    }
     for label, change in changes.items():
         family = column_family({**COLUMN, **change})
         evidence = evidence_of(family, 1)
@@ -147,8 +151,10 @@ def test_calibrate_searches_the_far_noise_unless_given() -> None:
     # the far noise's step is one more in the progress: where it is the search's 0.05, the
     # search's best column as found; else likelier than that (the least searched is 0.05)
     assert len(clean.progress) == 5 and clean.progress[-1] == clean.progress[-2]
-    assert clean.column == calibrate(_sweeps(COLUMN, 12, seed=4), population=32, rounds=4,
-                                     far_noise=0.05).column  # fmt: skip
+    assert (
+        clean.column
+        == calibrate(_sweeps(COLUMN, 12, seed=4), population=32, rounds=4, far_noise=0.05).column
+    )
     assert len(stray.progress) == 5 and stray.progress[-1] > stray.progress[-2]
     given = calibrate(_sweeps(COLUMN, 4, seed=4), population=8, rounds=1, far_noise=0.07)
     assert given.far_noise == 0.07 and len(given.progress) == 1
@@ -212,9 +218,11 @@ def test_read_from_above_comes_down_onto_the_flank_settings() -> None:
     assert [setting for setting, _, _ in readings] == chosen
     assert [side for _, _, side in readings] == [-1.0, -1.0]
     assert lens.writes == [
-        {"defocus": chosen[0] + 2.0}, {"defocus": chosen[0]},
-        {"defocus": chosen[1] + 2.0}, {"defocus": chosen[1]},
-    ]  # fmt: skip
+        {"defocus": chosen[0] + 2.0},
+        {"defocus": chosen[0]},
+        {"defocus": chosen[1] + 2.0},
+        {"defocus": chosen[1]},
+    ]
     assert readings[1][1] == pytest.approx(TEN_NINETY * math.hypot(1.0, 0.2 * 15.0))
     assert read_from_above(lens, "defocus", trajectory, 0, 0.02) == []
     assert read_from_above(lens, "defocus", trajectory[:1], 2, 0.02) == []
@@ -228,8 +236,14 @@ def test_the_task_reads_a_calibrated_column_and_refuses_a_wrong_one() -> None:
     assert task.ending.settings.column == values
     ends = EpisodeEnds(1, 1, task)
     ends.restart(np.array([0]))
-    ends.note(np.array([0]), np.array([[50.0]]), np.array([4.0]), np.array([True]),
-              np.array([True]), np.array([[0.5]]))  # fmt: skip
+    ends.note(
+        np.array([0]),
+        np.array([[50.0]]),
+        np.array([4.0]),
+        np.array([True]),
+        np.array([True]),
+        np.array([[0.5]]),
+    )
     posterior = ends._posteriors[0]
     assert posterior.models.count == 1 and not posterior.scale_free  # the column, in its px
     assert posterior._readings == [(0.5, 4.0, 0.0)]  # the column as found: side unknown
@@ -329,19 +343,49 @@ def test_calibrate_refuses_before_any_alignment(
     assert "finish_at_posterior" in capsys.readouterr().err
     assert main([*base, "--policy", str(light_export), "--out", str(light_export)]) == 2
     assert "--force" in capsys.readouterr().err
-    assert main([*base, "--policy", str(light_export), "--population", "4",
-                 "--out", str(tmp_path / "b")]) == 2  # fmt: skip
+    assert (
+        main(
+            [
+                *base,
+                "--policy",
+                str(light_export),
+                "--population",
+                "4",
+                "--out",
+                str(tmp_path / "b"),
+            ]
+        )
+        == 2
+    )
     assert "population must be at least 8" in capsys.readouterr().err
     with pytest.raises(SystemExit):  # argparse: --out is required
         main([*base, "--policy", str(light_export)])
     assert "--out" in capsys.readouterr().err
     with pytest.raises(SystemExit):  # argparse: a count of images
-        main([*base, "--policy", str(light_export), "--out", str(tmp_path / "c"),
-              "--from-above", "-1"])  # fmt: skip
+        main(
+            [
+                *base,
+                "--policy",
+                str(light_export),
+                "--out",
+                str(tmp_path / "c"),
+                "--from-above",
+                "-1",
+            ]
+        )
     assert "-1 must be at least 0" in capsys.readouterr().err
     with pytest.raises(SystemExit):  # argparse: a share
-        main([*base, "--policy", str(light_export), "--out", str(tmp_path / "c"),
-              "--far-noise", "1.5"])  # fmt: skip
+        main(
+            [
+                *base,
+                "--policy",
+                str(light_export),
+                "--out",
+                str(tmp_path / "c"),
+                "--far-noise",
+                "1.5",
+            ]
+        )
     assert "1.5 must be a share in [0, 1]" in capsys.readouterr().err
     assert not any((tmp_path / name).exists() for name in "abc")
 

@@ -384,8 +384,11 @@ def trainer_kills(tmp_path: Path, writes: Writes, select: Any) -> int:
         else:  # the first kill after this checkpoint: rows up to it are the uninterrupted
             references[resumed_from] = found
             for name in ("episodes.csv", "updates.csv", "evaluations.csv"):
-                kept = [r for r in uninterrupted[f"metrics/{name}"]
-                        if int(r["env_steps"]) <= resumed_from]  # fmt: skip
+                kept = [
+                    r
+                    for r in uninterrupted[f"metrics/{name}"]
+                    if int(r["env_steps"]) <= resumed_from
+                ]
                 assert found[f"metrics/{name}"][: len(kept)] == kept, f"{kill}: {name}"
         shutil.rmtree(runs)
     assert len(references) >= 3  # kills after at least two checkpoints were compared

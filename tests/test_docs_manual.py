@@ -361,8 +361,11 @@ def _follows(shown: Shown, table: set[tuple[str, str]]) -> bool:
 
 
 def _marks(shown: Shown) -> list[Any]:
-    return [mark for mark, table in ((pytest.mark.slow, SLOW), (pytest.mark.long, LONG))
-            if _follows(shown, table)]  # fmt: skip
+    return [
+        mark
+        for mark, table in ((pytest.mark.slow, SLOW), (pytest.mark.long, LONG))
+        if _follows(shown, table)
+    ]
 
 
 # The README's sessions run from tests/test_docs_readme.py, the pages' from here: two files,

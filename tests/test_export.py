@@ -438,11 +438,18 @@ def test_export_of_a_training_run(tmp_path: Path, capsys: pytest.CaptureFixture[
     settings = {
         "name": "tiny",
         "envs": 2,
-        "learner": {"algorithm": "ppo", "encoder": "gru", "encoder_kwargs": {"hidden": 8},
-                    "hidden": [16], "rollout_steps": 8, "batch_size": 16, "epochs": 1},
+        "learner": {
+            "algorithm": "ppo",
+            "encoder": "gru",
+            "encoder_kwargs": {"hidden": 8},
+            "hidden": [16],
+            "rollout_steps": 8,
+            "batch_size": 16,
+            "epochs": 1,
+        },
         "task_options": {"max_step_fraction": 0.1},
         "budget": {"env_steps": 32, "eval_every": 16, "eval_scenarios": 2, "checkpoint_every": 32},
-    }  # fmt: skip
+    }
     (tmp_path / "tiny.yaml").write_text(yaml.safe_dump(settings))
     runs = tmp_path / "runs"
     assert main(["train", str(tmp_path / "tiny.yaml"), "--runs-dir", str(runs), "--quiet"]) == 0
@@ -565,12 +572,17 @@ def test_a_run_acts_with_its_acting_options_once_trained(
     settings = {
         "name": "acting",
         "envs": 2,
-        "learner": {"algorithm": "ppo", "hidden": [16], "rollout_steps": 8, "batch_size": 16,
-                    "epochs": 1},
+        "learner": {
+            "algorithm": "ppo",
+            "hidden": [16],
+            "rollout_steps": 8,
+            "batch_size": 16,
+            "epochs": 1,
+        },
         "task_options": {"max_step_fraction": 0.1, "stop_at_best": True},
         "acting_options": {"stop_at_best": False, "move_floor": 0.02},
         "budget": {"env_steps": 16, "eval_every": 16, "eval_scenarios": 2, "checkpoint_every": 16},
-    }  # fmt: skip
+    }
     (tmp_path / "acting.yaml").write_text(yaml.safe_dump(settings))
     runs = tmp_path / "runs"
     assert main(["train", str(tmp_path / "acting.yaml"), "--runs-dir", str(runs), "--quiet"]) == 0

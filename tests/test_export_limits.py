@@ -72,10 +72,17 @@ def trained(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> tuple[Path, list
         "eval_apparatus": "synthetic",
         "eval_apparatus_args": {},
         "task_options": {"success_absolute_px": 2.95},  # the lens cannot say its best width
-        "learner": {"algorithm": "ppo", "encoder": "mlp", "encoder_kwargs": {"hidden": [8]},
-                    "hidden": [8], "rollout_steps": 8, "batch_size": 8, "epochs": 1},
+        "learner": {
+            "algorithm": "ppo",
+            "encoder": "mlp",
+            "encoder_kwargs": {"hidden": [8]},
+            "hidden": [8],
+            "rollout_steps": 8,
+            "batch_size": 8,
+            "epochs": 1,
+        },
         "budget": {"env_steps": 16, "eval_every": 16, "eval_scenarios": 1, "checkpoint_every": 16},
-    }  # fmt: skip
+    }
     Trainer.create(parse_experiment(settings), tmp_path / "runs").run(progress=False)
     yield tmp_path / "runs" / "lens", writes
     sys.modules.pop(DRIVER, None)

@@ -428,12 +428,20 @@ def test_edge_sampling_stays_in_the_box_and_meets_its_edges_more_often() -> None
     assert again.draw == edges.draw
     with pytest.raises(ValueError, match="sampling must be one of uniform, edges"):
         make_apparatus("family:focus", {"sampling": "corners"})
-    wide = {"sampling": "edges", "optimum_fraction": [0.0, 1.0], "hysteresis_fraction": [0, 0.02],
-            "drift_fraction": [0, 0.003], "curve_power": [1.5, 4], "flat_fraction": [0, 0.02],
-            "asymmetry": [0.5, 2.0], "blur_px_per_interval": [5, 200],
-            "interval_width": [10, 30000], "interval_centre": [-2000, 2000],
-            "specimens": ["particles", "grid", "bars", "texture", "fibres"],
-            "dose_electrons_per_px": [20, 400]}  # fmt: skip
+    wide = {
+        "sampling": "edges",
+        "optimum_fraction": [0.0, 1.0],
+        "hysteresis_fraction": [0, 0.02],
+        "drift_fraction": [0, 0.003],
+        "curve_power": [1.5, 4],
+        "flat_fraction": [0, 0.02],
+        "asymmetry": [0.5, 2.0],
+        "blur_px_per_interval": [5, 200],
+        "interval_width": [10, 30000],
+        "interval_centre": [-2000, 2000],
+        "specimens": ["particles", "grid", "bars", "texture", "fibres"],
+        "dose_electrons_per_px": [20, 400],
+    }
     assert "contains the held-out instrument" in held_out_reason("family:focus", wide)
 
 

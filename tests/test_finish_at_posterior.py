@@ -79,8 +79,9 @@ def test_a_last_move_starts_at_the_posteriors_best_setting() -> None:
 def test_the_posterior_ends_nearer_focus_than_the_narrowest_reading() -> None:
     """The same walks on six of the family's columns: ended at the posterior's best setting
     they lie nearer their optima, in all, than at their narrowest readings."""
-    plain = TaskOptions(stop_at_best=True, approach_from_below=True, action_power=2.0,
-                        move_floor=0.02).apply(get_task("focus"))  # fmt: skip
+    plain = TaskOptions(
+        stop_at_best=True, approach_from_below=True, action_power=2.0, move_floor=0.02
+    ).apply(get_task("focus"))
     errors = {}
     for name, task in {"posterior": _task(stop_at_best=True), "narrowest": plain}.items():
         total = 0.0
@@ -247,8 +248,9 @@ def test_the_posterior_walks_while_nothing_is_measured_when_asked() -> None:
     asked = np.array([[0.9, -1.0]])  # far up, every time
     moved = {}
     for unmeasured in (False, True):
-        task = _task(stop_at_best=True, posterior_no_edges=True,
-                     posterior_walk_unmeasured=unmeasured)  # fmt: skip
+        task = _task(
+            stop_at_best=True, posterior_no_edges=True, posterior_walk_unmeasured=unmeasured
+        )
         episodes, slot, _ = _started(task)
         low, span = float(episodes.low[0, 0]), float(episodes.span[0, 0])
         episodes.ends.readings[0] = []  # as though the opening frame had shown no edges
@@ -275,9 +277,13 @@ def test_frames_without_edges_reach_the_posterior_only_when_asked() -> None:
         episodes, slot, _ = _walked(_task(stop_at_best=True, posterior_no_edges=no_edges))
         readings = len(episodes.ends.readings[0])
         episodes.ends.note(
-            slot, episodes.setting[slot] * 0 + episodes.low[slot], np.array([np.nan]),
-            np.array([False]), np.array([False]), np.zeros((1, 1)),
-        )  # fmt: skip
+            slot,
+            episodes.setting[slot] * 0 + episodes.low[slot],
+            np.array([np.nan]),
+            np.array([False]),
+            np.array([False]),
+            np.zeros((1, 1)),
+        )
         assert len(episodes.ends.readings[0]) == readings  # never a measured reading
         best[no_edges] = episodes.ends.best(0)
     walked, _, _ = _walked(_task(stop_at_best=True))
@@ -318,8 +324,9 @@ def test_the_episodes_posterior_levels_its_readings_off_where_the_task_says() ->
 def test_the_posteriors_settings_are_refused_out_of_range(option, bad) -> None:
     assert POSTERIOR_PROBE_RULES == PROBE_RULES  # every rule the posterior has, and no other
     with pytest.raises(ValueError, match=option):
-        TaskOptions(finish_at_posterior=True, stop_at_best=True, approach_from_below=True,
-                    **{option: bad}).apply(get_task("focus"))  # fmt: skip
+        TaskOptions(
+            finish_at_posterior=True, stop_at_best=True, approach_from_below=True, **{option: bad}
+        ).apply(get_task("focus"))
 
 
 NEEDING_THE_POSTERIOR = [

@@ -88,8 +88,17 @@ def _league_run(path: Path, tmp_path: Path) -> list[str]:
 
 
 def _evaluate_on(spec: str, *extra: str) -> list[str]:
-    return ["evaluate", "--policy", "hyperbola", "--apparatus", spec, "--scenarios", "2",
-            "--quiet", *extra]  # fmt: skip
+    return [
+        "evaluate",
+        "--policy",
+        "hyperbola",
+        "--apparatus",
+        spec,
+        "--scenarios",
+        "2",
+        "--quiet",
+        *extra,
+    ]
 
 
 # --- 1. YAML: alias bombs and duplicate keys ----------------------------------------------
@@ -287,8 +296,9 @@ def test_bad_options_are_one_line_naming_the_option(
 # --- 4. Run names ----------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("name", ["../../etc", "../x", "a/b", ".", "..", ".hidden", "a\\b",
-                                  "nul\x00byte", "x" * 101, ""])  # fmt: skip
+@pytest.mark.parametrize(
+    "name", ["../../etc", "../x", "a/b", ".", "..", ".hidden", "a\\b", "nul\x00byte", "x" * 101, ""]
+)
 @pytest.mark.parametrize("verb", ["train", "league"])
 def test_run_names_stay_inside_the_runs_dir(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], name: str, verb: str
@@ -340,8 +350,14 @@ VOLTAGES = ["10.0", "25.0", "40.0", "50.0", "60.0", "75.0", "90.0"]
 WIDTHS = ["12.0", "8.0", "4.0", "2.6", "4.0", "8.0", "12.0"]
 
 
-def _row(scenario: int = 2, seed: str = "1", low: str = "0.0", high: str = "100.0",
-         voltages: list[str] = VOLTAGES, widths: list[str] = WIDTHS) -> str:  # fmt: skip
+def _row(
+    scenario: int = 2,
+    seed: str = "1",
+    low: str = "0.0",
+    high: str = "100.0",
+    voltages: list[str] = VOLTAGES,
+    widths: list[str] = WIDTHS,
+) -> str:
     pairs = [cell for pair in zip(voltages, widths, strict=True) for cell in pair]
     return ",".join([str(scenario), seed, "defocus", low, high, str(len(voltages)), "0", *pairs])
 

@@ -207,15 +207,25 @@ FAMILY_ARGUMENTS = [
     ("family:focus", '{"interval_centre": -1e300}', "interval_centre", "-1e+300", "[-1e+06, 1e"),
     ("family:focus", '{"interval_width": 1e-300}', "interval_width", "1e-300", "[1e-06, 1e+06]"),
     ("family:focus", '{"floor_sigma_px": 1e300}', "floor_sigma_px", "1e+300", "[0.1, 10000] px"),
-    ("family:focus", '{"blur_px_per_interval": [10, 1e300]}', "blur_px_per_interval",
-     "[10, 1e+300]", "[0.1, 10000] px"),
-    ("family:focus", '{"dose_electrons_per_px": 1e300}', "dose_electrons_per_px", "1e+300",
-     "[0.01, 1e+09] electrons per px"),
+    (
+        "family:focus",
+        '{"blur_px_per_interval": [10, 1e300]}',
+        "blur_px_per_interval",
+        "[10, 1e+300]",
+        "[0.1, 10000] px",
+    ),
+    (
+        "family:focus",
+        '{"dose_electrons_per_px": 1e300}',
+        "dose_electrons_per_px",
+        "1e+300",
+        "[0.01, 1e+09] electrons per px",
+    ),
     ("family:focus", '{"detector_noise": 1e300}', "detector_noise", "1e+300", "[0, 10]"),
     ("family:focus", '{"asymmetry": 1e300}', "asymmetry", "1e+300", "[0.01, 100]"),
     ("instrument:val-mid", '{"interval_width": 1e300}', "interval_width", "1e+300", "[1e-06"),
     ("instrument:val-mid", '{"saturation_px": 1e300}', "saturation_px", "1e+300", "[0.1, 10000]"),
-]  # fmt: skip
+]
 
 
 @pytest.mark.parametrize(

@@ -19,9 +19,13 @@ from alignrl.evaluation.posterior import BayesianAutofocus
 from benchmarks.imitation import Demonstrations, PosteriorTeacher, action_for_move, clone, collect
 
 OPTIONS = dict(
-    final_move=True, approach_from_below=True, action_power=2.0, move_floor=0.02,
-    quality_reference="first", verify_final=True,
-)  # fmt: skip
+    final_move=True,
+    approach_from_below=True,
+    action_power=2.0,
+    move_floor=0.02,
+    quality_reference="first",
+    verify_final=True,
+)
 
 
 def _env(envs: int = 2, history: int = 6, **options) -> VectorAlignmentEnv:
@@ -95,9 +99,12 @@ def test_a_student_acts_while_the_teacher_labels() -> None:
     env = _env(envs=2)
     student_actions = np.array([[0.3, -1.0], [0.3, -1.0]])
     data = collect(
-        env, PosteriorTeacher(env, _small_posterior), episodes=2, seed=1,
+        env,
+        PosteriorTeacher(env, _small_posterior),
+        episodes=2,
+        seed=1,
         student=lambda observation: student_actions,
-    )  # fmt: skip
+    )
     assert np.all(data.action == student_actions[0])  # never stops: runs to the step limit
     assert not np.array_equal(data.label, data.action)
     assert len(data.label) == 2 * env.task.episode_steps
@@ -111,10 +118,15 @@ def _one_row_steps(label: np.ndarray, knob: np.ndarray | None = None) -> Demonst
     if knob is not None:
         observation[:, -1, 1] = knob
     return Demonstrations(
-        observation=observation, label=label, action=label, reward=np.zeros(rows),
-        next_observation=observation, done=label[:, 1] > 0, secret=np.zeros((rows, 1)),
+        observation=observation,
+        label=label,
+        action=label,
+        reward=np.zeros(rows),
+        next_observation=observation,
+        done=label[:, 1] > 0,
+        secret=np.zeros((rows, 1)),
         next_secret=np.zeros((rows, 1)),
-    )  # fmt: skip
+    )
 
 
 def _cloned_mean(data: Demonstrations, hidden: tuple[int, ...], **options) -> np.ndarray:

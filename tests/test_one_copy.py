@@ -73,8 +73,13 @@ def test_the_criteria_in_words_as_align_prints_them() -> None:
         "the wobble could not be measured",
     ]
     assert not any(c.met[0] for c in failed)
-    nan_bin = column.judge(np.array([2.8]), np.array([2.95]), np.array([[np.nan, 3, 3, 3]]),
-                           np.array([3.33]), np.array([[0.0, 0.0]]))  # fmt: skip
+    nan_bin = column.judge(
+        np.array([2.8]),
+        np.array([2.95]),
+        np.array([[np.nan, 3, 3, 3]]),
+        np.array([3.33]),
+        np.array([[0.0, 0.0]]),
+    )
     assert nan_bin[1].words() == "widest directional width nan px > spec 3.33 px"
 
 

@@ -339,8 +339,14 @@ def test_a_steep_column_without_a_flat_bottom_does_not_make_the_box_posterior_su
     with a plateau wider than the column's passing window explain them as well and are sure:
     the posterior is 99 % sure of a setting 0.8 % of the interval below focus, outside the
     window, and the alignment ends there; weighed log-uniformly, it is not sure and reads on."""
-    readings = [(0.4305, 34.156), (0.4778, 23.284), (0.8725, 27.44), (0.0874, math.nan),
-                (0.5709, 3.2139), (0.5903, 8.705)]  # fmt: skip
+    readings = [
+        (0.4305, 34.156),
+        (0.4778, 23.284),
+        (0.8725, 27.44),
+        (0.0874, math.nan),
+        (0.5709, 3.2139),
+        (0.5903, 8.705),
+    ]
     chances = {}
     for decades in (0.0, FLAT_DECADES):
         posterior = FamilyPosterior(
@@ -434,12 +440,22 @@ def test_readings_levelling_off_as_a_grids_keep_steep_columns_in_the_posterior()
     setting outside the column's window (+-0.5 % of the interval); levelling off from 10 px
     (Task.posterior_saturation_px, as images do) it keeps them and is not sure."""
     optimum = 0.183
-    readings = [(-0.1352, 16.38), (0.1176, 15.02), (0.7225, math.nan), (-0.0377, 11.30),
-                (0.0540, 11.47)]  # fmt: skip
+    readings = [
+        (-0.1352, 16.38),
+        (0.1176, 15.02),
+        (0.7225, math.nan),
+        (-0.0377, 11.30),
+        (0.0540, 11.47),
+    ]
     steep, sure = {}, {}
     for saturation in (None, (10.0, 80.0)):
-        posterior = FamilyPosterior(focus_box(saturation_px=saturation), draws=1024,
-                                    far_noise=0.1, probe_rule="entropy", **SCALE_FREE)  # fmt: skip
+        posterior = FamilyPosterior(
+            focus_box(saturation_px=saturation),
+            draws=1024,
+            far_noise=0.1,
+            probe_rule="entropy",
+            **SCALE_FREE,
+        )
         posterior.begin()
         for error, reading in readings:
             posterior.observe(optimum + error, reading)

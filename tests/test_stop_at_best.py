@@ -224,10 +224,17 @@ def test_a_fit_of_readings_on_both_flanks_places_the_optimum_between_them() -> N
 def _clean(seed: int = 3):
     """A noise-free analytic column on an exact hyperbola, without backlash or drift."""
     args = {
-        "analytic": True, "reading_noise_rel": 0.0, "reading_noise_px": 0.0,
-        "specimen_rel": 0.0, "curve_power": 2.0, "flat_fraction": 0.0, "asymmetry": 1.0,
-        "hysteresis_fraction": 0.0, "drift_fraction": 0.0, "saturation_px": 80.0,
-    }  # fmt: skip
+        "analytic": True,
+        "reading_noise_rel": 0.0,
+        "reading_noise_px": 0.0,
+        "specimen_rel": 0.0,
+        "curve_power": 2.0,
+        "flat_fraction": 0.0,
+        "asymmetry": 1.0,
+        "hysteresis_fraction": 0.0,
+        "drift_fraction": 0.0,
+        "saturation_px": 80.0,
+    }
     return make_apparatus("family:focus", args, seed=seed)
 
 

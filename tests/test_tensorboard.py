@@ -108,9 +108,16 @@ def test_a_training_run_killed_after_its_events_resumes_to_the_same_curves(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     reference = assert_each_step_once(_train(tmp_path / "a").run_dir / "tensorboard")
-    assert {"episode/return", "episode/success", "episode/acquisitions", "learner/q1_loss",
-            "validation/successes", "validation/success_rate_low",
-            "test/successes", "test/success_rate_high"} <= set(reference)  # fmt: skip
+    assert {
+        "episode/return",
+        "episode/success",
+        "episode/acquisitions",
+        "learner/q1_loss",
+        "validation/successes",
+        "validation/success_rate_low",
+        "test/successes",
+        "test/success_rate_high",
+    } <= set(reference)
     assert reference["validation/successes"] == [100, 200, 300, 400]
     assert reference["test/successes"] == [400]
 
