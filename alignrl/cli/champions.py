@@ -71,16 +71,7 @@ def _controllers(policies: Sequence[str]) -> Any:
         dataclasses.replace(_trained_controller(policy), name=policy.removeprefix("champion:"))
         for policy in policies
     )
-    if len(stages) == 1:
-        return stages[0]
-
-    @dataclasses.dataclass
-    class Column(SequenceController):
-        @property
-        def name(self) -> str:
-            return COLUMN_NAME
-
-    return Column(stages)
+    return stages[0] if len(stages) == 1 else SequenceController(stages, label=COLUMN_NAME)
 
 
 def measure(scenarios: int, seed: int, bar: Any) -> Showcase:

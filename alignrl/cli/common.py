@@ -9,6 +9,7 @@ import json
 import math
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -110,11 +111,19 @@ def _updates_per_step(text: str) -> float:
     return value
 
 
-def _renamed(config: Any, name: str) -> Any:
-    """`config` under the run name of --name, validated as a name in the file would be."""
+def _new_run(config: Any, overrides: list[str], args: argparse.Namespace) -> tuple[Any, Path]:
+    """A new run's config as `train` and `league run` start it: under the run name of --name
+    (validated as a name in the file would be), with its provenance, its evaluation apparatus
+    checked before the run directory exists (or --force takes it); and that directory."""
     from alignrl.config_reading import parse_config
+    from alignrl.runs.state import with_provenance
+    from alignrl.training import check_evaluation_apparatus
 
-    return parse_config(type(config), {**config.model_dump(), "name": name}, "--name")
+    if args.name is not None:
+        config = parse_config(type(config), {**config.model_dump(), "name": args.name}, "--name")
+    config = with_provenance(config, overrides, args.argv)
+    check_evaluation_apparatus(config)
+    return config, Path(args.runs_dir) / config.name
 
 
 def _checkpoint_kept(error: ShieldStop, run_dir: Any, resume: str) -> ShieldStop:

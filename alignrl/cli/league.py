@@ -21,8 +21,8 @@ from alignrl.cli.common import (
     _add_override_options,
     _checkpoint_kept,
     _emit,
+    _new_run,
     _overrides,
-    _renamed,
     _replace_run,
 )
 
@@ -162,14 +162,7 @@ def cmd_league_run(args: argparse.Namespace) -> int:
 
     overrides = _overrides(args)
     config, aligners, misaligners = load_league(args.config, overrides)
-    if args.name is not None:
-        config = _renamed(config, args.name)
-    from alignrl.runs.state import with_provenance
-    from alignrl.training import check_evaluation_apparatus
-
-    config = with_provenance(config, overrides, args.argv)
-    check_evaluation_apparatus(config)  # before the run directory exists (or --force takes it)
-    run_dir = Path(args.runs_dir) / config.name
+    config, run_dir = _new_run(config, overrides, args)
 
     def created(lock: RunLock) -> Any:
         _replace_run(lock, args.force, "alignrl league resume")

@@ -22,8 +22,8 @@ from alignrl.cli.common import (
     _checkpoint_kept,
     _emit,
     _json_object,
+    _new_run,
     _overrides,
-    _renamed,
     _replace_run,
     _seed,
     _updates_per_step,
@@ -35,7 +35,7 @@ if TYPE_CHECKING:
 
 def cmd_train(args: argparse.Namespace) -> int:
     from alignrl.config.experiment import load_experiment
-    from alignrl.training import Trainer, check_evaluation_apparatus
+    from alignrl.training import Trainer
 
     overrides = _overrides(args)
     if args.resume:
@@ -62,13 +62,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     if args.steps is not None:
         overrides.append(f"budget.env_steps={args.steps}")
     config = load_experiment(args.config, overrides)
-    if args.name is not None:
-        config = _renamed(config, args.name)
-    from alignrl.runs.state import with_provenance
-
-    config = with_provenance(config, overrides, args.argv)
-    check_evaluation_apparatus(config)  # before the run directory exists (or --force takes it)
-    run_dir = Path(args.runs_dir) / config.name
+    config, run_dir = _new_run(config, overrides, args)
 
     def replaced(lock: RunLock) -> None:
         _replace_run(lock, args.force, "alignrl train --resume")

@@ -303,6 +303,7 @@ class SequenceController:
     """
 
     stages: tuple[PolicyController, ...]
+    label: str | None = None  # the sequence's name in reports; None: its stages', joined
 
     def __post_init__(self) -> None:
         if not self.stages:
@@ -310,7 +311,7 @@ class SequenceController:
 
     @property
     def name(self) -> str:
-        return " > ".join(stage.name for stage in self.stages)
+        return self.label or " > ".join(stage.name for stage in self.stages)
 
     def check_task(self, task: Task) -> None:
         moved = {knob for stage in self.stages for knob in stage.task.knobs}

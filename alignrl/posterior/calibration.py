@@ -1,14 +1,14 @@
 """Calibrating the focus posterior to one column from alignments on it (issue 21: adapting a
 champion to a microscope it never saw).
 
-A champion that walks and ends by a posterior over the training box (Task.finish_at_posterior,
+A champion that walks and ends by a posterior over the training box (Ending.at "posterior",
 alignrl/envs/ending.py) knows of the column in front of it only what the box knows: every
 alignment starts from the whole box and spends readings telling which column it is on. A few
 dozen alignments on one column say much more: which reading model, the same in all of them,
 makes all their readings likely, each alignment's optimum unknown and marginalised over the
 interval (as the hindsight posterior does). `calibrate` finds that model; the posterior over
 that one column (`calibrated_posterior`: an oracle whose model was measured on the column,
-not written in a file) then walks and ends the champion's alignments (Task.posterior_column,
+not written in a file) then walks and ends the champion's alignments (PosteriorSettings.column,
 `alignrl calibrate`).
 
 * The evidence of a column (`column_evidence`): per alignment the filter of FamilyPosterior
@@ -33,7 +33,7 @@ not written in a file) then walks and ends the champion's alignments (Task.poste
   `posterior_options_problem`: alignrl/apparatus/family_box.py, PHYSICAL).
 
 Every reading but an alignment's first must have been approached from below
-(Task.approach_from_below, BayesianAutofocus), so that backlash shifts them all alike; the first
+(Ending.approach_from_below, BayesianAutofocus), so that backlash shifts them all alike; the first
 (an aligner's opening reading: the column as it was found, on whichever branch of its
 backlash) is read on every branch (FamilyPosterior.observe, side 0), and the offset between
 it and the rest is what tells the backlash (`sweeps_of`). Each alignment's verification image,
@@ -89,13 +89,13 @@ __all__ = [
     "sweeps_of",
 ]
 
-# The reading model's parameters (the family's names), in the order Task.posterior_column
+# The reading model's parameters (the family's names), in the order PosteriorSettings.column
 # keeps them
 COLUMN_FIELDS = tuple(MODEL_FIELDS.values())
 # How a calibration, and the posterior over the column it found, read: far from focus a
 # reading is trusted less (as posterior-robust does on images); what the fit leaves near
 # focus is the column's noise, and the model's own spread beyond it small. The export keeps
-# its far noise (Task.posterior_far_noise), with which its column was fitted. 0.05: on the
+# its far noise (PosteriorSettings.far_noise), with which its column was fitted. 0.05: on the
 # validation instruments' ten-alignment calibrations every reading was likelier than with
 # the box posterior's 0.1 (per reading, val-backlash -0.58 against -0.78, val-steep -0.69
 # against -0.79), and their policies aligned as many columns in as many acquisitions or
@@ -113,8 +113,8 @@ CALIBRATED = {"far_noise": 0.05, "model_noise": 0.01}
 # a column: docs/benchmarks.md, twenty-seventh and twenty-eighth sessions).
 FAR_NOISE_SEARCHED = (0.05, 0.07, 0.1, 0.15, 0.2, 0.3)
 # The chance (x the chance at the optimum itself) at which a calibrated policy stops, and
-# before which its stops are readings (Task.stop_when_sure, probe_until_sure), where the
-# champion's box stops at 0.98. One known column's posterior, trusting far readings less,
+# before which its stops are readings (PosteriorSettings.stop_when_sure, probe_until_sure),
+# where the champion's box stops at 0.98. One known column's posterior, trusting far readings less,
 # states less than it should: on val-steep, calibrated on ten alignments, every setting it
 # gave 0.8-0.98 passed (benchmarks/reliability.py). Chosen on the validation instruments
 # with ten alignments (docs/benchmarks.md, twenty-sixth session): 0.9 aligned all 600
@@ -427,7 +427,7 @@ def column_problem(column: Mapping[str, Any]) -> str | None:
 
 
 def column_values(column: Mapping[str, float]) -> tuple[float, ...]:
-    """A calibrated column (a mapping of COLUMN_FIELDS) as Task.posterior_column keeps it:
+    """A calibrated column (a mapping of COLUMN_FIELDS) as PosteriorSettings.column keeps it:
     its values in COLUMN_FIELDS' order. ValueError naming what is wrong with it."""
     problem = column_problem(column)
     if problem is not None:

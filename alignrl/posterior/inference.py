@@ -48,7 +48,7 @@ reading): `model_noise` is what covers the difference.
 Three parts of alignrl ask it: the Bayesian autofocus (alignrl/evaluation/posterior.py,
 `BayesianAutofocus`, which writes its settings to an apparatus: `alignrl evaluate --policy
 posterior`), the teacher of cloned aligners (benchmarks/imitation.py), and an episode's end
-(Task.finish_at_posterior, alignrl/envs/ending.py: a trained aligner's probes, ended where
+(Ending.at "posterior", alignrl/envs/ending.py: a trained aligner's probes, ended where
 the posterior over the training box puts the best setting).
 
 What it costs (issue 61, item 4; `python -m benchmarks.posterior_cost`): every reading is

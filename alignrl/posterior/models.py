@@ -388,7 +388,7 @@ def focus_box(
 ) -> FocusFamily:
     """The focus training box (alignrl/apparatus/families/focus.yaml), widened by `reach`;
     with `saturation_px`, its readings levelling off within that range of px instead
-    (Task.posterior_saturation_px: where edge widths measured on images level off)."""
+    (the task option posterior_saturation_px: where edge widths measured on images level off)."""
     box = widened(load_family(family_path("focus")), reach)
     if saturation_px is None:
         return box
