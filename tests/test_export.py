@@ -21,7 +21,7 @@ from alignrl.agents.agent import Agent, MemberSpec
 from alignrl.cli import main
 from alignrl.deploy.card import CARD_KEYS
 from alignrl.deploy.export import export_policy
-from alignrl.deploy.graph import PolicyGraph, random_histories
+from alignrl.deploy.graph import random_histories
 from alignrl.deploy.loading import load_exported
 from alignrl.deploy.parity import PARITY_TOLERANCE
 from alignrl.envs.alignment import aligner_spaces
@@ -150,61 +150,6 @@ def test_random_histories_are_right_aligned_like_the_envs() -> None:
     assert counts.min() == 0 and counts.max() == HISTORY  # a few all padding, some full
     assert 0 < np.mean(counts == 0) < 0.05
     assert np.all(batch >= OBSERVATION.low) and np.all(batch <= OBSERVATION.high)
-
-
-@pytest.mark.parametrize("export_format", FORMATS)
-def test_a_transformer_xl_memory_is_an_explicit_input_and_output(
-    tmp_path: Path, export_format: str
-) -> None:
-    needs_runtime(export_format)
-    hyperparameters = {
-        **SMALL_SAC,
-        "encoder": "gtrxl",
-        "encoder_kwargs": {"d_model": 8, "heads": 2, "layers": 2, "memory_length": 3},
-    }
-    agent = make_member("gtrxl-memory", "sac", hyperparameters)
-    agent.save(tmp_path / "member.pt")
-    result = export_policy(resolve_source(tmp_path / "member.pt"), tmp_path / "out", export_format)
-    assert result.parity.memory_max_abs_difference <= PARITY_TOLERANCE
-    policy = load_exported(tmp_path / "out")
-    assert policy.input_names == ["history", "memory_in_0", "memory_in_1", "memory_valid_in"]
-    assert policy.output_names == [
-        "action",
-        "knob_step",
-        "memory_out_0",
-        "memory_out_1",
-        "memory_valid_out",
-    ]
-    card = policy.card
-    assert card["memory"]["kind"] == "transformer-xl" and card["memory"]["length"] == 3
-    assert {entry["name"]: entry["shape"] for entry in card["inputs"]}["memory_in_1"] == [
-        "batch",
-        3,
-        8,
-    ]
-    # Three steps of one alignment, memory fed back, against the PyTorch encoder with its
-    # own Memory object: the same actions and the same memory.
-    graph = PolicyGraph(agent, [DEFAULT_MAX_STEP_V])
-    batch = histories(3 * 5).reshape(3, 5, *OBSERVATION.shape)
-    memory = policy.initial_memory(5)
-    torch_memory = None
-    for step in range(3):
-        outputs = policy.run(batch[step], memory)
-        with torch.no_grad():
-            encoded, torch_memory = graph.encoder(torch.from_numpy(batch[step]), torch_memory)
-            expected = torch.tanh(graph.head(encoded)[:, :2]).numpy()
-        assert np.max(np.abs(outputs["action"] - expected)) <= PARITY_TOLERANCE
-        for index, layer in enumerate(torch_memory.layers):
-            assert np.max(np.abs(outputs[f"memory_out_{index}"] - layer.numpy())) <= 1e-5
-        np.testing.assert_array_equal(outputs["memory_valid_out"], torch_memory.valid.numpy())
-        memory = {
-            name.replace("_out", "_in"): value
-            for name, value in outputs.items()
-            if name.startswith("memory_")
-        }
-    # From empty memory, it acts as Agent.act (which always starts empty).
-    first = histories(50)
-    assert np.max(np.abs(policy.act(first) - agent.act(first))) <= PARITY_TOLERANCE
 
 
 # --- files and errors ---------------------------------------------------------------------

@@ -99,23 +99,15 @@ def _today() -> str:
 
 
 def _memory(graph: PolicyGraph) -> dict[str, Any]:
-    if not graph.memory_length:
-        return {
-            "kind": "history-window",
-            "length": 0,
-            "layers": 0,
-            "d_model": 0,
-            "note": f"the history window of {graph.history} rows is the policy's whole "
-            "memory: nothing is carried from one call to the next",
-        }
+    """card.json's `memory`: always the history window (the section stays in the card's
+    format; card_schema refuses any other kind)."""
     return {
-        "kind": "transformer-xl",
-        "length": graph.memory_length,
-        "layers": graph.memory_layers,
-        "d_model": graph.encoder.d_model,
-        "note": "feed memory_out_* and memory_valid_out back as memory_in_* and "
-        "memory_valid_in at the next step, zeros at the start of each alignment; zeros at "
-        "every step give Agent.act's actions, as the member was trained and evaluated",
+        "kind": "history-window",
+        "length": 0,
+        "layers": 0,
+        "d_model": 0,
+        "note": f"the history window of {graph.history} rows is the policy's whole "
+        "memory: nothing is carried from one call to the next",
     }
 
 

@@ -262,14 +262,11 @@ def export_policy(
         run, runtime = load_runner(policy_path, export_format, interface)
         parity = check_parity(source.agent, graph, run, runtime, histories, seed, tolerance)
         if not parity.passed:
-            memory = parity.memory_max_abs_difference
             raise ExportError(
                 f"the {export_format} policy of {source.agent.id!r} differs from the PyTorch "
                 f"policy by {parity.max_abs_difference:.3g} (knob step "
-                f"{parity.knob_step_max_abs_difference:.3g}"
-                + (f", memory {memory:.3g}" if memory is not None else "")
-                + f") on {histories} histories, more than {tolerance:g}: nothing was written "
-                f"to {out}"
+                f"{parity.knob_step_max_abs_difference:.3g}) on {histories} histories, more "
+                f"than {tolerance:g}: nothing was written to {out}"
             )
         card = build_card(
             source, graph, knobs, export_format, parity, command, sha256_of(policy_path)

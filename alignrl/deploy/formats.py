@@ -164,11 +164,8 @@ def _weights_runner(path: Path, interface: PolicyInterface) -> tuple[Runner, str
 
     @torch.no_grad()
     def run(inputs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        arrays = [np.asarray(inputs[name], np.float32) for name in graph.input_names]
-        if graph.memory_length:  # Agent.act takes no memory; the same network as a graph does
-            outputs = graph(*(torch.from_numpy(array) for array in arrays))
-            return {n: out.numpy() for n, out in zip(graph.output_names, outputs, strict=True)}
-        action = agent.act(arrays[0], deterministic=True).astype(np.float32)  #   (batch, k+1)
+        history = np.asarray(inputs["history"], np.float32)
+        action = agent.act(history, deterministic=True).astype(np.float32)  #      (batch, k+1)
         knob_step = knob_change(action[:, : graph.knobs], max_step, graph.action_power, floor)
         return {"action": action, "knob_step": knob_step.astype(np.float32)}
 
@@ -242,7 +239,6 @@ def _write_graph(graph: PolicyGraph, path: Path, export_format: str) -> None:
     rng = np.random.default_rng(0)
     example = (
         torch.from_numpy(random_histories(2, graph.history, graph.features, rng, graph.knobs)),
-        *(torch.from_numpy(value) for value in graph.empty_memory(2).values()),
     )
     with warnings.catch_warnings(), torch.no_grad():
         # Tracing warns about the encoders' shape checks (constants of a fixed-shape graph,

@@ -12,10 +12,8 @@
 
 The learners apply no normalisation of their own: the env already scales every feature of
 the history (knobs to [-1, 1], quality as log(width / reference)), so there is nothing to fold
-in but the action's squashing, clipping and scaling. A GTrXL encoder with a Transformer-XL
-memory (memory_length > 0) gets it as explicit tensors: inputs `memory_in_<i>` (one per block,
-(batch, M, d_model)) and `memory_valid_in` (batch, M), float32 1/0, and the same as outputs
-`memory_out_<i>`, `memory_valid_out`; any other member's whole memory is its history window.
+in but the action's squashing, clipping and scaling. The history window is the policy's whole
+memory: the graph keeps no state from one call to the next.
 """
 
 from __future__ import annotations
@@ -30,7 +28,6 @@ import torch
 from torch import Tensor, nn
 
 from alignrl.agents.agent import Agent, MemberSpec
-from alignrl.agents.networks import GTrXLEncoder, Memory
 from alignrl.envs.core import feature_layout, observation_bounds
 from alignrl.runs.sources import ExportError
 
@@ -47,9 +44,8 @@ FULLY_PADDED_SHARE = 0.01  # share of parity histories with no valid row (a zero
 
 
 class PolicyGraph(nn.Module):
-    """The deployable policy of one aligner: history [+ memory] -> action, knob_step
-    [+ memory]. A copy of the policy network alone (no critics, no optimizer); the member
-    itself is left untouched."""
+    """The deployable policy of one aligner: history -> action, knob_step. A copy of the
+    policy network alone (no critics, no optimizer); the member itself is left untouched."""
 
     def __init__(
         self,
@@ -76,51 +72,24 @@ class PolicyGraph(nn.Module):
         floor = [0.0] * self.knobs if move_floor is None else list(move_floor)
         self.register_buffer("move_floor", torch.tensor(floor, dtype=torch.float32))
         self.floored = any(value != 0 for value in floor)  # the task's move_floor x interval
-        self.memory_length = getattr(self.encoder, "memory_length", 0)
-        self.memory_layers = self.encoder.layers if isinstance(self.encoder, GTrXLEncoder) else 0
         # Parameters keep requires_grad, as the member's own: with it off, PyTorch's CPU
         # kernels take other paths whose float32 rounding differs (1e-6 on a trained GTrXL).
         self.eval()
 
     @property
     def input_names(self) -> list[str]:
-        if not self.memory_length:
-            return ["history"]
-        layers = [f"memory_in_{i}" for i in range(self.memory_layers)]
-        return ["history", *layers, "memory_valid_in"]
+        return ["history"]
 
     @property
     def output_names(self) -> list[str]:
-        if not self.memory_length:
-            return ["action", "knob_step"]
-        layers = [f"memory_out_{i}" for i in range(self.memory_layers)]
-        return ["action", "knob_step", *layers, "memory_valid_out"]
+        return ["action", "knob_step"]
 
     def signature(self) -> dict[str, list[dict[str, Any]]]:
         """Names, dtypes and shapes of the inputs and outputs ("batch": any size)."""
-        width = getattr(self.encoder, "d_model", 0)
-        return graph_signature(
-            self.history, self.features, self.knobs, self.memory_length, self.memory_layers, width
-        )
+        return graph_signature(self.history, self.features, self.knobs)
 
-    def empty_memory(self, batch: int) -> dict[str, np.ndarray]:
-        """Memory inputs of the first step of an alignment: every slot empty."""
-        if not self.memory_length:
-            return {}
-        width = self.encoder.d_model
-        memory = {
-            f"memory_in_{i}": np.zeros((batch, self.memory_length, width), np.float32)
-            for i in range(self.memory_layers)
-        }
-        memory["memory_valid_in"] = np.zeros((batch, self.memory_length), np.float32)
-        return memory
-
-    def forward(self, history: Tensor, *memory: Tensor) -> tuple[Tensor, ...]:
-        past = None
-        if self.memory_length:
-            *layers, valid = memory
-            past = Memory(list(layers), valid > 0.5)
-        encoded, updated = self.encoder(history, past)  #                                 (B, D)
+    def forward(self, history: Tensor) -> tuple[Tensor, Tensor]:
+        encoded, _ = self.encoder(history)  #                                              (B, D)
         mean = self.head(encoded)[:, : self.action_dim]  #                                  (B, k+1)
         # Agent.act(deterministic=True) is tanh(mean) for SAC and PPO alike; the clip only
         # pins the contract (float32 tanh can round to exactly 1, never beyond).
@@ -131,34 +100,20 @@ class PolicyGraph(nn.Module):
         knob_step = knob_action * self.max_step  #                                         (B, k)
         if self.floored:
             knob_step = knob_step + torch.sign(knob_action) * self.move_floor
-        if updated is None:
-            return action, knob_step
-        return (action, knob_step, *updated.layers, updated.valid.to(action.dtype))
+        return action, knob_step
 
 
-def graph_signature(
-    history: int, features: int, knobs: int, memory_length: int, memory_layers: int, d_model: int
-) -> dict[str, list[dict[str, Any]]]:
+def graph_signature(history: int, features: int, knobs: int) -> dict[str, list[dict[str, Any]]]:
     """The inputs and outputs of a policy graph: per tensor its name, dtype and shape
     ("batch": any size), as card.json lists them."""
-    memory_shape: list[Any] = ["batch", memory_length]
     shapes = {
         "history": ["batch", history, features],
         "action": ["batch", knobs + 1],
         "knob_step": ["batch", knobs],
-        "memory_valid_in": memory_shape,
-        "memory_valid_out": memory_shape,
     }
-    inputs, outputs = ["history"], ["action", "knob_step"]
-    if memory_length:
-        inputs += [*(f"memory_in_{i}" for i in range(memory_layers)), "memory_valid_in"]
-        outputs += [*(f"memory_out_{i}" for i in range(memory_layers)), "memory_valid_out"]
     return {
-        side: [
-            {"name": name, "dtype": "float32", "shape": shapes.get(name, [*memory_shape, d_model])}
-            for name in names
-        ]
-        for side, names in (("inputs", inputs), ("outputs", outputs))
+        side: [{"name": name, "dtype": "float32", "shape": shapes[name]} for name in names]
+        for side, names in (("inputs", ["history"]), ("outputs", ["action", "knob_step"]))
     }
 
 

@@ -51,35 +51,20 @@ class ExportedPolicy:
     def output_names(self) -> list[str]:
         return [entry["name"] for entry in self.card["outputs"]]
 
-    @property
-    def memory_length(self) -> int:
-        return int(self.card["memory"]["length"])
-
-    def initial_memory(self, batch: int = 1) -> dict[str, np.ndarray]:
-        """The memory inputs of an alignment's first step (empty for a window-only policy)."""
-        memory = {}
-        for entry in self.card["inputs"][1:]:
-            shape = [batch if size == "batch" else int(size) for size in entry["shape"]]
-            memory[entry["name"]] = np.zeros(shape, np.float32)
-        return memory
-
-    def run(
-        self, history: np.ndarray, memory: dict[str, np.ndarray] | None = None
-    ) -> dict[str, np.ndarray]:
-        """Every output (action, knob_step, memory_out_*...) for a batch (B, H, F) of
-        histories; `memory` defaults to empty. Float32, batch first."""
+    def run(self, history: np.ndarray) -> dict[str, np.ndarray]:
+        """Every output (action, knob_step) for a batch (B, H, F) of histories. Float32,
+        batch first."""
         history = np.asarray(history, np.float32)
         if history.ndim != 3 or history.shape[1:] != (self.history, self.features):
             raise ValueError(
                 f"{self.folder}: the policy takes histories of shape (batch, {self.history}, "
                 f"{self.features}), got {history.shape}"
             )
-        inputs = {"history": history, **(memory or self.initial_memory(len(history)))}
-        return self._run(inputs)
+        return self._run({"history": history})
 
     def act(self, history: np.ndarray) -> np.ndarray:
         """Actions in [-1, 1] for one history (H, F) -> (k+1,) or a batch (B, H, F) ->
-        (B, k+1), float64; a memory policy starts from empty memory, as Agent.act does."""
+        (B, k+1), float64."""
         history = np.asarray(history, np.float32)
         single = history.ndim == 2
         action = self.run(history[None] if single else history)["action"].astype(np.float64)
@@ -109,12 +94,8 @@ def _probe(
     rng = np.random.default_rng(0)
     histories = random_histories(PROBE_HISTORIES, history, features, rng, knobs)
     histories[0] = 0.0  # the first call of an alignment sees a padded, empty history
-    inputs: dict[str, np.ndarray] = {"history": histories}
-    for entry in card["inputs"][1:]:
-        shape = [PROBE_HISTORIES if size == "batch" else int(size) for size in entry["shape"]]
-        inputs[entry["name"]] = np.zeros(shape, np.float32)
     try:
-        outputs = run(inputs)
+        outputs = run({"history": histories})
     except Exception as error:  # any runtime's own error: the file does not fit the card
         raise ExportError(
             f"policy file {policy_path} does not run on the inputs its card.json names "

@@ -185,13 +185,8 @@ def render_model_card(card: dict[str, Any]) -> str:
         f"The written file, run by {parity['runtime']}, against {parity['reference']} on "
         f"{parity['histories']} random histories: max |difference| "
         f"{parity['max_abs_difference']:.3g} (action), "
-        f"{parity['knob_step_max_abs_difference']:.3g} (knob_step)"
-        + (
-            f", {parity['memory_max_abs_difference']:.3g} (with random memory)"
-            if parity["memory_max_abs_difference"] is not None
-            else ""
-        )
-        + f"; allowed {parity['tolerance']:g} (action) and {parity['knob_step_tolerance']:g} "
+        f"{parity['knob_step_max_abs_difference']:.3g} (knob_step); "
+        f"allowed {parity['tolerance']:g} (action) and {parity['knob_step_tolerance']:g} "
         "(knob_step: the same allowance times the largest max_step).",
         "",
         "## Lineage",

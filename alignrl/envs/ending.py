@@ -62,6 +62,7 @@ from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
+from alignrl.apparatus.backlash import arrival
 from alignrl.envs.fit_features import bracketed_optimum
 from alignrl.envs.task import Task, knob_change
 
@@ -270,7 +271,7 @@ class EpisodeEnds:
             return [target]
         target = np.array(target, float)  # a copy: the caller's row changes as they land
         below = np.ones_like(target)
-        return self._arrive(target, self.written[index], below, low, high)
+        return self._arrive(index, target, self.written[index], below, low, high)
 
     def note(
         self,
@@ -439,24 +440,20 @@ class EpisodeEnds:
         # approach from below (FamilyPosterior.final), whatever side that reading came from.
         from_below = fitted and self.ending.at == "posterior"
         side = np.ones_like(narrowest.side) if from_below else narrowest.side
-        writes = self._arrive(target, setting, side, low, high)
+        writes = self._arrive(index, target, setting, side, low, high)
         return EndPlan(index, writes, fitted, narrowest.width)
 
     def _arrive(
         self,
+        index: int,
         target: np.ndarray,
         start: np.ndarray,
         side: np.ndarray,
         low: np.ndarray,
         high: np.ndarray,
     ) -> list[np.ndarray]:
-        """The writes that take the knobs from `start` (NaN: unknown) to `target`, each
-        arriving from its `side` (+1 from below, -1 from above, 0 either): a knob that would
-        come from the other side first goes past the target by backlash_overshoot x the
-        interval, kept inside [low, high]."""
+        """The writes that take episode `index`'s knobs from `start` to `target`, each
+        arriving from its `side`, past the target by backlash_overshoot x the interval first
+        where needed (alignrl/apparatus/backlash.py, `arrival`)."""
         overshoot = self.ending.backlash_overshoot * (high - low)
-        with np.errstate(invalid="ignore"):
-            reverse = (side != 0) & (np.sign(target - start) == -side) & (overshoot > 0)
-        if not np.any(reverse):
-            return [target]
-        return [np.clip(np.where(reverse, target - side * overshoot, target), low, high), target]
+        return arrival(target, start, side, overshoot, low, high, self.approach[index])

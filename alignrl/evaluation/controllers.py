@@ -27,6 +27,7 @@ from typing import Literal, Protocol, runtime_checkable
 
 import numpy as np
 
+from alignrl.apparatus.backlash import arrival
 from alignrl.apparatus.base import Apparatus, ApparatusError
 from alignrl.envs.task import Task
 
@@ -253,11 +254,13 @@ def probe(
 
 
 def approach_from_below(apparatus: Apparatus, knob: str, target: float, margin_v: float) -> None:
-    """Write `target`, passing `margin_v` underneath first if the knob is above or at it."""
-    low, _ = apparatus.knobs[knob]
-    if float(apparatus.read()[knob]) >= target and target > low:
-        apparatus.write({knob: max(low, target - margin_v)})
-    apparatus.write({knob: target})
+    """Write `target`, passing `margin_v` underneath first if the knob is above or at it
+    (alignrl/apparatus/backlash.py, `arrival`: how a knob at the target got there is not
+    known to a controller, which takes the worse case, from above)."""
+    low, high = apparatus.knobs[knob]
+    start = float(apparatus.read()[knob])
+    for write in arrival(target, start, 1.0, margin_v, low, high, arrived=-1.0):
+        apparatus.write({knob: float(write)})
 
 
 @dataclass
