@@ -210,6 +210,25 @@ class SEMConfig(BaseModel):
     stigmator_v_per_pct: PositiveFloat = Field(
         0.2, description="line-focus separation one percent of stigmator excitation cancels, V"
     )
+    # How the stigmators act in the image (docs/physics.md, "How a column's knobs act"):
+    # their axes turned against the image's, coupled, one of them wired the other way round.
+    stigmator_rotation_deg: float = Field(
+        0.0,
+        ge=0.0,
+        lt=180.0,
+        description="the stigmators' axes rotated against the image's, degrees (an astigmatism "
+        "along phi turns by twice this in the stigmators' plane)",
+    )
+    stigmator_coupling: float = Field(
+        0.0,
+        gt=-0.9,
+        lt=0.9,
+        description="cross-coupling: the share of each stigmator's action that the other "
+        "stigmator's axis receives",
+    )
+    stigmator_mirror: bool = Field(
+        False, description="stigmator_y acts with the opposite sign (a mirrored or rewired axis)"
+    )
     aperture_offset_max_um: NonNegativeFloat = Field(
         0.0,
         description="a scenario's aperture sits off the optical axis by a distance uniform in "
@@ -219,6 +238,16 @@ class SEMConfig(BaseModel):
         0.0,
         description="beam tilt of an off-axis aperture: image shift per volt of focus error per "
         "um of aperture offset, px/(V um)",
+    )
+    aperture_rotation_deg: float = Field(
+        0.0,
+        ge=0.0,
+        lt=360.0,
+        description="the image turned against the aperture's x and y axes, degrees: the "
+        "wobble's shift points this far round from the aperture's offset",
+    )
+    aperture_mirror: bool = Field(
+        False, description="the image mirrored against the aperture's axes (y the other way)"
     )
     aperture_blur_px_per_um: NonNegativeFloat = Field(
         0.0,
@@ -262,14 +291,17 @@ class SEMConfig(BaseModel):
         low, high = self.defocus_interval_v
         if not low <= self.optimum_v <= high:
             raise ValueError(f"optimum_v {self.optimum_v} lies outside defocus_interval_v")
-        # Every scenario's optimum must be a setting the knobs can reach.
-        reach_pct = self.astigmatism_max_v / self.stigmator_v_per_pct
+        # Every scenario's optimum must be a setting the knobs can reach: coupled stigmators
+        # need up to 1 / (1 - |coupling|) times as much excitation.
+        weakest = self.stigmator_v_per_pct * (1.0 - abs(self.stigmator_coupling))
+        reach_pct = self.astigmatism_max_v / weakest
         low, high = self.stigmator_interval_pct
         if not (low <= -reach_pct and reach_pct <= high):
             raise ValueError(
                 f"stigmator_interval_pct [{low:g}, {high:g}] must contain +/- {reach_pct:g} %: "
                 f"cancelling astigmatism_max_v {self.astigmatism_max_v:g} V takes that much at "
-                f"stigmator_v_per_pct {self.stigmator_v_per_pct:g} V/%"
+                f"stigmator_v_per_pct {self.stigmator_v_per_pct:g} V/% (coupling "
+                f"{self.stigmator_coupling:g})"
             )
         low, high = self.aperture_interval_um
         reach_um = self.aperture_offset_max_um
@@ -284,6 +316,30 @@ class SEMConfig(BaseModel):
         if not 0 < r_low <= r_high:
             raise ValueError(f"particle_radius_px: need 0 < min <= max, got {(r_low, r_high)}")
         return self
+
+    def stigmator_response(self) -> np.ndarray | None:
+        """How the stigmators' settings (s_x, s_y) act on the astigmatism, in its (cos 2 phi,
+        sin 2 phi) plane, per V of stigmator_v_per_pct: the 2 x 2 matrix R(2 rotation)
+        [[1, c], [c, 1]] diag(1, -1 where mirrored); None where it is the identity (the
+        presets: the same numbers as a column without it)."""
+        if not (self.stigmator_rotation_deg or self.stigmator_coupling or self.stigmator_mirror):
+            return None
+        coupled = np.array([[1.0, self.stigmator_coupling], [self.stigmator_coupling, 1.0]])
+        flip = np.diag([1.0, -1.0 if self.stigmator_mirror else 1.0])
+        return _rotation(2.0 * math.radians(self.stigmator_rotation_deg)) @ coupled @ flip
+
+    def aperture_response(self) -> np.ndarray | None:
+        """How the aperture's offset from the axis shows in the image's (x, y): R(rotation)
+        diag(1, -1 where mirrored); None where it is the identity."""
+        if not (self.aperture_rotation_deg or self.aperture_mirror):
+            return None
+        flip = np.diag([1.0, -1.0 if self.aperture_mirror else 1.0])
+        return _rotation(math.radians(self.aperture_rotation_deg)) @ flip
+
+
+def _rotation(angle: float) -> np.ndarray:
+    cos, sin = math.cos(angle), math.sin(angle)
+    return np.array([[cos, -sin], [sin, cos]])
 
 
 SHOWN_PROBLEMS = 10  # problems of a bad instrument config listed in one message

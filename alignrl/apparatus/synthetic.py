@@ -14,12 +14,15 @@ Image formation (design.md, docs/physics.md): image = specimen (*) probe, shifte
   sigma_u along phi_res. With A_res = 0 and d = 0 this is design.md's
   sigma = sqrt(sigma0^2 + (gain * (V - V_opt))^2).
 * Astigmatism: the scenario's column has an astigmatism vector a = A (cos 2 phi, sin 2 phi)
-  (volts); the stigmators subtract g_s (s_x, s_y), leaving r = a - g_s s, with
-  A_res = |r| and phi_res = atan2(r_y, r_x) / 2.
+  (volts); the stigmators subtract g_s M (s_x, s_y), leaving r = a - g_s M s, with
+  A_res = |r| and phi_res = atan2(r_y, r_x) / 2. M is the identity unless the stigmators'
+  axes are turned against the image, coupled or mirrored (`stigmator_rotation_deg`,
+  `stigmator_coupling`, `stigmator_mirror`: SEMConfig.stigmator_response).
 * Aperture: the scenario's aperture sits o (um) off the optical axis; d = o - (a_x, a_y). An
   off-axis aperture tilts the beam, so a focus error shifts the image by
-  shift = k_ap * dV * d pixels (the wobbler's symptom), and the off-axis ray bundle blurs the
-  probe by b_ap |d| (in quadrature).
+  shift = k_ap * dV * N d pixels (the wobbler's symptom; N turns and mirrors the offset
+  where the image is turned against the aperture's axes, `aperture_rotation_deg`,
+  `aperture_mirror`), and the off-axis ray bundle blurs the probe by b_ap |d| (in quadrature).
 * Lens hysteresis: the field lags the last change of the defocus voltage, so the effective
   voltage is V_eff = V - hysteresis_v * s, with s the sign of the last change (+1 up, -1 down).
   Stigmators and aperture have none.
@@ -109,6 +112,8 @@ class SyntheticSEM:
             zip(KNOB_NAMES, (defocus, stigmator, stigmator, aperture, aperture), strict=True)
         )
         self._seeds = np.random.SeedSequence(seed)
+        self._stigmator_response = cfg.stigmator_response()  # None: the identity
+        self._aperture_response = cfg.aperture_response()
         size = cfg.image_size_px
         freq_y = np.fft.fftfreq(size)[:, None]  # cycles per pixel, rows
         freq_x = np.fft.rfftfreq(size)[None, :]  # cycles per pixel, columns (real FFT half)
@@ -159,6 +164,10 @@ class SyntheticSEM:
             / cfg.stigmator_v_per_pct
             * np.array([np.cos(double_axis), np.sin(double_axis)])
         )
+        if self._stigmator_response is not None:  # the setting whose action cancels it
+            self._stigmator_optimum_pct = np.linalg.solve(
+                self._stigmator_response, self._stigmator_optimum_pct
+            )
         self._aperture_offset_um = offset_um * np.array(
             [np.cos(aperture_angle), np.sin(aperture_angle)]
         )
@@ -280,8 +289,13 @@ class SyntheticSEM:
         return effective_v - self._optimum_v
 
     def astigmatism_residual_v(self) -> np.ndarray:
-        """r = a - g_s s (volts of line-focus separation, as a vector in the 2 phi plane)."""
-        return self.config.stigmator_v_per_pct * (self._stigmator_optimum_pct - self._stigmator_pct)
+        """r = a - g_s M s (volts of line-focus separation, as a vector in the 2 phi plane;
+        M the stigmators' response, SEMConfig.stigmator_response: the identity unless their
+        axes are turned, coupled or mirrored)."""
+        left = self._stigmator_optimum_pct - self._stigmator_pct
+        if self._stigmator_response is not None:
+            left = self._stigmator_response @ left
+        return self.config.stigmator_v_per_pct * left
 
     def aperture_residual_um(self) -> np.ndarray:
         """d = o - (aperture_x, aperture_y): how far the aperture sits off the axis, um."""
@@ -334,10 +348,14 @@ class SyntheticSEM:
         return float(effective_px * np.interp(effective_px, model.knots_px, model.reading_ratio))
 
     def image_shift_px(self) -> np.ndarray:
-        """(dx, dy) px by which the image content moves: k_ap dV d, the tilt of the beam
-        through an off-axis aperture times the focus error."""
+        """(dx, dy) px by which the image content moves: k_ap dV N d, the tilt of the beam
+        through an off-axis aperture times the focus error (N the image's turn and mirror
+        against the aperture's axes, SEMConfig.aperture_response: the identity unless set)."""
         cfg = self.config
-        return cfg.aperture_shift_px_per_v_um * self.focus_error_v() * self.aperture_residual_um()
+        offset = self.aperture_residual_um()
+        if self._aperture_response is not None:
+            offset = self._aperture_response @ offset
+        return cfg.aperture_shift_px_per_v_um * self.focus_error_v() * offset
 
     def acquire(self) -> np.ndarray:
         """Scan one frame at the current settings: blurred, shifted, noisy (float32)."""
