@@ -52,6 +52,7 @@ from alignrl.evaluation.controllers import (
     measure_width,
     probe,
 )
+from alignrl.evaluation.model_based import StigmatorSolve
 
 __all__ = [
     "BASELINES",
@@ -561,6 +562,7 @@ MODEL_BASED: dict[str, Callable[[], Controller]] = {
 CLASSICAL: dict[str, Callable[[], Controller | TaskController]] = {
     **{name: make for baselines in TASK_BASELINES.values() for name, make in baselines.items()},
     **MODEL_BASED,
+    "stigmator-solve": StigmatorSolve,  # alignrl/evaluation/model_based.py
 }  # every controller that is not trained, by name
 
 
