@@ -170,8 +170,9 @@ def test_ppo_settings_belong_to_ppo() -> None:
 def test_ppo_with_a_gru_lifts_its_success_rate_well_above_an_untrained_one(
     tmp_path: Path,
 ) -> None:
-    """The tiny focus problem of test_training (starts within 20 % of the interval): 8000 env
-    steps of PPO take a GRU policy from chance to aligning most held-out scenarios."""
+    """The tiny focus problem of test_training (starts within 20 % of the interval): 6000 env
+    steps of PPO take a GRU policy from chance to aligning most held-out scenarios (of 40,
+    untrained -> trained: seed 3 8 -> 31, seed 4 4 -> 32, seed 5 8 -> 19)."""
     sys.path.insert(0, str(Path(__file__).parent))
     from test_training import _near_focus_successes
 
@@ -190,7 +191,7 @@ def test_ppo_with_a_gru_lifts_its_success_rate_well_above_an_untrained_one(
             "rollout_steps": 32,
             "epochs": 8,
         },
-        "budget": {"env_steps": 8000, "eval_every": 8000, "eval_scenarios": 10},
+        "budget": {"env_steps": 6000, "eval_every": 6000, "eval_scenarios": 10},
     }
     trainer = Trainer.create(parse_experiment(settings), tmp_path / "runs")
     before = _near_focus_successes(trainer, 40)

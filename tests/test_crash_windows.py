@@ -2,10 +2,14 @@
 write boundary of a tiny run (each atomic write, CSV append, file or folder deletion), resumed
 from disk, and run to the end; what they leave must be what an uninterrupted run leaves.
 
-The kill is `Killed`, a BaseException raised just before the k-th write, so that no
-`except Exception` can swallow it; TensorBoard is a recorder that keeps only what was
-flushed before the kill, and honours `purge_step` as TensorBoard does when it reads the
-events back.
+A kill -9 just before the k-th write leaves the disk as it was then: one uninterrupted run
+copies its run directory at each write boundary, before the write (`Writes.leave`), and each
+copy is resumed to the end on its own, as `alignrl league|train resume` would after the kill.
+Nothing of the run's memory reaches the copy, not even what an exception unwinding the
+stack would write (a `finally`, a file closed by the garbage collector), so the copy is what a
+SIGKILL leaves, and a run is played once rather than once per kill. TensorBoard is a
+recorder that keeps only what was flushed before the kill, and honours `purge_step` as
+TensorBoard does when it reads the events back.
 """
 
 from __future__ import annotations
@@ -34,10 +38,6 @@ from alignrl.league.config import load_league
 from alignrl.league.loop import League, leaderboard
 from alignrl.metrics import CsvLog
 from alignrl.training import Trainer
-
-
-class Killed(BaseException):
-    """kill -9 at a write boundary."""
 
 
 @dataclass
@@ -79,18 +79,37 @@ class RecordingBoard:
 
 
 class Writes:
-    """Counts the run's writes and kills it just before write number `kill_at`."""
+    """Counts the run's writes; while `run` is set, copies that run directory, and the
+    TensorBoard events flushed so far, just before each write: what a kill there leaves."""
 
     def __init__(self) -> None:
-        self.count, self.kill_at = 0, 0
+        self.count = 0
         self.log: list[str] = []
+        self.run: Path | None = None
+        self.left: dict[int, tuple[Path | None, list[tuple[str, int, float]]]] = {}
 
     def boundary(self, what: str) -> None:
         self.count += 1
         self.log.append(what)
-        if self.count == self.kill_at:
-            self.kill_at = 0  # killed once: the resumed run writes freely
-            raise Killed(f"killed before write {self.count}: {what}")
+        if self.run is not None:
+            self.left[self.count] = self.leave(self.run, self.count)
+
+    def leave(self, run: Path, k: int) -> tuple[Path | None, list[tuple[str, int, float]]]:
+        if not run.exists():
+            return None, []
+        copy = run.parent.parent / "left" / str(k)
+        shutil.copytree(run, copy, copy_function=shutil.copyfile)
+        board = RecordingBoard.boards.get(str(run / "tensorboard"), Events())
+        return copy, list(board.durable)
+
+    def killed(self, k: int, runs: Path) -> None:
+        """`runs` as a kill just before write `k` left it: the run directory (none if it did
+        not exist yet) and its flushed TensorBoard events."""
+        copy, durable = self.left.pop(k)
+        runs.mkdir()
+        if copy is not None:
+            copy.rename(runs / "crash")
+            RecordingBoard.boards[str(runs / "crash" / "tensorboard")] = Events(durable)
 
 
 @pytest.fixture
@@ -133,8 +152,21 @@ def instrument(monkeypatch: pytest.MonkeyPatch) -> Writes:
 # --- what a run directory holds -----------------------------------------------------------
 
 
+@dataclass(eq=False)
+class Checkpoint:
+    """A .pt file of a run: its bytes, and what `load_checkpoint` reads from them. Two with
+    the same bytes are the same checkpoint; others are compared as loaded."""
+
+    data: bytes
+    state: dict[str, Any]
+
+
 def _same(a: Any, b: Any, where: str) -> None:
-    if isinstance(a, torch.Tensor):
+    if isinstance(a, Checkpoint):
+        assert isinstance(b, Checkpoint), where
+        if a.data != b.data:
+            _same(a.state, b.state, where)
+    elif isinstance(a, torch.Tensor):
         assert isinstance(b, torch.Tensor) and torch.equal(a, b), where
     elif isinstance(a, dict):
         assert isinstance(b, dict) and a.keys() == b.keys(), where
@@ -148,16 +180,23 @@ def _same(a: Any, b: Any, where: str) -> None:
         assert a == b, f"{where}: {a!r} != {b!r}"
 
 
-def contents(run: Path) -> dict[str, Any]:
+def contents(run: Path, like: dict[str, Any] | None = None) -> dict[str, Any]:
     """Every file of a run directory as comparable values: checkpoints loaded, CSVs as rows
-    without their wall-clock `seconds`, TensorBoard as the events it would show."""
+    without their wall-clock `seconds`, TensorBoard as the events it would show. A checkpoint
+    with the bytes of its namesake in `like` (the contents of a run that loaded) is that one,
+    not loaded again: most checkpoints of a resumed run are byte for byte the uninterrupted
+    run's, and the same bytes load the same."""
     found: dict[str, Any] = {}
     for path in sorted(run.rglob("*")):
         relative = str(path.relative_to(run))
         if not path.is_file() or relative.startswith("tensorboard"):
             continue
         if path.suffix == ".pt":
-            found[relative] = load_checkpoint(path)
+            data, known = path.read_bytes(), (like or {}).get(relative)
+            if isinstance(known, Checkpoint) and known.data == data:
+                found[relative] = known
+            else:
+                found[relative] = Checkpoint(data, load_checkpoint(path))
         elif path.suffix == ".csv":
             rows = read_csv(path)
             found[relative] = [{k: v for k, v in row.items() if k != "seconds"} for row in rows]
@@ -236,15 +275,15 @@ def league_to_the_end(config_path: Path, runs: Path) -> Path:
 
 def league_kills(tmp_path: Path, writes: Writes, select: Any) -> int:
     config = league_config(tmp_path)
+    writes.run = tmp_path / "uninterrupted" / "crash"
     reference_run = league_to_the_end(config, tmp_path / "uninterrupted")
+    writes.run = None
     total, log = writes.count, list(writes.log)
     reference = contents(reference_run)
     chosen = [k for k in range(1, total + 1) if select(k, log)]
     for kill_at in chosen:
         runs = tmp_path / f"kill-{kill_at}"
-        writes.count, writes.kill_at = 0, kill_at
-        with pytest.raises(Killed):
-            league_to_the_end(config, runs)
+        writes.killed(kill_at, runs)
         kill = f"kill before write {kill_at}/{total} ({log[kill_at - 1]})"
         # The views of a killed run read it: its checkpoint and all it refers to exist.
         if (runs / "crash" / "config.yaml").exists():
@@ -255,8 +294,9 @@ def league_kills(tmp_path: Path, writes: Writes, select: Any) -> int:
                     viewed.player(player)
         run = league_to_the_end(config, runs)
         assert_rows_once(run, kill)
-        assert_same_run(contents(run), reference, kill)
+        assert_same_run(contents(run, like=reference), reference, kill)
         shutil.rmtree(runs)
+    assert_same_run(contents(reference_run, like=reference), reference, "the reference, untouched")
     return len(chosen)
 
 
@@ -361,7 +401,9 @@ def trainer_kills(tmp_path: Path, writes: Writes, select: Any) -> int:
     """A resumed trainer starts its episodes over (its env seeds change with each start), so
     a kill anywhere after a checkpoint must end as a kill just after that checkpoint does;
     before the first one, and after the last, as the uninterrupted run."""
+    writes.run = tmp_path / "uninterrupted" / "crash"
     reference_run = train_to_the_end(tmp_path / "uninterrupted")
+    writes.run = None
     total, log = writes.count, list(writes.log)
     uninterrupted = contents(reference_run)
     references: dict[int | None, dict[str, Any]] = {None: uninterrupted}
@@ -369,14 +411,12 @@ def trainer_kills(tmp_path: Path, writes: Writes, select: Any) -> int:
     chosen = [k for k in range(1, total + 1) if select(k, log)]
     for kill_at in chosen:
         runs = tmp_path / f"kill-{kill_at}"
-        writes.count, writes.kill_at = 0, kill_at
-        with pytest.raises(Killed):
-            train_to_the_end(runs)
+        writes.killed(kill_at, runs)
         kill = f"kill before write {kill_at}/{total} ({log[kill_at - 1]})"
         resumed_from = _checkpointed_steps(runs / "crash")
         run = train_to_the_end(runs)
         assert_rows_once(run, kill)
-        found = contents(run)
+        found = contents(run, like=uninterrupted)
         if resumed_from == final:  # after the last checkpoint: nothing is written again
             assert_same_run(found, uninterrupted, kill)
         elif resumed_from in references:

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import json
 import math
-import subprocess
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -23,6 +22,7 @@ from alignrl.apparatus.base import NoEdgesError
 from alignrl.apparatus.family import FamilyColumn, design_names
 from alignrl.apparatus.family_box import LOG_SCALE, family_path, load_family
 from alignrl.apparatus.registry import make_apparatus_copies
+from alignrl.cli import main
 from alignrl.config_reading import ConfigError
 from alignrl.envs.core import AlignmentEpisodes
 from alignrl.envs.design import reference_returns
@@ -32,8 +32,7 @@ from alignrl.envs.task import get_task
 from alignrl.evaluation.references import make_reference
 from alignrl.league.config import load_league, parse_league
 from alignrl.league.exploit import exploit
-from alignrl.league.loop import leaderboard
-from alignrl.league.report import write_league_report
+from alignrl.league.loop import League
 
 FAMILY = {"apparatus": "family:focus", "apparatus_args": {"analytic": True}}
 EVALUATED_ON = {"eval_apparatus": "set:validation", "eval_apparatus_args": {"analytic": True}}
@@ -298,12 +297,33 @@ def designer_league(folder: Path, **changes: object) -> Path:
     return write_league(folder, **{**DESIGN_LEAGUE, **changes})
 
 
-def test_a_league_of_designers_rates_snapshots_and_copies_them(tmp_path: Path) -> None:
-    league = create_league(designer_league(tmp_path), tmp_path / "runs")
+# The tiny league's schedule (8 iterations of 8 matches; snapshots at 3 and 6, PBT and
+# evaluations at 4 and 8) with a checkpoint at every iteration, for a kill to land between two.
+DESIGN_SCHEDULE = {
+    "iterations": 8,
+    "matches": 8,
+    "snapshot_every": 3,
+    "pbt_every": 4,
+    "evaluate_every": 4,
+    "eval_scenarios": 4,
+    "checkpoint_every": 1,
+}
+
+
+@pytest.fixture(scope="module")
+def designers(tmp_path_factory: pytest.TempPathFactory) -> League:
+    """A league of designers played to its end, never stopped: what the tests of this module
+    read (its ratings, snapshots and copies) and what a killed one must end as."""
+    folder = tmp_path_factory.mktemp("designers")
+    league = create_league(designer_league(folder, schedule=DESIGN_SCHEDULE), folder / "runs")
     assert league.members["m-sac"].spec.observation_shape == (1, 17)
     assert league.members["m-sac"].spec.action_dim == 16
     league.run(progress=False)
-    run = tmp_path / "runs" / "tiny"
+    return league
+
+
+def test_a_league_of_designers_rates_snapshots_and_copies_them(designers: League) -> None:
+    league, run = designers, designers.run_dir
     rows = read_csv(run / "metrics" / "iterations.csv")
     assert len(rows) == 8
     assert any("@" in row["misaligner"] or "@" in row["aligner"] for row in rows)  # PFSP pool
@@ -321,51 +341,34 @@ def test_a_league_of_designers_rates_snapshots_and_copies_them(tmp_path: Path) -
     scored = sum(league.payoff.win_rate(*pair) * league.payoff.matches(*pair) for pair in pairs)
     succeeded = sum(round(float(row["success_rate"]) * int(row["matches"])) for row in rows)
     assert scored * 2 == pytest.approx(round(scored * 2)) and scored != pytest.approx(succeeded)
-    # The report shows where the designers put the columns.
-    write_league_report(run, leaderboard(league))
-    assert (run / "report" / "designs.png").stat().st_size > 10_000
-    assert "report/designs.png" in (run / "report.md").read_text()
+    # Its report (where the designers put the columns): the one `alignrl league resume` draws
+    # in test_a_league_of_designers_killed_with_sigkill_resumes_as_one_never_stopped.
 
 
 def test_a_league_of_designers_killed_with_sigkill_resumes_as_one_never_stopped(
-    tmp_path: Path,
+    designers: League, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    schedule = {
-        "iterations": 10,
-        "matches": 8,
-        "snapshot_every": 3,
-        "pbt_every": 5,
-        "evaluate_every": 5,
-        "eval_scenarios": 4,
-        "checkpoint_every": 1,
-    }
-    for folder in ("straight", "killed"):
-        (tmp_path / folder).mkdir()
-    straight = create_league(
-        designer_league(tmp_path / "straight", schedule=schedule), tmp_path / "straight" / "runs"
-    )
-    straight.run(progress=False)
-    config = designer_league(tmp_path / "killed", schedule=schedule)
-    runs = tmp_path / "killed" / "runs"
+    """The league of `designers` SIGKILLed (a process of its own) once it has checkpointed
+    iteration 4 or later, before the PBT copy, snapshot and evaluation still to come, and
+    resumed (here): its iterations and its designs are those of the league never stopped, and
+    the report the resume draws shows where the designers put the columns."""
+    config = designer_league(tmp_path, schedule=DESIGN_SCHEDULE)
+    runs = tmp_path / "runs"
     run = runs / "tiny"
     command = [sys.executable, "-m", "alignrl.cli", "league"]
     killed_at = kill_league_after(
         [*command, "run", str(config), "--runs-dir", str(runs), "--quiet"], run, checkpoint=4
     )
-    assert 4 <= killed_at < 10
-    resumed = subprocess.run(
-        [*command, "resume", str(run), "--quiet", "--json"],
-        capture_output=True,
-        timeout=300,
-        check=False,
-    )
-    assert resumed.returncode == 0, resumed.stderr.decode()
-    assert json.loads(resumed.stdout)["iterations"] == 10
-    reference = tmp_path / "straight" / "runs" / "tiny"
+    assert 4 <= killed_at < 8
+    assert main(["league", "resume", str(run), "--quiet", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["iterations"] == 8
+    reference = designers.run_dir
     assert iteration_outcomes(run) == iteration_outcomes(reference)
     assert read_csv(run / "metrics" / "designs.csv") == read_csv(
         reference / "metrics" / "designs.csv"
     )
+    assert (run / "report" / "designs.png").stat().st_size > 10_000
+    assert "report/designs.png" in (run / "report.md").read_text()
 
 
 def test_a_designer_league_stops_at_its_aligner_steps(tmp_path: Path) -> None:

@@ -354,7 +354,8 @@ def test_the_registry_names_each_task_s_baselines() -> None:
     }
     baselines = {name for names in TASK_BASELINES.values() for name in names}
     # the model-based ones run by name only
-    assert set(CLASSICAL) == baselines | {"posterior", "posterior-scale-free", "posterior-robust"}
+    model_based = {"posterior", "posterior-scale-free", "posterior-robust", "stigmator-solve"}
+    assert set(CLASSICAL) == baselines | model_based
     with pytest.raises(ValueError, match="no classical controllers for task 'astigmatism'"):
         task_baselines("astigmatism")
     for make, field in ((StigmatorSearch, "shrink"), (WobbleCenter, "target_fraction")):

@@ -102,7 +102,10 @@ def test_a_warm_started_league_plays_learns_and_resumes_without_its_source(
     copy = tmp_path / "copy.pt"
     copy.write_bytes(source.read_bytes())
     entry = {"id": "tuned", "init_from": str(copy)}
-    league = create_league(_warm_league(tmp_path, entry, pbt={"enabled": False}), tmp_path / "runs")
+    # 3 iterations: a snapshot at 2, the evaluation and the checkpoint at the last
+    schedule = quiet_schedule(iterations=3, snapshot_every=2, checkpoint_every=3)
+    path = _warm_league(tmp_path, entry, pbt={"enabled": False}, schedule=schedule)
+    league = create_league(path, tmp_path / "runs")
     before = league.members["tuned"].updates
     league.run(progress=False)
     assert league.members["tuned"].updates > before

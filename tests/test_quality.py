@@ -219,14 +219,12 @@ def test_recorded_glitch_frame_is_measured_as_blurred() -> None:
     assert edge_width(frames[10.0]) > 10.0
 
 
-def test_moderately_defocused_frames_are_not_read_from_one_spurious_edge() -> None:
-    """Regression: 10-15 V out of focus on synthetic-b, about 2 % of frames read 4-5 px where
-    their edges are 8 px wide: the finest detection scale trusted one short edge made by the
-    noise and looked no further. A thinly supported reading is now checked at a coarser
-    scale, and the scale with the most trusted edge points gives the reading."""
+def _low_readings_10_to_15_v_out(seeds) -> list[tuple]:
+    """Readings of synthetic-b 10 and 15 V either side of focus (5 a setting) that fall below
+    0.7 of the frame's true edge width."""
     sem = make_apparatus("synthetic-b")
     low = []
-    for seed in range(15):
+    for seed in seeds:
         sem.reset(seed)
         optimum = sem.optimum()["defocus"]
         for error_v in (-15.0, -10.0, 10.0, 15.0):
@@ -236,4 +234,26 @@ def test_moderately_defocused_frames_are_not_read_from_one_spurious_edge() -> No
                 reading = sem.measure()
                 if reading < 0.7 * expected:
                     low.append((seed, error_v, round(reading, 2), round(expected, 2)))
+    return low
+
+
+# The scenarios of the 15 below whose frames the finest scale alone read low (a reading
+# from its first trusted edges, as before the fix: 4.45, 5.42 and 4.61 px against 8.0-8.3 px
+# edges): `make test` measures these, `make test-all` all 15.
+SPURIOUS_EDGE_SEEDS = (3, 12, 14)
+
+
+def test_moderately_defocused_frames_are_not_read_from_one_spurious_edge() -> None:
+    """Regression: 10-15 V out of focus on synthetic-b, about 2 % of frames read 4-5 px where
+    their edges are 8 px wide: the finest detection scale trusted one short edge made by the
+    noise and looked no further. A thinly supported reading is now checked at a coarser
+    scale, and the scale with the most trusted edge points gives the reading."""
+    low = _low_readings_10_to_15_v_out(SPURIOUS_EDGE_SEEDS)
+    assert not low, low
+
+
+@pytest.mark.long
+def test_moderately_defocused_frames_are_not_read_from_one_spurious_edge_in_15_scenarios() -> None:
+    """The regression above over 15 scenarios, 300 readings (7.5 s of one worker)."""
+    low = _low_readings_10_to_15_v_out(range(15))
     assert not low, low

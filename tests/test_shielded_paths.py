@@ -101,11 +101,13 @@ def _command(verb: str, root: Path, member: Path, driver: dict[str, Any]) -> lis
     them (record sweeps the whole interval; train and league have no site limits)."""
     limits = ["--limits", json.dumps(SITE), "--max-step", json.dumps({"defocus": 5.0})]
     session = ["--scenarios", "2", "--quiet", *SPEC, *limits]
+    one = ["--scenarios", "1", *session[2:]]
     runs = ["--runs-dir", str(root / "runs")]
     return {
         "evaluate-classical": ["evaluate", "--policy", "hyperbola", *_args(**driver), *session],
         "evaluate-policy": ["evaluate", "--policy", str(member), *_args(**driver), *session],
-        "evaluate-posterior": ["evaluate", "--policy", "posterior", *_args(**driver), *session],
+        # one scenario: the posterior's alignments cost ~1.4 CPU-s each
+        "evaluate-posterior": ["evaluate", "--policy", "posterior", *_args(**driver), *one],
         "baselines": ["baselines", *_args(**driver), *session],
         "record": [
             "record",
