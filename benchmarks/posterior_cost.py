@@ -5,6 +5,7 @@ whole alignment and the posterior's part of it (issue 61, item 4).
     python -m benchmarks.posterior_cost [--scenarios 6] [--seed 1000000] [--kinds analytic images]
     python -m benchmarks.posterior_cost --save-reference runs/posterior-cost.json
     python -m benchmarks.posterior_cost --reference runs/posterior-cost.json
+    python -m benchmarks.posterior_cost --draws 256   # fewer columns: other numbers
 
 Runs `alignrl evaluate --policy champion:focus-v2 --apparatus set:validation --task focus`
 in this process, one session per kind of reading (`analytic`: the analytic readings;
@@ -36,6 +37,8 @@ from typing import Any
 
 from alignrl.apparatus.registry import make_apparatus
 from alignrl.deploy.policy import load_deployable
+from alignrl.envs.endings import with_ending
+from alignrl.envs.option_table import OPTIONS
 from alignrl.envs.task import get_task
 from alignrl.evaluation.controllers import PolicyController
 from alignrl.evaluation.report import session_summary
@@ -101,12 +104,16 @@ def _record(record: Any) -> dict[str, Any]:
     }
 
 
-def run_kind(policy: str, kind: str, scenarios: int, seed: int) -> dict[str, Any]:
+def run_kind(
+    policy: str, kind: str, scenarios: int, seed: int, draws: int | None = None
+) -> dict[str, Any]:
     """One session of `policy` on the validation set with `kind` readings: its CPU-seconds,
-    the posterior's, and its results (module docstring)."""
+    the posterior's, and its results (module docstring); with `draws`, its posterior draws
+    that many columns instead of its card's."""
     deployed = load_deployable(policy)
+    task = deployed.task if draws is None else with_ending(deployed.task, posterior_draws=draws)
     controller = PolicyController(
-        name=deployed.name, act=deployed.act, task=deployed.task, history=deployed.history
+        name=deployed.name, act=deployed.act, task=task, history=deployed.history
     )
     apparatus = make_apparatus(APPARATUS, {"analytic": KINDS[kind]})
     answers: list[list[Any]] = []
@@ -160,14 +167,15 @@ def digest(results: dict[str, Any]) -> str:
 
 def table(rows: list[dict[str, Any]]) -> list[str]:
     lines = [
-        "readings   alignments  CPU-s/alignment  posterior CPU-s/alignment  posterior share  "
-        "posterior calls  wall s",
-        "-" * 105,
+        "readings   alignments  aligned  acq median  CPU-s/alignment  posterior CPU-s/alignment  "
+        "posterior share  posterior calls  wall s",
+        "-" * 126,
     ]
     for row in rows:
-        count = row["alignments"]
+        count, summary = row["alignments"], row["results"]["summary"]
         lines.append(
-            f"{row['kind']:<9}  {count:>10}  {row['cpu_s'] / count:>15.3f}  "
+            f"{row['kind']:<9}  {count:>10}  {summary['successes']:>7}  "
+            f"{summary['median_acquisitions']:>10g}  {row['cpu_s'] / count:>15.3f}  "
             f"{row['posterior_cpu_s'] / count:>25.3f}  "
             f"{row['posterior_cpu_s'] / max(row['cpu_s'], 1e-9):>15.0%}  "
             f"{row['posterior_calls']:>15}  {row['wall_s']:>6.1f}"
@@ -181,18 +189,33 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scenarios", type=int, default=6, help="alignments per kind")
     parser.add_argument("--seed", type=int, default=VALIDATION_SEED)
     parser.add_argument("--kinds", nargs="+", choices=list(KINDS), default=list(KINDS))
+    parser.add_argument(
+        "--draws", type=int, help="the posterior's columns (default: the policy card's)"
+    )
     checks = parser.add_mutually_exclusive_group()
     checks.add_argument("--save-reference", type=Path, help="write the results here")
     checks.add_argument("--reference", type=Path, help="compare the results with these")
     args = parser.parse_args(argv)
     if args.scenarios < 1:
         parser.error(f"--scenarios must be at least 1, got {args.scenarios}")
+    if args.draws is not None:  # the task option's own interval (alignrl/envs/option_table.py)
+        problem = OPTIONS["posterior_draws"].problem("posterior_draws", args.draws)
+        if problem is not None:
+            parser.error(f"--draws: {problem}")
     options = {"policy": args.policy, "scenarios": args.scenarios, "seed": args.seed}
+    if args.draws is not None:
+        options["draws"] = args.draws
     reference = json.loads(args.reference.read_text()) if args.reference else None
     if reference is not None and reference["options"] != options:
         parser.error(f"{args.reference} holds other sessions: {reference['options']}")
-    rows = [run_kind(args.policy, kind, args.scenarios, args.seed) for kind in args.kinds]
-    print(f"{args.policy} on {APPARATUS}: {args.scenarios} alignments per kind, seed {args.seed}")
+    rows = [
+        run_kind(args.policy, kind, args.scenarios, args.seed, args.draws) for kind in args.kinds
+    ]
+    drawn = "" if args.draws is None else f", its posterior drawing {args.draws} columns"
+    print(
+        f"{args.policy} on {APPARATUS}: {args.scenarios} alignments per kind, seed {args.seed}"
+        f"{drawn}"
+    )
     print()
     print("\n".join(table(rows)))
     print()

@@ -179,3 +179,28 @@ def test_the_benchmark_times_a_session_and_checks_it_against_a_reference(
     assert main([*argv, "--reference", str(reference)]) == 1
     out = capsys.readouterr().out
     assert "DIFFER" in out and "analytic: alignment 0: trajectory" in out
+
+
+def test_fewer_draws_are_another_session_and_say_so(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], light_champion: None
+) -> None:
+    """--draws lays the posterior's columns over the card's: the table says it, its results
+    are another session's, and a reference of the card's draws is refused for them."""
+    reference = tmp_path / "reference.json"
+    argv = ["--scenarios", "1", "--kinds", "analytic"]
+    assert main([*argv, "--save-reference", str(reference)]) == 0
+    card = json.loads(reference.read_text())
+    capsys.readouterr()
+    fewer = tmp_path / "fewer.json"
+    assert main([*argv, "--draws", "32", "--save-reference", str(fewer)]) == 0
+    out = capsys.readouterr().out
+    assert "its posterior drawing 32 columns" in out and "aligned" in out
+    saved = json.loads(fewer.read_text())
+    assert saved["options"]["draws"] == 32 and "draws" not in card["options"]
+    assert saved["results"] != card["results"]
+    with pytest.raises(SystemExit):
+        main([*argv, "--draws", "32", "--reference", str(reference)])
+    assert "holds other sessions" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main([*argv, "--draws", "4"])
+    assert "--draws: posterior_draws must be in [16, 4096]" in capsys.readouterr().err
