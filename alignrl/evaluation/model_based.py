@@ -65,11 +65,13 @@ class StigmatorSolve:
     the astigmatism vanishes (module docstring)."""
 
     probe_fraction: float = 0.02  # the first defocus offset, share of the defocus interval
-    # the offset that widens the focused frame this much (measured on synthetic, seeds 5:
-    # 1.1 to 1.5 tried; wider frames read v with more scatter and more levelled off)
+    # the offset that widens the focused frame this much (1.1 to 1.5 tried on synthetic and
+    # synthetic-b, seed 5: wider frames read v with more scatter and more levelled off)
     target_ratio: float = 1.2
-    step_fraction: float = 0.15  # each identifying stigmator move, share of its interval
-    rounds: int = 5  # readings at the fitted zero, each refitting with every reading
+    # each identifying stigmator move, share of its interval (0.15 to 0.4 tried on synthetic
+    # and synthetic-b, seeds 1 and 2: larger steps read J above the bins' scatter)
+    step_fraction: float = 0.3
+    rounds: int = 5  # readings at the fitted zero, each refitting with every reading (3-5)
     knobs: tuple[str, ...] = STIGMATORS
     name: str = "stigmator-solve"
 
