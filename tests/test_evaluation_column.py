@@ -354,7 +354,8 @@ def test_the_registry_names_each_task_s_baselines() -> None:
     }
     baselines = {name for names in TASK_BASELINES.values() for name in names}
     # the model-based ones run by name only
-    model_based = {"posterior", "posterior-scale-free", "posterior-robust", "stigmator-solve"}
+    model_based = {"posterior", "posterior-scale-free", "posterior-robust"}
+    model_based |= {"stigmator-solve", "wobble-solve"}
     assert set(CLASSICAL) == baselines | model_based
     with pytest.raises(ValueError, match="no classical controllers for task 'astigmatism'"):
         task_baselines("astigmatism")

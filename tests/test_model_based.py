@@ -11,7 +11,7 @@ from alignrl.apparatus.registry import make_apparatus
 from alignrl.apparatus.sem_config import PRESET_DIR, load_sem_config
 from alignrl.envs.task import get_task
 from alignrl.evaluation.baselines import get_baseline
-from alignrl.evaluation.model_based import StigmatorSolve
+from alignrl.evaluation.model_based import StigmatorSolve, WobbleSolve
 from alignrl.evaluation.session import run_session
 
 SCENARIOS = 30
@@ -90,3 +90,31 @@ class _Recording:
 
     def __getattr__(self, name):
         return getattr(self.inner, name)
+
+
+# --- wobble-solve: the aperture from two wobbles --------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("response", "most"),
+    [
+        ({}, 6),  # two wobbles and one at the solution
+        ({"aperture_rotation_deg": 130.0}, 6),
+        ({"aperture_rotation_deg": 130.0, "aperture_mirror": True}, 10),  # a guess, then the fit
+        ({"aperture_interval_um": [-6.0, 6.0], "aperture_offset_max_um": 4.0}, 6),  # other units
+    ],
+)
+def test_wobble_solve_centres_the_aperture_whatever_the_image_does(response, most) -> None:
+    apparatus = make_apparatus("synthetic-b", {"analytic": True, **response})
+    solved = run_session(WobbleSolve(), apparatus, get_task("aperture"), SCENARIOS, seed=5)
+    untouched = run_session(_Untouched(), apparatus, get_task("aperture"), SCENARIOS, seed=5)
+    assert solved.successes == SCENARIOS > untouched.successes + 10, (solved, untouched)
+    assert solved.median_acquisitions <= most
+
+
+def test_wobble_solve_is_a_controller_by_name_and_checks_its_settings() -> None:
+    assert isinstance(get_baseline("wobble-solve"), WobbleSolve)
+    with pytest.raises(ValueError, match="aligns aperture_x, aperture_y"):
+        WobbleSolve().check_task(get_task("stigmation"))
+    with pytest.raises(ValueError, match="step_fraction must be in"):
+        WobbleSolve(step_fraction=0.5)

@@ -52,7 +52,7 @@ from alignrl.evaluation.controllers import (
     measure_width,
     probe,
 )
-from alignrl.evaluation.model_based import StigmatorSolve
+from alignrl.evaluation.model_based import StigmatorSolve, WobbleSolve
 
 __all__ = [
     "BASELINES",
@@ -563,6 +563,7 @@ CLASSICAL: dict[str, Callable[[], Controller | TaskController]] = {
     **{name: make for baselines in TASK_BASELINES.values() for name, make in baselines.items()},
     **MODEL_BASED,
     "stigmator-solve": StigmatorSolve,  # alignrl/evaluation/model_based.py
+    "wobble-solve": WobbleSolve,
 }  # every controller that is not trained, by name
 
 

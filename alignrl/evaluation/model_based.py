@@ -36,14 +36,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from alignrl.apparatus.base import Apparatus, ApparatusError
-from alignrl.apparatus.measures import measure_directional
+from alignrl.apparatus.measures import measure_directional, measure_wobble
 from alignrl.envs.task import Task
 from alignrl.evaluation.controllers import approach_from_below, clip_to_knob
 
-__all__ = ["StigmatorSolve"]
+__all__ = ["StigmatorSolve", "WobbleSolve"]
 
 FOCUS_KNOB = "defocus"
 STIGMATORS = ("stigmator_x", "stigmator_y")
+APERTURE = ("aperture_x", "aperture_y")
 GROWTH = 2.0  # the defocus offset grows this much a try
 OFFSET_TRIES = 5
 TRUST = 2.0  # a Newton step moves at most this many identifying steps
@@ -199,6 +200,126 @@ class StigmatorSolve:
 
     def _write(self, apparatus: Apparatus, setting: np.ndarray) -> None:
         apparatus.write(dict(zip(self.knobs, (float(value) for value in setting), strict=True)))
+
+
+@dataclass(frozen=True)
+class WobbleSolve:
+    """Aperture centring by identifying the wobble's response from two wobbles and solving
+    for the axis.
+
+    A wobble's shift is k dV_swing N (o - a): N turns the aperture's axes into the image's
+    and may mirror one (SEMConfig.aperture_response), so its columns are one unit vector c
+    and +/- c turned by 90 degrees. A wobble where the aperture starts and one after a step
+    of aperture_x (`step_fraction` of its interval) give c times the gain; of the two
+    responses that leaves (mirrored or not), the unmirrored one is tried first: a wobble at
+    its solution ends the alignment where it is within `target_fraction` of the task's
+    wobble spec; else the three wobbles give the whole 2 x 2 response by least squares, and
+    each further wobble (at most `max_corrections`) is taken at the solution of every wobble
+    so far. Ends at the setting of the smallest shift seen. A wobble that fails (frames that
+    do not correlate) ends it there too.
+    """
+
+    step_fraction: float = 0.2
+    target_fraction: float = 0.5
+    max_corrections: int = 3
+    knobs: tuple[str, ...] = APERTURE
+    name: str = "wobble-solve"
+
+    def __post_init__(self) -> None:
+        if not 0 < self.step_fraction < 0.5:
+            raise ValueError(f"{self.name}: step_fraction must be in (0, 0.5)")
+        if not 0 < self.target_fraction <= 1:
+            raise ValueError(f"{self.name}: target_fraction must be in (0, 1]")
+        if self.max_corrections < 0:
+            raise ValueError(f"{self.name}: max_corrections must be at least 0")
+
+    def check_task(self, task: Task) -> None:
+        missing = [knob for knob in self.knobs if knob not in task.knobs]
+        if missing:
+            raise ValueError(
+                f"controller {self.name!r} aligns {', '.join(self.knobs)}; task {task.name!r} "
+                f"has {', '.join(task.knobs)}, not {', '.join(missing)}"
+            )
+
+    def align_task(self, apparatus: Apparatus, task: Task, budget: int) -> None:
+        target = self.target_fraction * task.wobble_spec_px
+        setting = np.array([float(apparatus.read()[knob]) for knob in self.knobs])
+        wobbles: list[tuple[np.ndarray, np.ndarray]] = []
+        shift = self._wobble(apparatus, task, setting)
+        if shift is None:
+            return
+        wobbles.append((setting, shift))
+        if np.hypot(*shift) > target:
+            self._centre(apparatus, task, wobbles, target)
+        best = min(wobbles, key=lambda pair: float(np.hypot(*pair[1])))
+        self._write(apparatus, best[0])
+
+    def _centre(
+        self,
+        apparatus: Apparatus,
+        task: Task,
+        wobbles: list[tuple[np.ndarray, np.ndarray]],
+        target: float,
+    ) -> None:
+        start, shift = wobbles[0]
+        low, high = (float(bound) for bound in apparatus.knobs[self.knobs[0]])
+        step = self.step_fraction * (high - low)
+        moved = start + np.array([step if start[0] + step <= high else -step, 0.0])
+        response = self._wobble(apparatus, task, moved)
+        if response is None:
+            return
+        wobbles.append((moved, response))
+        column = (response - shift) / (moved[0] - start[0])  # d shift / d aperture_x
+        unmirrored = np.column_stack([column, [-column[1], column[0]]])
+        solved = self._solved(apparatus, unmirrored, moved, response)
+        for _ in range(1 + self.max_corrections):
+            if solved is None:
+                return
+            shift = self._wobble(apparatus, task, solved)
+            if shift is None:
+                return
+            wobbles.append((solved, shift))
+            if np.hypot(*shift) <= target:
+                return
+            fitted = _affine_wobbles(wobbles)
+            if fitted is None:
+                return
+            solved = self._solved(apparatus, fitted, solved, shift)
+
+    def _solved(
+        self, apparatus: Apparatus, response: np.ndarray, setting: np.ndarray, shift: np.ndarray
+    ) -> np.ndarray | None:
+        """Where the shift vanishes by `response` from (setting, shift), inside the
+        intervals; None where the response does not move the image."""
+        try:
+            solved = setting - np.linalg.solve(response, shift)
+        except np.linalg.LinAlgError:
+            return None
+        if not np.all(np.isfinite(solved)):
+            return None
+        pairs = zip(self.knobs, solved, strict=True)
+        return np.array([clip_to_knob(apparatus, knob, value) for knob, value in pairs])
+
+    def _wobble(self, apparatus: Apparatus, task: Task, setting: np.ndarray) -> np.ndarray | None:
+        """The wobble's shift with the aperture at `setting`; None where it failed."""
+        apparatus.write(dict(zip(self.knobs, (float(value) for value in setting), strict=True)))
+        try:
+            shift = measure_wobble(apparatus, task.wobble_amplitude_v)
+        except ApparatusError:
+            return None
+        return shift if np.all(np.isfinite(shift)) else None
+
+    def _write(self, apparatus: Apparatus, setting: np.ndarray) -> None:
+        apparatus.write(dict(zip(self.knobs, (float(value) for value in setting), strict=True)))
+
+
+def _affine_wobbles(wobbles: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray | None:
+    """The 2 x 2 response d shift / d setting of the least-squares affine fit of the
+    wobbles; None where they do not determine it."""
+    design = np.array([[*setting, 1.0] for setting, _ in wobbles])
+    values = np.array([shift for _, shift in wobbles])
+    coefficients, _, rank, _ = np.linalg.lstsq(design, values, rcond=None)
+    return coefficients[:2].T if rank == 3 else None
 
 
 def _size(reading: Reading) -> float:
