@@ -46,12 +46,21 @@ def test_it_aligns_a_column_whatever_its_stigmators_response(response) -> None:
     assert solved.median_acquisitions <= 13
 
 
-def test_it_is_a_controller_by_name_and_refuses_a_task_without_its_knobs() -> None:
-    assert isinstance(get_baseline("stigmator-solve"), StigmatorSolve)
-    with pytest.raises(ValueError, match="aligns stigmator_x, stigmator_y"):
-        StigmatorSolve().check_task(get_task("focus"))
-    with pytest.raises(ValueError, match="target_ratio must exceed 1"):
-        StigmatorSolve(target_ratio=1.0)
+@pytest.mark.parametrize(
+    ("name", "controller", "other_task", "bad"),
+    [
+        ("stigmator-solve", StigmatorSolve, "focus", {"target_ratio": 1.0}),
+        ("wobble-solve", WobbleSolve, "stigmation", {"step_fraction": 0.5}),
+    ],
+)
+def test_each_is_a_controller_by_name_and_refuses_what_it_cannot_do(
+    name, controller, other_task, bad
+) -> None:
+    assert isinstance(get_baseline(name), controller)
+    with pytest.raises(ValueError, match=f"controller {name!r} aligns"):
+        controller().check_task(get_task(other_task))
+    with pytest.raises(ValueError, match=f"{name}: {next(iter(bad))}"):
+        controller(**bad)
 
 
 def test_every_write_stays_inside_its_interval_and_the_focus_comes_back() -> None:
@@ -110,11 +119,3 @@ def test_wobble_solve_centres_the_aperture_whatever_the_image_does(response, mos
     untouched = run_session(_Untouched(), apparatus, get_task("aperture"), SCENARIOS, seed=5)
     assert solved.successes == SCENARIOS > untouched.successes + 10, (solved, untouched)
     assert solved.median_acquisitions <= most
-
-
-def test_wobble_solve_is_a_controller_by_name_and_checks_its_settings() -> None:
-    assert isinstance(get_baseline("wobble-solve"), WobbleSolve)
-    with pytest.raises(ValueError, match="aligns aperture_x, aperture_y"):
-        WobbleSolve().check_task(get_task("stigmation"))
-    with pytest.raises(ValueError, match="step_fraction must be in"):
-        WobbleSolve(step_fraction=0.5)

@@ -48,6 +48,7 @@ from alignrl.evaluation.controllers import (
     Controller,
     TaskController,
     approach_from_below,
+    check_task_knobs,
     clip_to_knob,
     measure_width,
     probe,
@@ -311,15 +312,6 @@ def _bracket(
     return start, start + 2.0 * half_width
 
 
-def _check_task_knobs(name: str, knobs: tuple[str, ...], task: Task) -> None:
-    missing = [knob for knob in knobs if knob not in task.knobs]
-    if missing:
-        raise ValueError(
-            f"controller {name!r} aligns {', '.join(knobs)}; task {task.name!r} has "
-            f"{', '.join(task.knobs)}, not {', '.join(missing)}"
-        )
-
-
 @dataclass(frozen=True)
 class StigmatorSearch:
     """The operator's stigmation: one stigmator at a time, for the sharpest mean edge width.
@@ -358,7 +350,7 @@ class StigmatorSearch:
                 raise ValueError(f"stigmator-search: {field_name} must be in (0, 1)")
 
     def check_task(self, task: Task) -> None:
-        _check_task_knobs(self.name, self.knobs, task)
+        check_task_knobs(self.name, self.knobs, task)
 
     def align_task(self, apparatus: Apparatus, task: Task, budget: int) -> None:
         refocus = self.refocus if FOCUS_KNOB in apparatus.knobs else None
@@ -420,7 +412,7 @@ class WobbleCenter:
             raise ValueError("wobble-center: max_corrections must be at least 1")
 
     def check_task(self, task: Task) -> None:
-        _check_task_knobs(self.name, self.knobs, task)
+        check_task_knobs(self.name, self.knobs, task)
 
     def align_task(self, apparatus: Apparatus, task: Task, budget: int) -> None:
         amplitude = task.wobble_amplitude_v
@@ -502,7 +494,7 @@ class ColumnSequence:
             raise ValueError("column-sequence: touch_up_fraction must be in (0, 1)")
 
     def check_task(self, task: Task) -> None:
-        _check_task_knobs(
+        check_task_knobs(
             self.name, (FOCUS_KNOB, *self.aperture.knobs, *self.stigmation.knobs), task
         )
 

@@ -217,6 +217,16 @@ class CountingApparatus:
 # --- helpers shared by controllers --------------------------------------------------------
 
 
+def check_task_knobs(name: str, knobs: tuple[str, ...], task: Task) -> None:
+    """Refuse a task controller `name` of `knobs` for a task without every one of them."""
+    missing = [knob for knob in knobs if knob not in task.knobs]
+    if missing:
+        raise ValueError(
+            f"controller {name!r} aligns {', '.join(knobs)}; task {task.name!r} has "
+            f"{', '.join(task.knobs)}, not {', '.join(missing)}"
+        )
+
+
 def clip_to_knob(apparatus: Apparatus, knob: str, value: float) -> float:
     """`value` clipped into the knob's allowed interval."""
     low, high = apparatus.knobs[knob]

@@ -38,7 +38,7 @@ import numpy as np
 from alignrl.apparatus.base import Apparatus, ApparatusError
 from alignrl.apparatus.measures import measure_directional, measure_wobble
 from alignrl.envs.task import Task
-from alignrl.evaluation.controllers import approach_from_below, clip_to_knob
+from alignrl.evaluation.controllers import approach_from_below, check_task_knobs, clip_to_knob
 
 __all__ = ["StigmatorSolve", "WobbleSolve"]
 
@@ -86,12 +86,7 @@ class StigmatorSolve:
             raise ValueError(f"{self.name}: rounds must be at least 1")
 
     def check_task(self, task: Task) -> None:
-        missing = [knob for knob in self.knobs if knob not in task.knobs]
-        if missing:
-            raise ValueError(
-                f"controller {self.name!r} aligns {', '.join(self.knobs)}; task {task.name!r} "
-                f"has {', '.join(task.knobs)}, not {', '.join(missing)}"
-            )
+        check_task_knobs(self.name, self.knobs, task)
 
     def align_task(self, apparatus: Apparatus, task: Task, budget: int) -> None:
         if FOCUS_KNOB not in apparatus.knobs:
@@ -234,12 +229,7 @@ class WobbleSolve:
             raise ValueError(f"{self.name}: max_corrections must be at least 0")
 
     def check_task(self, task: Task) -> None:
-        missing = [knob for knob in self.knobs if knob not in task.knobs]
-        if missing:
-            raise ValueError(
-                f"controller {self.name!r} aligns {', '.join(self.knobs)}; task {task.name!r} "
-                f"has {', '.join(task.knobs)}, not {', '.join(missing)}"
-            )
+        check_task_knobs(self.name, self.knobs, task)
 
     def align_task(self, apparatus: Apparatus, task: Task, budget: int) -> None:
         target = self.target_fraction * task.wobble_spec_px
