@@ -87,6 +87,18 @@ def write_league_files(
     return write_yaml(folder / file, {**write_rosters(folder, aligners, misaligners), **settings})
 
 
+# The tiny league's schedule: snapshots at 3 and 6, PBT and evaluations at 4 and 8
+TINY_SCHEDULE = {
+    "iterations": 8,
+    "matches": 8,
+    "snapshot_every": 3,
+    "pbt_every": 4,
+    "evaluate_every": 4,
+    "eval_scenarios": 4,
+    "checkpoint_every": 2,
+}
+
+
 def write_league(folder: Path, **changes: Any) -> Path:
     """The tiny league of the league tests: a SAC and a PPO member per team (the PPO aligner
     with a GRU), 8 iterations of 8 matches with snapshots, PBT, evaluations and checkpoints
@@ -95,15 +107,7 @@ def write_league(folder: Path, **changes: Any) -> Path:
     settings = {
         "name": "tiny",
         "envs": 4,
-        "schedule": {
-            "iterations": 8,
-            "matches": 8,
-            "snapshot_every": 3,
-            "pbt_every": 4,
-            "evaluate_every": 4,
-            "eval_scenarios": 4,
-            "checkpoint_every": 2,
-        },
+        "schedule": dict(TINY_SCHEDULE),
         "pbt": {"min_gap": 0.0},
         **changes,
     }

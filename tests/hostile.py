@@ -19,7 +19,14 @@ import pytest
 
 from alignrl.cli import main
 
-__all__ = ["Outcome", "assert_refused", "assert_unchanged", "run_cli", "tree_state"]
+__all__ = [
+    "Outcome",
+    "assert_refused",
+    "assert_unchanged",
+    "evaluate_on",
+    "run_cli",
+    "tree_state",
+]
 
 EXIT_INTERNAL = 70  # main's last resort (EX_SOFTWARE): a bug, never a refusal
 
@@ -33,6 +40,21 @@ class Outcome:
     @property
     def text(self) -> str:
         return self.out + self.err
+
+
+def evaluate_on(spec: str, *extra: str) -> list[str]:
+    """The argv of a short `alignrl evaluate` of the hyperbola fit on apparatus `spec`."""
+    return [
+        "evaluate",
+        "--policy",
+        "hyperbola",
+        "--apparatus",
+        spec,
+        "--scenarios",
+        "2",
+        "--quiet",
+        *extra,
+    ]
 
 
 def run_cli(argv: Sequence[str], capsys: pytest.CaptureFixture[str]) -> Outcome:

@@ -67,3 +67,11 @@ def test_every_other_task_shows_its_champion_then_its_classical_controllers(show
 def test_a_scenario_count_out_of_range_is_refused(capsys) -> None:
     assert main(["champions", "--scenarios", "0", "--quiet"]) == 2
     assert "--scenarios must be in 1-1000" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(("option", "value"), [("--seed", "-1"), ("--scenarios", "ten")])
+def test_an_option_that_is_not_a_number_of_its_kind_is_refused_by_name(option, value, capsys):
+    """The sessions' options read as every session verb reads them (alignrl/cli/common.py)."""
+    with pytest.raises(SystemExit):
+        main(["champions", option, value, "--quiet"])
+    assert f"argument {option}: " in capsys.readouterr().err

@@ -14,7 +14,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from conftest import create_league, iteration_outcomes, kill_league_after, read_csv, write_league
+from conftest import (
+    TINY_SCHEDULE,
+    create_league,
+    iteration_outcomes,
+    kill_league_after,
+    read_csv,
+    write_league,
+)
 from pettingzoo.test import api_test
 
 from alignrl.agents.agent import MemberSpec
@@ -299,15 +306,7 @@ def designer_league(folder: Path, **changes: object) -> Path:
 
 # The tiny league's schedule (8 iterations of 8 matches; snapshots at 3 and 6, PBT and
 # evaluations at 4 and 8) with a checkpoint at every iteration, for a kill to land between two.
-DESIGN_SCHEDULE = {
-    "iterations": 8,
-    "matches": 8,
-    "snapshot_every": 3,
-    "pbt_every": 4,
-    "evaluate_every": 4,
-    "eval_scenarios": 4,
-    "checkpoint_every": 1,
-}
+DESIGN_SCHEDULE = {**TINY_SCHEDULE, "checkpoint_every": 1}
 
 
 @pytest.fixture(scope="module")

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 import yaml
-from hostile import assert_refused, assert_unchanged, run_cli, tree_state
+from hostile import assert_refused, assert_unchanged, evaluate_on, run_cli, tree_state
 
 from alignrl.apparatus.scenarios import MAX_TEXT_BYTES
 
@@ -87,20 +87,6 @@ def _league_run(path: Path, tmp_path: Path) -> list[str]:
     return ["league", "run", path, "--runs-dir", tmp_path / "runs", "--quiet"]
 
 
-def _evaluate_on(spec: str, *extra: str) -> list[str]:
-    return [
-        "evaluate",
-        "--policy",
-        "hyperbola",
-        "--apparatus",
-        spec,
-        "--scenarios",
-        "2",
-        "--quiet",
-        *extra,
-    ]
-
-
 # --- 1. YAML: alias bombs and duplicate keys ----------------------------------------------
 
 ROSTER = (ROOT / "populations" / "aligners.yaml").read_text()
@@ -126,7 +112,7 @@ def _bomb_roster(tmp_path: Path) -> tuple[list[str], Path]:
 
 def _bomb_preset(tmp_path: Path) -> tuple[list[str], Path]:
     path = _preset(tmp_path, _billion_laughs("laughs"))
-    return _evaluate_on(f"sem:{path}"), path
+    return evaluate_on(f"sem:{path}"), path
 
 
 def _recursive_alias(tmp_path: Path) -> tuple[list[str], Path]:
@@ -179,7 +165,7 @@ def test_duplicate_keys_are_refused_naming_the_key_and_line(
         "train": _train(path, tmp_path),
         "league": _league_run(path, tmp_path),
         "roster": _league_run(path, tmp_path),
-        "preset": _evaluate_on(f"sem:{path}"),
+        "preset": evaluate_on(f"sem:{path}"),
     }[verb]
     named = tmp_path / "aligners.yaml" if verb == "roster" else path
     outcome = run_cli(argv, capsys)
@@ -209,7 +195,7 @@ def test_empty_files_are_refused(
         league = _league(tmp_path, {"aligners": str(path)})
         argv = _league_run(league, tmp_path)
     elif verb == "preset":
-        argv = _evaluate_on(f"sem:{path}")
+        argv = evaluate_on(f"sem:{path}")
     else:
         argv = (_train if verb == "train" else _league_run)(path, tmp_path)
     outcome = run_cli(argv, capsys)
@@ -264,8 +250,8 @@ def test_bad_pbt_factors_are_refused(
 RECORD = ["record", "--apparatus", "synthetic", "--scenarios", "1", "--out", "OUT"]
 ADAPT = ["adapt", "--from", "x", "--apparatus", "synthetic", "--steps", "10"]
 BAD_OPTIONS = [
-    (_evaluate_on("csv:default", "--seed", str(2**63)), "--seed"),
-    (_evaluate_on("csv:default", "--seed", "-1"), "--seed"),
+    (evaluate_on("csv:default", "--seed", str(2**63)), "--seed"),
+    (evaluate_on("csv:default", "--seed", "-1"), "--seed"),
     (["baselines", "--apparatus", "csv:default", "--seed", "1e3"], "--seed"),
     (["align", "--policy", "x", "--apparatus", "synthetic", "--seed", "-5"], "--seed"),
     ([*RECORD, "--workers", "0"], "--workers"),
@@ -273,8 +259,8 @@ BAD_OPTIONS = [
     ([*RECORD, "--seed", str(2**64)], "--seed"),
     ([*ADAPT, "--updates-per-step", "0"], "--updates-per-step"),
     ([*ADAPT, "--updates-per-step", "nan"], "--updates-per-step"),
-    (_evaluate_on("csv:default", "--apparatus-args", "[" * 100_000), "--apparatus-args"),
-    (_evaluate_on("csv:default", "--apparatus-args", "1" * 5000), "--apparatus-args"),
+    (evaluate_on("csv:default", "--apparatus-args", "[" * 100_000), "--apparatus-args"),
+    (evaluate_on("csv:default", "--apparatus-args", "1" * 5000), "--apparatus-args"),
 ]
 
 
@@ -395,7 +381,7 @@ def test_bad_scenario_rows_name_file_row_and_column(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], bad_row: str, named: str, verb: str
 ) -> None:
     path = _csv(tmp_path, bad_row)
-    argv = ["scenarios", "validate", path] if verb == "validate" else _evaluate_on(f"csv:{path}")
+    argv = ["scenarios", "validate", path] if verb == "validate" else evaluate_on(f"csv:{path}")
     outcome = run_cli(argv, capsys)
     assert_refused(outcome, 2, str(path), "row 3", named)
 
@@ -428,5 +414,5 @@ def test_bad_simulator_arguments_name_the_recording(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], arguments: str, named: str
 ) -> None:
     path = _csv(tmp_path, _row())
-    outcome = run_cli(_evaluate_on(f"csv:{path}", "--apparatus-args", arguments), capsys)
+    outcome = run_cli(evaluate_on(f"csv:{path}", "--apparatus-args", arguments), capsys)
     assert_refused(outcome, 2, str(path), named)

@@ -23,7 +23,7 @@ from pathlib import Path
 import pytest
 import yaml
 from conftest import SMALL_SAC, write_experiment
-from hostile import assert_refused, run_cli
+from hostile import assert_refused, evaluate_on, run_cli
 
 from alignrl.apparatus.family_box import FAMILY_DIR
 from alignrl.apparatus.instruments import HELD_OUT_SET, INSTRUMENT_DIR, held_out_reason
@@ -60,20 +60,6 @@ def _league(tmp_path: Path, aligners: Path | None = None) -> Path:
     return path
 
 
-def _evaluate_on(spec: str, *extra: str) -> list[str]:
-    return [
-        "evaluate",
-        "--policy",
-        "hyperbola",
-        "--apparatus",
-        spec,
-        "--scenarios",
-        "2",
-        "--quiet",
-        *extra,
-    ]
-
-
 def _with_nul(source: Path, target: Path, line: int) -> Path:
     """`source` copied to `target` with a NUL byte after the second character of `line`."""
     lines = source.read_text().splitlines(keepends=True)
@@ -102,7 +88,7 @@ def _nul_roster(tmp_path: Path) -> tuple[list[str], Path]:
 
 def _nul_family(tmp_path: Path) -> tuple[list[str], Path]:
     path = _with_nul(FAMILY_DIR / "focus.yaml", tmp_path / "box.yaml", 5)
-    return _evaluate_on(f"family:{path}"), path
+    return evaluate_on(f"family:{path}"), path
 
 
 @pytest.mark.parametrize(
@@ -241,7 +227,7 @@ def test_family_parameters_beyond_their_physical_range_are_refused(
     value: str,
     shown_range: str,
 ) -> None:
-    outcome = run_cli(_evaluate_on(spec, "--apparatus-args", arguments), capsys)
+    outcome = run_cli(evaluate_on(spec, "--apparatus-args", arguments), capsys)
     file = "focus.yaml" if spec.startswith("family") else "val-mid.yaml"
     assert_refused(
         outcome,
@@ -260,12 +246,12 @@ def test_a_family_file_beyond_the_physical_range_is_refused_naming_it(
     box = yaml.safe_load((FAMILY_DIR / "focus.yaml").read_text())
     path = tmp_path / "box.yaml"
     path.write_text(yaml.safe_dump({**box, "interval_width": [40.0, 1e300], "unit": "mA"}))
-    outcome = run_cli(_evaluate_on(f"family:{path}"), capsys)
+    outcome = run_cli(evaluate_on(f"family:{path}"), capsys)
     assert_refused(outcome, 2, f"{path}: interval_width [40, 1e+300]", "[1e-06, 1e+06] mA")
     assert "apparatus arguments" not in outcome.err
     # An integer of 400 digits is no float: refused as well, not an OverflowError.
     path.write_text(yaml.safe_dump({**box, "flat_fraction": "HUGE"}).replace("HUGE", "1" * 400))
-    outcome = run_cli(_evaluate_on(f"family:{path}"), capsys)
+    outcome = run_cli(evaluate_on(f"family:{path}"), capsys)
     assert_refused(outcome, 2, str(path), "flat_fraction", "400 digits")
 
 

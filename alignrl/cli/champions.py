@@ -22,7 +22,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from alignrl.cli.common import _emit
+from alignrl.cli.common import _emit, _scenarios, _seed
 from alignrl.cli.sessions import _progress, _trained_controller
 
 # Where a champion of each task is shown beside the classical controllers
@@ -188,11 +188,11 @@ def add_champions_parser(verbs: argparse._SubParsersAction[argparse.ArgumentPars
     )
     parser.add_argument(
         "--scenarios",
-        type=int,
+        type=_scenarios,
         default=10,
         help="alignments per held-out instrument and per session on the second preset (default 10)",
     )
-    parser.add_argument("--seed", type=int, default=0, help="the sessions' seed (default 0)")
+    parser.add_argument("--seed", type=_seed, default=0, help="the sessions' seed (default 0)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.add_argument("--json", action="store_true", help="machine-readable summary")
     parser.set_defaults(handler=cmd_champions)

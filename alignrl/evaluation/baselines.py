@@ -50,10 +50,17 @@ from alignrl.evaluation.controllers import (
     approach_from_below,
     check_task_knobs,
     clip_to_knob,
+    knob_interval,
     measure_width,
     probe,
 )
-from alignrl.evaluation.model_based import StigmatorSolve, WobbleSolve
+from alignrl.evaluation.model_based import (
+    APERTURE,
+    FOCUS_KNOB,
+    STIGMATORS,
+    StigmatorSolve,
+    WobbleSolve,
+)
 
 __all__ = [
     "BASELINES",
@@ -72,14 +79,6 @@ __all__ = [
 ]
 
 GOLDEN_RATIO_CONJUGATE = (math.sqrt(5.0) - 1.0) / 2.0  # 0.618: bracket shrink per acquisition
-FOCUS_KNOB = "defocus"
-STIGMATORS = ("stigmator_x", "stigmator_y")
-APERTURE = ("aperture_x", "aperture_y")
-
-
-def _interval(apparatus: Apparatus, knob: str) -> tuple[float, float, float]:
-    low, high = (float(value) for value in apparatus.knobs[knob])
-    return low, high, high - low
 
 
 # --- golden-section search -----------------------------------------------------------------
@@ -108,7 +107,7 @@ class GoldenSection:
             )
 
     def align(self, apparatus: Apparatus, knob: str, budget: int) -> None:
-        low, high, _ = _interval(apparatus, knob)
+        low, high, _ = knob_interval(apparatus, knob)
         self.search(apparatus, knob, low, high)
 
     def search(self, apparatus: Apparatus, knob: str, low: float, high: float) -> None:
@@ -178,7 +177,7 @@ class HyperbolaFit:
                 raise ValueError(f"hyperbola: {field_name} must be in (0, 1)")
 
     def align(self, apparatus: Apparatus, knob: str, budget: int) -> None:
-        low, high, _ = _interval(apparatus, knob)
+        low, high, _ = knob_interval(apparatus, knob)
         self.search(apparatus, knob, low, high)
 
     def search(self, apparatus: Apparatus, knob: str, low: float, high: float) -> None:
@@ -187,7 +186,7 @@ class HyperbolaFit:
         interval (hysteresis is the lens's, whatever the bracket). The knob is left at the
         vertex."""
         span = high - low
-        margin = self.approach_fraction * _interval(apparatus, knob)[2]
+        margin = self.approach_fraction * knob_interval(apparatus, knob)[2]
         settings: list[float] = []
         widths: list[float] = []
 
@@ -265,7 +264,7 @@ class HillClimb:
             )
 
     def align(self, apparatus: Apparatus, knob: str, budget: int) -> None:
-        step = self.step_fraction * _interval(apparatus, knob)[2]
+        step = self.step_fraction * knob_interval(apparatus, knob)[2]
         best = clip_to_knob(apparatus, knob, float(apparatus.read()[knob]))
         apparatus.write({knob: best})
         best_width = measure_width(apparatus)
@@ -305,7 +304,7 @@ def _bracket(
     """[centre - half_width, centre + half_width], shifted (not cut) to lie inside the knob's
     interval, so that a search near a bound keeps its full bracket; the whole interval
     where it is narrower than the bracket."""
-    low, high, span = _interval(apparatus, knob)
+    low, high, span = knob_interval(apparatus, knob)
     if 2.0 * half_width >= span:
         return low, high
     start = min(max(centre - half_width, low), high - 2.0 * half_width)
@@ -355,12 +354,12 @@ class StigmatorSearch:
     def align_task(self, apparatus: Apparatus, task: Task, budget: int) -> None:
         refocus = self.refocus if FOCUS_KNOB in apparatus.knobs else None
         moved = (*self.knobs, FOCUS_KNOB) if refocus is not None else self.knobs
-        half_width = {knob: _interval(apparatus, knob)[2] for knob in self.knobs}
+        half_width = {knob: knob_interval(apparatus, knob)[2] for knob in self.knobs}
         best_width, best_settings = math.inf, None
         for number in range(self.rounds):
             if number and refocus is not None:
                 centre = float(apparatus.read()[FOCUS_KNOB])
-                reach = self.refocus_fraction * _interval(apparatus, FOCUS_KNOB)[2]
+                reach = self.refocus_fraction * knob_interval(apparatus, FOCUS_KNOB)[2]
                 refocus.search(
                     apparatus, FOCUS_KNOB, *_bracket(apparatus, FOCUS_KNOB, centre, reach)
                 )
@@ -422,7 +421,7 @@ class WobbleCenter:
             return
         gain = np.empty((2, 2))
         for column, knob in enumerate(self.knobs):
-            _, high, span = _interval(apparatus, knob)
+            _, high, span = knob_interval(apparatus, knob)
             step = self.calibration_fraction * span
             moved = setting.copy()
             moved[column] += step if setting[column] + step <= high else -step
@@ -499,7 +498,7 @@ class ColumnSequence:
         )
 
     def align_task(self, apparatus: Apparatus, task: Task, budget: int) -> None:
-        low, high, span = _interval(apparatus, FOCUS_KNOB)
+        low, high, span = knob_interval(apparatus, FOCUS_KNOB)
         self.focus.search(apparatus, FOCUS_KNOB, low, high)
         self.aperture.align_task(apparatus, task, budget)
         self.stigmation.align_task(apparatus, task, budget)

@@ -217,6 +217,12 @@ class CountingApparatus:
 # --- helpers shared by controllers --------------------------------------------------------
 
 
+def knob_interval(apparatus: Apparatus, knob: str) -> tuple[float, float, float]:
+    """`knob`'s interval on `apparatus`: (low, high, its width)."""
+    low, high = (float(value) for value in apparatus.knobs[knob])
+    return low, high, high - low
+
+
 def check_task_knobs(name: str, knobs: tuple[str, ...], task: Task) -> None:
     """Refuse a task controller `name` of `knobs` for a task without every one of them."""
     missing = [knob for knob in knobs if knob not in task.knobs]

@@ -38,11 +38,16 @@ import numpy as np
 from alignrl.apparatus.base import Apparatus, ApparatusError
 from alignrl.apparatus.measures import measure_directional, measure_wobble
 from alignrl.envs.task import Task
-from alignrl.evaluation.controllers import approach_from_below, check_task_knobs, clip_to_knob
+from alignrl.evaluation.controllers import (
+    approach_from_below,
+    check_task_knobs,
+    clip_to_knob,
+    knob_interval,
+)
 
-__all__ = ["StigmatorSolve", "WobbleSolve"]
+__all__ = ["APERTURE", "FOCUS_KNOB", "STIGMATORS", "StigmatorSolve", "WobbleSolve"]
 
-FOCUS_KNOB = "defocus"
+FOCUS_KNOB = "defocus"  # the knobs the task controllers align (baselines.py's too)
 STIGMATORS = ("stigmator_x", "stigmator_y")
 APERTURE = ("aperture_x", "aperture_y")
 GROWTH = 2.0  # the defocus offset grows this much a try
@@ -66,13 +71,13 @@ class StigmatorSolve:
     the astigmatism vanishes (module docstring)."""
 
     probe_fraction: float = 0.02  # the first defocus offset, share of the defocus interval
-    # the offset that widens the focused frame this much (1.1 to 1.5 tried on synthetic and
-    # synthetic-b, seed 5: wider frames read v with more scatter and more levelled off)
+    # the offset that widens the focused frame this much (1.1 to 1.3 tried on synthetic and
+    # synthetic-b, seeds 1 and 2: wider frames read v with more scatter and more levelled off)
     target_ratio: float = 1.2
     # each identifying stigmator move, share of its interval (0.15 to 0.4 tried on synthetic
     # and synthetic-b, seeds 1 and 2: larger steps read J above the bins' scatter)
     step_fraction: float = 0.3
-    rounds: int = 5  # readings at the fitted zero, each refitting with every reading (3-5)
+    rounds: int = 5  # readings at the fitted zero, each refitting with every reading (3 tried)
     knobs: tuple[str, ...] = STIGMATORS
     name: str = "stigmator-solve"
 
@@ -99,7 +104,7 @@ class StigmatorSolve:
             low, high = apparatus.knobs[FOCUS_KNOB]
             margin = self.probe_fraction * (float(high) - float(low))
             approach_from_below(apparatus, FOCUS_KNOB, focus, margin)
-        self._write(apparatus, best)
+        _write(apparatus, self.knobs, best)
 
     # --- the identification and the solve --------------------------------------------------
 
@@ -112,7 +117,8 @@ class StigmatorSolve:
         if first is None:
             return start
         readings = [first]
-        steps = np.array([self.step_fraction * _span(apparatus, knob) for knob in self.knobs])
+        spans = [knob_interval(apparatus, knob)[2] for knob in self.knobs]
+        steps = self.step_fraction * np.array(spans)
         for axis, knob in enumerate(self.knobs):
             high, step = float(apparatus.knobs[knob][1]), steps[axis]
             moved = start.copy()
@@ -153,7 +159,7 @@ class StigmatorSolve:
         """Move the defocus to the offset the readings are taken at (below the focus where
         the interval allows, else above) and read there; None where no offset gives a
         reading."""
-        low, high = (float(bound) for bound in apparatus.knobs[FOCUS_KNOB])
+        low, high, _ = knob_interval(apparatus, FOCUS_KNOB)
         offset, reading = self.probe_fraction * (high - low), None
         for attempt in range(OFFSET_TRIES):
             target = focus - offset if focus - offset >= low else min(focus + offset, high)
@@ -173,7 +179,7 @@ class StigmatorSolve:
 
     def _read(self, apparatus: Apparatus, setting: np.ndarray) -> Reading | None:
         """The directional reading at stigmator `setting`; None where the frame failed."""
-        self._write(apparatus, setting)
+        _write(apparatus, self.knobs, setting)
         try:
             width, bins = measure_directional(apparatus)
         except ApparatusError:
@@ -192,9 +198,6 @@ class StigmatorSolve:
     def _setting(self, apparatus: Apparatus) -> np.ndarray:
         values = apparatus.read()
         return np.array([float(values[knob]) for knob in self.knobs])
-
-    def _write(self, apparatus: Apparatus, setting: np.ndarray) -> None:
-        apparatus.write(dict(zip(self.knobs, (float(value) for value in setting), strict=True)))
 
 
 @dataclass(frozen=True)
@@ -242,7 +245,7 @@ class WobbleSolve:
         if np.hypot(*shift) > target:
             self._centre(apparatus, task, wobbles, target)
         best = min(wobbles, key=lambda pair: float(np.hypot(*pair[1])))
-        self._write(apparatus, best[0])
+        _write(apparatus, self.knobs, best[0])
 
     def _centre(
         self,
@@ -252,7 +255,7 @@ class WobbleSolve:
         target: float,
     ) -> None:
         start, shift = wobbles[0]
-        low, high = (float(bound) for bound in apparatus.knobs[self.knobs[0]])
+        low, high, _ = knob_interval(apparatus, self.knobs[0])
         step = self.step_fraction * (high - low)
         moved = start + np.array([step if start[0] + step <= high else -step, 0.0])
         response = self._wobble(apparatus, task, moved)
@@ -292,15 +295,12 @@ class WobbleSolve:
 
     def _wobble(self, apparatus: Apparatus, task: Task, setting: np.ndarray) -> np.ndarray | None:
         """The wobble's shift with the aperture at `setting`; None where it failed."""
-        apparatus.write(dict(zip(self.knobs, (float(value) for value in setting), strict=True)))
+        _write(apparatus, self.knobs, setting)
         try:
             shift = measure_wobble(apparatus, task.wobble_amplitude_v)
         except ApparatusError:
             return None
         return shift if np.all(np.isfinite(shift)) else None
-
-    def _write(self, apparatus: Apparatus, setting: np.ndarray) -> None:
-        apparatus.write(dict(zip(self.knobs, (float(value) for value in setting), strict=True)))
 
 
 def _affine_wobbles(wobbles: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray | None:
@@ -312,13 +312,12 @@ def _affine_wobbles(wobbles: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray 
     return coefficients[:2].T if rank == 3 else None
 
 
+def _write(apparatus: Apparatus, knobs: tuple[str, ...], setting: np.ndarray) -> None:
+    apparatus.write(dict(zip(knobs, (float(value) for value in setting), strict=True)))
+
+
 def _size(reading: Reading) -> float:
     return float(np.hypot(*reading.anisotropy))
-
-
-def _span(apparatus: Apparatus, knob: str) -> float:
-    low, high = apparatus.knobs[knob]
-    return float(high) - float(low)
 
 
 def _affine(readings: list[Reading]) -> tuple[np.ndarray, np.ndarray] | None:
