@@ -55,12 +55,19 @@ def test_every_other_task_shows_its_champion_then_its_classical_controllers(show
         ("aperture", "aperture-v1"),
         ("column", COLUMN_NAME),
     ):
-        sessions = payload[task]
-        assert sorted(sessions) == sorted([champion, *task_baselines(task)])
-        assert all(session["apparatus"] == "synthetic-b" for session in sessions.values())
-        assert f"{task} on synthetic-b, the second preset" in text
+        results = payload[task]
+        assert sorted(results) == sorted([champion, *task_baselines(task)])
+        held_out = f"heldout-{task}"  # columns the champion never trained on
+        instruments = list(instrument_names(held_out))
+        for result in results.values():
+            assert result["set"] == held_out and result["seed"] == 4
+            assert [row["instrument"] for row in result["instruments"]] == instruments
+        assert f"{task} on set:{held_out}" in text
     focus = len(instrument_names(HELD_OUT_SET)) * (1 + len(FOCUS_CLASSICAL))
-    others = sum(1 + len(task_baselines(task)) for task in ("stigmation", "aperture", "column"))
+    others = sum(
+        len(instrument_names(f"heldout-{task}")) * (1 + len(task_baselines(task)))
+        for task in ("stigmation", "aperture", "column")
+    )
     assert alignments(1) == focus + others  # what the progress bar counts
 
 

@@ -134,7 +134,7 @@ class Wobbler:
 
     def align_task(self, apparatus: Apparatus, task: Task, budget: int) -> None:
         while True:
-            measure_wobble(apparatus, task.wobble_amplitude_v)
+            measure_wobble(apparatus, task.wobble_amplitude(apparatus.knobs))
 
 
 # --- sessions of several knobs ----------------------------------------------------------------
@@ -348,14 +348,13 @@ def test_the_baselines_align_the_analytic_synthetic_sem(task: str, name: str) ->
 def test_the_registry_names_each_task_s_baselines() -> None:
     assert list(task_baselines("focus")) == ["golden-section", "hyperbola", "hill-climb"]
     assert {task: list(names) for task, names in TASK_BASELINES.items() if task != "focus"} == {
-        "stigmation": ["stigmator-search"],
-        "aperture": ["wobble-center"],
-        "column": ["column-sequence"],
+        "stigmation": ["stigmator-search", "stigmator-solve"],
+        "aperture": ["wobble-center", "wobble-solve"],
+        "column": ["column-sequence", "column-solve"],
     }
     baselines = {name for names in TASK_BASELINES.values() for name in names}
-    # the model-based ones run by name only
+    # the focus posteriors run by name only (seconds of computing an alignment)
     model_based = {"posterior", "posterior-scale-free", "posterior-robust"}
-    model_based |= {"stigmator-solve", "wobble-solve"}
     assert set(CLASSICAL) == baselines | model_based
     with pytest.raises(ValueError, match="no classical controllers for task 'astigmatism'"):
         task_baselines("astigmatism")
@@ -392,7 +391,7 @@ def test_baselines_of_the_aperture_task_as_json(capsys: pytest.CaptureFixture[st
     assert main([*argv, "--json", "--quiet"]) == 0
     report = json.loads(capsys.readouterr().out)
     assert report["task"] == "aperture" and report["scenarios"] == 6
-    assert list(report["controllers"]) == ["wobble-center"]
+    assert list(report["controllers"]) == ["wobble-center", "wobble-solve"]
     session = report["controllers"]["wobble-center"]
     assert session["successes"] == 6 and session["budget"] == 50
     assert session["task"] == "aperture" and session["knobs"] == ["aperture_x", "aperture_y"]

@@ -33,6 +33,7 @@ from alignrl.apparatus.instruments import (
     held_out_reason,
     instrument_names,
     load_set,
+    set_names,
 )
 from alignrl.apparatus.registry import make_apparatus
 from alignrl.config.experiment import load_experiment
@@ -68,11 +69,11 @@ def test_the_box_is_sampled_inside_itself_and_seeded() -> None:
 
 
 def test_every_shipped_family_and_instrument_loads_and_differs() -> None:
-    assert family_names() == ["focus"]
+    assert family_names() == ["aperture", "column", "focus", "stigmation"]
     held_out, validation = load_set(HELD_OUT_SET), load_set(VALIDATION_SET)
     assert len(held_out) >= 6 and len(validation) >= 3
-    names = [name for name, _ in held_out + validation]
-    assert len(set(names)) == len(names) == len(instrument_names())
+    every = [name for set_name in set_names() for name, _ in load_set(set_name)]
+    assert len(set(every)) == len(every) == len(instrument_names())  # names are unique
     for name, instrument in held_out + validation:
         assert instrument.name == name  # the file's stem is its name
         column = FamilyColumn(instrument, seed=1, analytic=True)
@@ -88,7 +89,7 @@ def test_every_shipped_family_and_instrument_loads_and_differs() -> None:
         ({"optimum_fraction": [0.5, 1.5]}, "optimum_fraction"),
         ({"floor_sigma_px": 0.0}, "floor_sigma_px"),
         ({"specimens": ["cats"]}, "specimens"),
-        ({"kind": "aperture"}, "kind"),
+        ({"kind": "telescope"}, "kind"),
     ],
 )
 def test_a_bad_family_file_is_refused_naming_file_and_key(
@@ -261,6 +262,13 @@ def _training(tmp_path: Path, **changes) -> Path:
 def test_a_family_and_the_validation_set_may_be_trained_and_chosen_on(tmp_path: Path) -> None:
     config = load_experiment(_training(tmp_path))
     assert config.apparatus == "family:focus" and config.eval_apparatus == "set:validation"
+    stigmation = _training(
+        tmp_path,
+        task="stigmation",
+        apparatus="family:stigmation",
+        eval_apparatus="set:validation-stigmation",
+    )
+    assert load_experiment(stigmation).eval_apparatus == "set:validation-stigmation"
 
 
 @pytest.mark.parametrize(
@@ -269,6 +277,9 @@ def test_a_family_and_the_validation_set_may_be_trained_and_chosen_on(tmp_path: 
         {"eval_apparatus": "set:heldout"},
         {"apparatus": "instrument:strong-hysteresis"},
         {"eval_apparatus": "instrument:near-bound", "eval_apparatus_args": {"analytic": True}},
+        {"eval_apparatus": "set:heldout-stigmation"},  # the other knobs' held-out sets too
+        {"apparatus": "instrument:col-near-bounds"},
+        {"apparatus": "instrument:ap-weak-wobble", "apparatus_args": {"analytic": True}},
     ],
 )
 def test_the_held_out_set_is_never_reachable_from_a_training_config(
@@ -337,7 +348,8 @@ def _number(text: str) -> float:
 def test_docs_physics_shows_the_box_and_every_instrument_as_they_are() -> None:
     page = (Path(__file__).parents[1] / "docs" / "physics.md").read_text()
     rows = {}
-    for line in page.splitlines():
+    focus_section = page.partition("## The instrument family")[2].partition("\n## ")[0]
+    for line in focus_section.splitlines():
         cells = [cell.strip() for cell in line.strip().strip("|").split("|")]
         if len(cells) == 5 and cells[0].startswith("`") and " – " in cells[1]:
             rows[cells[0].strip("`")] = cells

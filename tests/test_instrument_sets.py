@@ -229,7 +229,7 @@ def test_a_trained_policy_over_a_set(capsys: pytest.CaptureFixture[str]) -> None
 @pytest.mark.parametrize(
     ("argv", "message"),
     [
-        (["--set", "nope"], "no instrument set 'nope'; the sets are: heldout, validation"),
+        (["--set", "nope"], "no instrument set 'nope'; the sets are: heldout, heldout-aperture"),
         (["--set", SET, "--apparatus", "synthetic"], "--set and --apparatus are exclusive"),
         ([], "give --apparatus SPEC, or --set NAME"),
         (["--apparatus", "synthetic", "--analytic"], "--analytic applies to --set"),

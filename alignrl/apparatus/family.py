@@ -58,6 +58,7 @@ __all__ = [
     "SAMPLINGS",
     "ColumnDraw",
     "FamilyColumn",
+    "checked_design",
     "column_at",
     "design_names",
     "draw_column",
@@ -177,6 +178,19 @@ def design_names(family: FocusFamily, analytic: bool) -> tuple[str, ...]:
     return tuple(names)
 
 
+def checked_design(family: str, names: tuple[str, ...], fractions: np.ndarray) -> np.ndarray:
+    """A designer's fractions, one per designed parameter of `names`, clipped to [0, 1];
+    ValueError naming the family and the parameters where there are not as many, or one is
+    not finite."""
+    fractions = np.asarray(fractions, float).reshape(-1)
+    if fractions.size != len(names) or not np.all(np.isfinite(fractions)):
+        raise ValueError(
+            f"a design of {family} takes {len(names)} finite fractions "
+            f"({', '.join(names)}), got {fractions.tolist()}"
+        )
+    return np.clip(fractions, 0.0, 1.0)
+
+
 class FamilyColumn:
     """A focus column drawn from `family` at every reset (module docstring). `analytic`:
     readings from the probe (fast, no images); otherwise rendered frames measured by
@@ -252,15 +266,10 @@ class FamilyColumn:
         where the box draws log-uniformly) and the others as drawn; the episode begins again
         on it, with its seed's noise (nothing read before is kept)."""
         names = self.design_names()
-        fractions = np.asarray(fractions, float).reshape(-1)
-        if fractions.size != len(names) or not np.all(np.isfinite(fractions)):
-            raise ValueError(
-                f"a design of {self.family.name} takes {len(names)} finite fractions "
-                f"({', '.join(names)}), got {fractions.tolist()}"
-            )
         chosen = dict(self._fractions)
         specimen = self._specimen_index
-        for name, fraction in zip(names, np.clip(fractions, 0.0, 1.0), strict=True):
+        checked = checked_design(self.family.name, names, fractions)
+        for name, fraction in zip(names, checked, strict=True):
             if name == "specimen":
                 specimen = min(
                     int(fraction * len(self.family.specimens)), len(self.family.specimens) - 1

@@ -20,6 +20,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from alignrl.apparatus.column_box import ColumnBox, product_data
 from alignrl.yaml_io import read_yaml_file
 
 __all__ = [
@@ -29,6 +30,7 @@ __all__ = [
     "LOG_SCALE",
     "PAIR_FIELDS",
     "PHYSICAL",
+    "AnyFamily",
     "FocusFamily",
     "family_digest",
     "family_names",
@@ -201,7 +203,15 @@ class FocusFamily(BaseModel):
         return self
 
 
-FAMILY_KINDS: dict[str, type[FocusFamily]] = {"focus": FocusFamily}
+# A family's `kind` -> its box: the focus column's own model, or whole synthetic SEMs for the
+# stigmators, the aperture and the column (alignrl/apparatus/column_box.py).
+FAMILY_KINDS: dict[str, type[FocusFamily] | type[ColumnBox]] = {
+    "focus": FocusFamily,
+    "stigmation": ColumnBox,
+    "aperture": ColumnBox,
+    "column": ColumnBox,
+}
+AnyFamily = FocusFamily | ColumnBox
 
 
 def family_names() -> list[str]:
@@ -222,7 +232,7 @@ def family_path(target: str) -> Path:
     return FAMILY_DIR / f"{target}.yaml"
 
 
-def load_family(path: str | Path, **overrides: Any) -> FocusFamily:
+def load_family(path: str | Path, **overrides: Any) -> AnyFamily:
     """Read a family or instrument YAML file strictly, with `overrides` (the apparatus
     arguments) laid over its keys: an unknown key, a bad range, a parameter beyond its
     physical range (PHYSICAL) is a ValueError naming the file, the arguments it came from,
@@ -240,6 +250,8 @@ def load_family(path: str | Path, **overrides: Any) -> FocusFamily:
     if model is None:
         raise ValueError(f"{path}: kind {kind!r} is not a family kind ({', '.join(FAMILY_KINDS)})")
     try:
+        if model is ColumnBox:  # a column may be the product of a stigmation and an aperture box
+            data = product_data(data, _factor, path)
         return model.model_validate(data)  # a key that is no name is refused too
     except ValidationError as error:
         problems = []
@@ -257,7 +269,20 @@ def load_family(path: str | Path, **overrides: Any) -> FocusFamily:
         raise ValueError(f"{where}: {text}") from None
 
 
-def family_digest(family: FocusFamily) -> str:
+def _factor(name: str) -> AnyFamily:
+    """A factor of a column's product: a stigmation or an aperture family (never a column,
+    which could name itself)."""
+    path = family_path(name)
+    data = read_yaml_file(path)
+    kind = data.get("kind") if isinstance(data, dict) else None
+    if kind not in ("stigmation", "aperture"):
+        raise ValueError(
+            f"{path}: a column's factor must be a stigmation or aperture family, not {kind!r}"
+        )
+    return load_family(path)
+
+
+def family_digest(family: AnyFamily) -> str:
     """A fingerprint of what a family simulates (its name and words left out): two files
     that describe the same columns have the same digest, however they are named."""
     data = family.model_dump(exclude={"name", "description"})

@@ -3,7 +3,9 @@
 * a preset name: `synthetic`, `synthetic-b` (every YAML file in alignrl/apparatus/presets/),
 * `sem:PATH.yaml`: a synthetic SEM with the instrument parameters of a YAML file,
 * `family:NAME` or `family:PATH.yaml`: a column drawn anew every episode from an instrument
-  family's box (alignrl/apparatus/families/NAME.yaml; alignrl/apparatus/family.py),
+  family's box (alignrl/apparatus/families/NAME.yaml): a focus column (`focus`,
+  alignrl/apparatus/family.py) or a whole synthetic SEM (`stigmation`, `aperture`, `column`,
+  alignrl/apparatus/column_family.py),
 * `instrument:NAME`: one instrument of alignrl/apparatus/instruments/<set>/NAME.yaml, and
   `set:NAME` a whole set of them, the next instrument at every reset
   (alignrl/apparatus/instruments.py),
@@ -40,7 +42,8 @@ from pathlib import Path
 from typing import Any
 
 from alignrl.apparatus.base import APPARATUS_METHODS, Apparatus
-from alignrl.apparatus.family import SAMPLINGS, FamilyColumn
+from alignrl.apparatus.column_family import open_family
+from alignrl.apparatus.family import SAMPLINGS
 from alignrl.apparatus.family_box import family_path, load_family
 from alignrl.apparatus.guard import (
     DEFAULT_CALL_TIMEOUT_S,
@@ -200,9 +203,9 @@ def build_apparatus(
                     f"got {sampling!r}"
                 )
             family = load_family(family_path(target), **args)
-            return FamilyColumn(family, seed, analytic, sampling)
+            return open_family(family, seed, analytic, sampling)
         if form == "instrument":
-            return FamilyColumn(load_family(find_instrument(target), **args), seed, analytic)
+            return open_family(load_family(find_instrument(target), **args), seed, analytic)
         path = Path(target) if form == "sem" else PRESET_DIR / f"{spec}.yaml"
         return SyntheticSEM(load_sem_config(path, **args), seed=seed, analytic=analytic)
     return _import_driver(spec, args, call_timeout_s)

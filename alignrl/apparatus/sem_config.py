@@ -207,6 +207,11 @@ class SEMConfig(BaseModel):
         description="a scenario's astigmatism, the defocus volts between its two line foci, is "
         "uniform in [0, this]; its axis is uniform in [0, 180) degrees",
     )
+    astigmatism_min_v: NonNegativeFloat = Field(
+        0.0,
+        description="the least astigmatism of a scenario, V: its line-focus separation is "
+        "uniform in [this, astigmatism_max_v] (a column whose stigmators must sit near a bound)",
+    )
     stigmator_v_per_pct: PositiveFloat = Field(
         0.2, description="line-focus separation one percent of stigmator excitation cancels, V"
     )
@@ -233,6 +238,11 @@ class SEMConfig(BaseModel):
         0.0,
         description="a scenario's aperture sits off the optical axis by a distance uniform in "
         "[0, this] in a uniform direction, um",
+    )
+    aperture_offset_min_um: NonNegativeFloat = Field(
+        0.0,
+        description="the least distance of a scenario's aperture from the axis, um: uniform in "
+        "[this, aperture_offset_max_um]",
     )
     aperture_shift_px_per_v_um: NonNegativeFloat = Field(
         0.0,
@@ -288,6 +298,14 @@ class SEMConfig(BaseModel):
             low, high = getattr(self, field)
             if not (math.isfinite(low) and math.isfinite(high) and low < high):
                 raise ValueError(f"{field}: low {low} must be below high {high}, both finite")
+        for least, most in (
+            ("astigmatism_min_v", "astigmatism_max_v"),
+            ("aperture_offset_min_um", "aperture_offset_max_um"),
+        ):
+            if getattr(self, least) > getattr(self, most):
+                raise ValueError(
+                    f"{least} {getattr(self, least):g} exceeds {most} {getattr(self, most):g}"
+                )
         low, high = self.defocus_interval_v
         if not low <= self.optimum_v <= high:
             raise ValueError(f"optimum_v {self.optimum_v} lies outside defocus_interval_v")

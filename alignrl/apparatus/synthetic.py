@@ -140,7 +140,7 @@ class SyntheticSEM:
         self._rng = np.random.default_rng(seed)
         cfg = self.config
         self._optimum_v = cfg.optimum_v + self._rng.uniform(-1, 1) * cfg.optimum_spread_v
-        astigmatism_v = self._rng.uniform(0, cfg.astigmatism_max_v)
+        astigmatism_v = self._rng.uniform(cfg.astigmatism_min_v, cfg.astigmatism_max_v)
         self._astigmatism_axis = self._rng.uniform(0, np.pi)
         aperture_angle = self._rng.uniform(0, 2 * np.pi)
         # The specimen comes from the scenario's generator, before the readings' draws. In
@@ -153,7 +153,7 @@ class SyntheticSEM:
         else:
             self._specimen_fft = np.fft.rfft2(self._draw_specimen(self._rng))
         column_rng = np.random.default_rng([seed, 2])  # draws new with the five-knob column
-        offset_um = column_rng.uniform(0, cfg.aperture_offset_max_um)
+        offset_um = column_rng.uniform(cfg.aperture_offset_min_um, cfg.aperture_offset_max_um)
         # How this scenario's specimen reads in analytic mode: wide or narrow, all along.
         self._specimen_draw = float(column_rng.standard_normal())
         # The stigmator setting that cancels a = A (cos 2 phi, sin 2 phi): a / g_s. Kept as a

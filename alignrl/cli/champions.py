@@ -5,13 +5,14 @@ instruments it never trained on, measured now (the first part of `make run`).
   "Instrument sets"), beside the hyperbola fit and golden-section on the same columns from
   the same starts; its figures calibrated on each column (`alignrl calibrate`, minutes a
   column) are the recorded ones, named as such;
-* stigmation, aperture and the whole column: their champions on `synthetic-b`, the second
-  preset (they trained on `synthetic`), beside the task's classical controllers: today's
-  figures, good or not.
+* stigmation, aperture and the whole column: their champions (trained on `synthetic`) on
+  their tasks' held-out sets (`heldout-stigmation`, `heldout-aperture`, `heldout-column`:
+  columns in other units, turned, coupled, mirrored), beside the task's classical
+  controllers, the searches and the model-based solves: today's figures, good or not.
 
 Readings are analytic (computed from the probe, no images) so that the whole comparison
-takes about a minute on two cores; `alignrl evaluate --set heldout` without `--analytic`
-runs the same on images.
+takes a minute or two on two cores; `alignrl evaluate --set heldout --task TASK` without
+`--analytic` runs the same on images.
 """
 
 from __future__ import annotations
@@ -29,7 +30,6 @@ from alignrl.cli.sessions import _progress, _trained_controller
 HELD_OUT_SET = "heldout"
 FOCUS = "champion:focus-v2"
 FOCUS_CLASSICAL = ("hyperbola", "golden-section")
-SECOND_PRESET = "synthetic-b"
 COLUMN_STAGES = (
     "champion:column-focus-aperture-v1",
     "champion:column-focus-aperture-v1",
@@ -38,8 +38,9 @@ COLUMN_STAGES = (
     "champion:column-focus-stigmation-v1",
 )
 COLUMN_NAME = "column-*-v1 (A A S S S)"  # the stages: focus-aperture twice, then -stigmation
-# task -> the champion's stages (one, or the column's sequence)
-ON_THE_SECOND_PRESET = {
+# task -> the champion's stages (one, or the column's sequence), judged on the task's
+# held-out set
+OTHER_TASKS = {
     "stigmation": ("champion:stigmation-v1",),
     "aperture": ("champion:aperture-v1",),
     "column": COLUMN_STAGES,
@@ -55,8 +56,8 @@ CALIBRATED = (
 
 @dataclass(frozen=True)
 class Showcase:
-    """What `champions` measured: the focus set's results (champion first, then the
-    classical controllers), and per task on the second preset its sessions."""
+    """What `champions` measured: per task its held-out set's results (champion first, then
+    the classical controllers), focus first."""
 
     focus: Sequence[Any]
     tasks: dict[str, Sequence[Any]]
@@ -75,67 +76,57 @@ def _controllers(policies: Sequence[str]) -> Any:
 
 
 def measure(scenarios: int, seed: int, bar: Any) -> Showcase:
-    """Every session of the module docstring, `scenarios` alignments each (per instrument
-    of the held-out set), at `seed`; `bar` counts the alignments."""
-    from alignrl.apparatus.instruments import instrument_names
-    from alignrl.apparatus.registry import make_apparatus
+    """Every session of the module docstring, `scenarios` alignments each per instrument of
+    each task's held-out set, at `seed`; `bar` counts the alignments."""
+    from alignrl.apparatus.instruments import instrument_names, task_set
     from alignrl.envs.task import get_task
     from alignrl.evaluation.baselines import CLASSICAL, task_baselines
     from alignrl.evaluation.instrument_sets import run_set
-    from alignrl.evaluation.session import run_session
 
-    focus_task = get_task("focus")
-    focus = [_controllers((FOCUS,)), *(CLASSICAL[name]() for name in FOCUS_CLASSICAL)]
-    count = len(instrument_names(HELD_OUT_SET))
-    sets = []
-    for controller in focus:
-        bar.set_description(f"{controller.name} on set:{HELD_OUT_SET} ({count} instruments)")
-        sets.append(
-            run_set(
-                controller,
-                HELD_OUT_SET,
-                focus_task,
-                scenarios=scenarios,
-                seed=seed,
-                analytic=True,
-                on_scenario=lambda _result: bar.update(1),
-            )
-        )
-    tasks = {}
-    for name, policies in ON_THE_SECOND_PRESET.items():
-        task = get_task(name)
-        controllers = [_controllers(policies), *(make() for make in task_baselines(name).values())]
-        sessions = []
+    lineups = {"focus": [_controllers((FOCUS,)), *(CLASSICAL[name]() for name in FOCUS_CLASSICAL)]}
+    for name, policies in OTHER_TASKS.items():
+        lineups[name] = [
+            _controllers(policies),
+            *(make() for make in task_baselines(name).values()),
+        ]
+    results = {}
+    for name, controllers in lineups.items():
+        task, held_out = get_task(name), task_set(HELD_OUT_SET, name)
+        count = len(instrument_names(held_out))
+        sets = []
         for controller in controllers:
-            bar.set_description(f"{controller.name} ({name}) on {SECOND_PRESET}")
-            apparatus = make_apparatus(SECOND_PRESET, {"analytic": True})
-            sessions.append(
-                run_session(
+            bar.set_description(f"{controller.name} on set:{held_out} ({count} instruments)")
+            sets.append(
+                run_set(
                     controller,
-                    apparatus,
+                    HELD_OUT_SET,
                     task,
                     scenarios=scenarios,
                     seed=seed,
+                    analytic=True,
                     on_scenario=lambda _result: bar.update(1),
                 )
             )
-        tasks[name] = sessions
-    return Showcase(tuple(sets), tasks)
+        results[name] = tuple(sets)
+    focus = results.pop("focus")
+    return Showcase(focus, results)
 
 
 def alignments(scenarios: int) -> int:
     """How many alignments `measure` runs."""
-    from alignrl.apparatus.instruments import instrument_names
+    from alignrl.apparatus.instruments import instrument_names, task_set
     from alignrl.evaluation.baselines import task_baselines
 
-    focus = scenarios * len(instrument_names(HELD_OUT_SET)) * (1 + len(FOCUS_CLASSICAL))
-    others = sum(1 + len(task_baselines(name)) for name in ON_THE_SECOND_PRESET)
-    return focus + scenarios * others
+    focus = len(instrument_names(HELD_OUT_SET)) * (1 + len(FOCUS_CLASSICAL))
+    others = sum(
+        len(instrument_names(task_set(HELD_OUT_SET, name))) * (1 + len(task_baselines(name)))
+        for name in OTHER_TASKS
+    )
+    return scenarios * (focus + others)
 
 
 def cmd_champions(args: argparse.Namespace) -> int:
     from alignrl.evaluation import instrument_sets as sets
-    from alignrl.evaluation import report
 
     if not 1 <= args.scenarios <= 1000:
         raise ValueError(f"--scenarios must be in 1-1000, got {args.scenarios}")
@@ -164,14 +155,12 @@ def cmd_champions(args: argparse.Namespace) -> int:
         "focus": {result.controller: result.to_dict("test") for result in shown.focus},
         "calibrated": CALIBRATED,
     }
-    for name, sessions in shown.tasks.items():
-        lines += ["", f"{name} on {SECOND_PRESET}, the second preset (the champion trained on"]
-        lines += [f"synthetic), {args.scenarios} alignments, seed {args.seed}:", ""]
-        lines += [*report.summary_table(sessions), *report.session_notes(sessions)]
-        payload[name] = {
-            result.controller: report.session_summary(result, SECOND_PRESET, "test")
-            for result in sessions
-        }
+    for name, results in shown.tasks.items():
+        heading = sets.set_heading(results[0])
+        lines += ["", f"{name} {heading} (its champion trained on synthetic):", ""]
+        lines += [*sets.set_table(results), ""]
+        lines += [sets.set_summary(result) for result in results]
+        payload[name] = {result.controller: result.to_dict("test") for result in results}
     _emit(payload, args.json, lines)
     return 0
 
@@ -183,14 +172,14 @@ def add_champions_parser(verbs: argparse._SubParsersAction[argparse.ArgumentPars
         description="The shipped champions beside the classical controllers, each on columns "
         "it never trained on, measured now: focus-v2 on every held-out instrument beside the "
         "hyperbola fit and golden-section; the stigmation, aperture and column champions on "
-        "synthetic-b, the second preset, beside their tasks' classical controllers. Analytic "
+        "their tasks' held-out sets beside their tasks' classical controllers. Analytic "
         "readings (no images); the first part of `make run`.",
     )
     parser.add_argument(
         "--scenarios",
         type=_scenarios,
         default=10,
-        help="alignments per held-out instrument and per session on the second preset (default 10)",
+        help="alignments per held-out instrument (default 10)",
     )
     parser.add_argument("--seed", type=_seed, default=0, help="the sessions' seed (default 0)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")

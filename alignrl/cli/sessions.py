@@ -171,11 +171,17 @@ def _run_set_evaluations(
 ) -> tuple[list[list[Any]], list[float]]:
     """Run every controller over every instrument of --set at every seed, with one progress
     bar over all alignments. Per seed: the set results (one per controller), the seconds."""
-    from alignrl.apparatus.instruments import instrument_names
+    from alignrl.apparatus.instruments import instrument_names, set_names, task_set
     from alignrl.evaluation.instrument_sets import run_set
 
     shield = _shield_options(args)
-    total = args.scenarios * len(instrument_names(args.set)) * len(controllers) * len(seeds)
+    set_name = task_set(args.set, task.name)  # the task's own: heldout-stigmation, ...
+    if set_name not in set_names():
+        raise CommandError(
+            f"no instrument set {set_name!r} for task {task.name!r}; the sets are: "
+            f"{', '.join(set_names())}"
+        )
+    total = args.scenarios * len(instrument_names(set_name)) * len(controllers) * len(seeds)
     bar = _progress(args, total)
     per_seed, seconds = [], []
     try:
@@ -186,7 +192,7 @@ def _run_set_evaluations(
                 results.append(
                     run_set(
                         controller,
-                        args.set,
+                        set_name,
                         task,
                         scenarios=args.scenarios,
                         seed=seed,

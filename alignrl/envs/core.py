@@ -535,7 +535,9 @@ class AlignmentEpisodes:
             width, directional = measure_directional(unit)
         else:
             width, directional = float(unit.measure()), np.empty(0)
-        shift = measure_wobble(unit, task.wobble_amplitude_v) if task.wobble else np.empty(0)
+        shift = (
+            measure_wobble(unit, task.wobble_amplitude(unit.knobs)) if task.wobble else np.empty(0)
+        )
         return width, directional, shift
 
     def _reset_quality_ref(self, indices: np.ndarray) -> None:

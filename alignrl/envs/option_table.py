@@ -197,7 +197,9 @@ OPTIONS: dict[str, Option] = {
     "success_relative": Option(float, "threshold x best width", 1, above=True, part="success"),
     "success_absolute_px": Option(float, "absolute spec, px", 0, above=True, part="success"),
     "directional_relative": Option(float, "directional spec x best", 1, above=True),
-    "wobble_amplitude_v": Option(float, "wobble swing each way, V", 0, above=True),
+    "wobble_amplitude_v": Option(
+        float, "wobble swing each way, defocus units (default: 5 % of its interval)", 0, above=True
+    ),
     "wobble_spec_px": Option(float, "spec of the wobble shift, px", 0, above=True),
     "wobble_weight": Option(float, "cost px per px of wobble shift", 0),
 }

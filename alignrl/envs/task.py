@@ -94,7 +94,11 @@ class Task:
     no_edges_px: float = 25.0  # a frame without edges counts as this wide in rewards
     measures: tuple[str, ...] = ("width",)  # what each step measures (see the module doc)
     directional_relative: float = 1.3  # success: every directional width within this x best
-    wobble_amplitude_v: float = 5.0  # the wobble swings the defocus this far each way, V
+    # The wobble swings the defocus this share of its interval each way (the objective's own
+    # unit: 5 V on the `synthetic` preset's 100 V), or `wobble_amplitude_v` (its units) where
+    # given.
+    wobble_amplitude_fraction: float = 0.05
+    wobble_amplitude_v: float | None = None
     wobble_spec_px: float = 0.5  # success: wobble shift magnitude at most this, px
     wobble_weight: float = 1.0  # the task's cost counts this many px of width per px of shift
     wobble_ref_px: float = 12.0  # wobble observations are tanh(shift / this)
@@ -241,6 +245,16 @@ class Task:
                 low, high = max(low, optimum[knob] - reach), min(high, optimum[knob] + reach)
             intervals.append((float(low), float(high)))
         return intervals
+
+    def wobble_amplitude(self, knobs: Mapping[str, tuple[float, float]]) -> float:
+        """How far the wobble swings the defocus each way, in its units: `wobble_amplitude_v`
+        where given, else `wobble_amplitude_fraction` of the defocus interval."""
+        if self.wobble_amplitude_v is not None:
+            return float(self.wobble_amplitude_v)
+        if "defocus" not in knobs:
+            raise ValueError(f"task {self.name!r}: a wobble needs a defocus knob to swing")
+        low, high = knobs["defocus"]
+        return self.wobble_amplitude_fraction * (float(high) - float(low))
 
     def judges(self, measure: str) -> bool:
         """Whether success needs `measure` within its spec."""

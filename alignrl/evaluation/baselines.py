@@ -44,6 +44,7 @@ from alignrl.apparatus.base import Apparatus, ApparatusError
 from alignrl.apparatus.focus_curve import fit_focus_curve
 from alignrl.apparatus.measures import measure_wobble
 from alignrl.envs.task import Task
+from alignrl.evaluation.column_solve import ColumnSolve
 from alignrl.evaluation.controllers import (
     Controller,
     TaskController,
@@ -414,7 +415,7 @@ class WobbleCenter:
         check_task_knobs(self.name, self.knobs, task)
 
     def align_task(self, apparatus: Apparatus, task: Task, budget: int) -> None:
-        amplitude = task.wobble_amplitude_v
+        amplitude = task.wobble_amplitude(apparatus.knobs)
         setting = np.array([float(apparatus.read()[knob]) for knob in self.knobs])
         shift = _wobble(apparatus, amplitude)
         if shift is None:
@@ -515,11 +516,19 @@ BASELINES: dict[str, Callable[[], Controller]] = {
     "hill-climb": HillClimb,
 }  # the focus task's, as ever
 
+
+def _column_solve() -> ColumnSolve:
+    """The model-based column, its focus stage the hyperbola fit."""
+    return ColumnSolve(focus=HyperbolaFit())
+
+
+# Each task's classical controllers: the operator's search, then the model-based solve
+# (alignrl/evaluation/model_based.py, column_solve.py), the anchors a champion must beat.
 TASK_BASELINES: dict[str, dict[str, Callable[[], Controller | TaskController]]] = {
     "focus": dict(BASELINES),
-    "stigmation": {"stigmator-search": StigmatorSearch},
-    "aperture": {"wobble-center": WobbleCenter},
-    "column": {"column-sequence": ColumnSequence},
+    "stigmation": {"stigmator-search": StigmatorSearch, "stigmator-solve": StigmatorSolve},
+    "aperture": {"wobble-center": WobbleCenter, "wobble-solve": WobbleSolve},
+    "column": {"column-sequence": ColumnSequence, "column-solve": _column_solve},
 }
 
 
@@ -553,8 +562,6 @@ MODEL_BASED: dict[str, Callable[[], Controller]] = {
 CLASSICAL: dict[str, Callable[[], Controller | TaskController]] = {
     **{name: make for baselines in TASK_BASELINES.values() for name, make in baselines.items()},
     **MODEL_BASED,
-    "stigmator-solve": StigmatorSolve,  # alignrl/evaluation/model_based.py
-    "wobble-solve": WobbleSolve,
 }  # every controller that is not trained, by name
 
 

@@ -33,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from alignrl.apparatus.instruments import load_set, set_names
+from alignrl.apparatus.instruments import load_set, set_names, task_kind, task_set
 from alignrl.apparatus.limits import ShieldOptions
 from alignrl.apparatus.registry import make_apparatus
 from alignrl.envs.task import Task
@@ -188,11 +188,20 @@ def run_set(
     so that an unreadable instrument file is refused before any alignment. ValueError for an
     unknown set (naming the sets), and whatever run_session refuses.
     """
+    set_name = task_set(set_name, task.name)  # heldout + stigmation: heldout-stigmation
     if set_name not in set_names():
         raise ValueError(f"no instrument set {set_name!r}; the sets are: {', '.join(set_names())}")
-    names = tuple(name for name, _ in load_set(set_name))
+    instruments = load_set(set_name)
+    names = tuple(name for name, _ in instruments)
     if not names:
         raise ValueError(f"instrument set {set_name!r} has no instruments (no YAML files)")
+    kind = task_kind(task.name)
+    wrong = [name for name, family in instruments if family.kind != kind]
+    if wrong:
+        raise ValueError(
+            f"task {task.name!r} is judged on {kind} instruments; set {set_name!r} holds "
+            f"others ({', '.join(wrong)})"
+        )
     apparatuses = [
         make_apparatus(instrument_spec(name), {"analytic": bool(analytic)}, shield=shield)
         for name in names

@@ -502,7 +502,7 @@ def verify_task(
     shift = None
     if task.wobble:
         try:
-            shift = measure_wobble(apparatus, task.wobble_amplitude_v)
+            shift = measure_wobble(apparatus, task.wobble_amplitude(apparatus.knobs))
         except ApparatusError:
             shift = None
     return width, directional, shift
