@@ -58,6 +58,8 @@ def _preset_parameters(name: str) -> dict[str, float]:
         "dose_electrons_per_px": c.dose_electrons_per_px,
         "detector_noise": c.detector_noise,
         "reading_noise_factor": 1.0,
+        "stigmator_hysteresis_fraction": c.stigmator_hysteresis_pct / (2 * half_s),
+        "stigmator_drift_fraction": c.stigmator_drift_pct_per_acquisition / (2 * half_s),
     }
 
 

@@ -127,3 +127,24 @@ def test_a_turned_aperture_wobble_reads_the_turned_shift() -> None:
 def test_a_response_out_of_its_range_is_refused_by_name(change, message) -> None:
     with pytest.raises(ValueError, match=message):
         load_sem_config(PRESET_DIR / "synthetic-b.yaml", **change)
+
+
+def test_a_hysteretic_drifting_stigmator_is_aligned_by_its_reported_optimum() -> None:
+    """Stigmator hysteresis: the field lags the setting against its last change, so the
+    setting that aligns depends on the side it is approached from, and `optimum()` says
+    which; drift walks the stigmators' optimum on a stream of its own (the lens's and the
+    readings' streams stay as they were)."""
+    lagging = _column(stigmator_hysteresis_pct=4.0)
+    lagging.write({"stigmator_x": 90.0, "stigmator_y": 90.0})  # approached from below
+    target = lagging.optimum()
+    lagging.write({k: target[k] for k in ("stigmator_x", "stigmator_y")})
+    assert np.linalg.norm(lagging.astigmatism_residual_v()) < 1e-9
+    plain = _column()
+    plain.write({k: target[k] for k in ("stigmator_x", "stigmator_y")})
+    assert np.linalg.norm(plain.astigmatism_residual_v()) > 0.5  # 4 % off without the lag
+    drifting = _column(stigmator_drift_pct_per_acquisition=1.0)
+    still = _column()
+    readings = [(drifting.measure(), still.measure()) for _ in range(5)]
+    assert [a for a, _ in readings[:1]] == [b for _, b in readings[:1]]  # the same frame first
+    moved = drifting.optimum()["stigmator_x"] - still.optimum()["stigmator_x"]
+    assert abs(moved) > 0.1 and drifting.optimum()["defocus"] == still.optimum()["defocus"]

@@ -51,7 +51,7 @@ def test_it_aligns_a_column_whatever_its_stigmators_response(response) -> None:
     solved = _session(StigmatorSolve(), "synthetic-b", **_quiet("synthetic-b"), **response)
     untouched = _session(_Untouched(), "synthetic-b", **_quiet("synthetic-b"), **response)
     assert solved.successes >= SCENARIOS - 2 > untouched.successes + 10, (solved, untouched)
-    assert solved.median_acquisitions <= 8  # two for the offset, three to identify, 3 rounds
+    assert solved.median_acquisitions <= 8  # two for the offset, three to identify, the rounds
 
 
 @pytest.mark.parametrize(

@@ -102,6 +102,8 @@ PARAMETERS: dict[str, Parameter] = {
     "dose_electrons_per_px": Parameter("imaging", (100.0, 400.0), 0.01, 1e9, "electrons per px", True, "primary electrons per pixel (image path)"),  # noqa: E501
     "detector_noise": Parameter("imaging", (0.005, 0.02), 0.0, 10.0, "yield units", False, "Gaussian detector noise (image path)"),  # noqa: E501
     "reading_noise_factor": Parameter("imaging", (0.7, 1.5), 0.05, 20.0, "", True, "x the base's reading and wobble noise (analytic path)"),  # noqa: E501
+    "stigmator_hysteresis_fraction": Parameter("stigmators", (0.0, 0.005), 0.0, 0.1, "of Ws", False, "each stigmator's field lags its last change by this"),  # noqa: E501
+    "stigmator_drift_fraction": Parameter("stigmators", (0.0, 0.0005), 0.0, 0.05, "of Ws per acquisition", False, "std of the stigmators' optimum's walk"),  # noqa: E501
 }
 # fmt: on
 FLAGS = {"stigmator_mirror": "stigmators", "aperture_mirror": "aperture"}  # drawn from lists
@@ -263,6 +265,8 @@ def column_config(
         probe_sigma0_px=v["probe_sigma0_px"],
         hysteresis_v=v["hysteresis_fraction"] * width,
         stigmator_interval_pct=(-half_s, half_s),
+        stigmator_hysteresis_pct=v["stigmator_hysteresis_fraction"] * 2.0 * half_s,
+        stigmator_drift_pct_per_acquisition=v["stigmator_drift_fraction"] * 2.0 * half_s,
         astigmatism_max_v=astigmatism,
         astigmatism_min_v=v["astigmatism_floor"] * astigmatism,
         stigmator_v_per_pct=per_unit,

@@ -215,6 +215,16 @@ class SEMConfig(BaseModel):
     stigmator_v_per_pct: PositiveFloat = Field(
         0.2, description="line-focus separation one percent of stigmator excitation cancels, V"
     )
+    stigmator_hysteresis_pct: NonNegativeFloat = Field(
+        0.0,
+        description="each stigmator's field lags its setting by this against its last change, "
+        "in the stigmators' units",
+    )
+    stigmator_drift_pct_per_acquisition: NonNegativeFloat = Field(
+        0.0,
+        description="std of each stigmator's optimum random walk per acquired image, in the "
+        "stigmators' units",
+    )
     # How the stigmators act in the image (docs/physics.md, "How a column's knobs act"):
     # their axes turned against the image's, coupled, one of them wired the other way round.
     stigmator_rotation_deg: float = Field(

@@ -176,6 +176,9 @@ class SyntheticSEM:
         self._direction = 0.0  # sign of the last voltage change, for hysteresis
         aligned = cfg.reset_state == "aligned"
         self._stigmator_pct = self._stigmator_optimum_pct.copy() if aligned else np.zeros(2)
+        self._stigmator_direction = np.zeros(2)  # sign of each stigmator's last change
+        # the stigmators' own drift walks on a generator of its own: every other stream stays
+        self._stigmator_rng = np.random.default_rng([seed, 3])
         self._aperture_um = self._aperture_offset_um.copy() if aligned else np.zeros(2)
         self._last_image = None
 
@@ -195,7 +198,10 @@ class SyntheticSEM:
             self._set_defocus(float(values["defocus"]))
         for index, axis in enumerate("xy"):
             if f"stigmator_{axis}" in values:
-                self._stigmator_pct[index] = float(values[f"stigmator_{axis}"])
+                new = float(values[f"stigmator_{axis}"])
+                if new != self._stigmator_pct[index]:
+                    self._stigmator_direction[index] = np.sign(new - self._stigmator_pct[index])
+                self._stigmator_pct[index] = new
             if f"aperture_{axis}" in values:
                 self._aperture_um[index] = float(values[f"aperture_{axis}"])
 
@@ -231,13 +237,30 @@ class SyntheticSEM:
                 if reachable
             ]
             defocus = min(candidates, key=lambda target: abs(target - setting))
+        stigmators = self._stigmator_targets()
         return {
             "defocus": defocus,
-            "stigmator_x": float(self._stigmator_optimum_pct[0]),
-            "stigmator_y": float(self._stigmator_optimum_pct[1]),
+            "stigmator_x": stigmators[0],
+            "stigmator_y": stigmators[1],
             "aperture_x": float(self._aperture_offset_um[0]),
             "aperture_y": float(self._aperture_offset_um[1]),
         }
+
+    def _stigmator_targets(self) -> tuple[float, float]:
+        """Each stigmator's setting that cancels the astigmatism if written now: the optimum
+        itself without hysteresis; with it, the optimum + h approached from below, - h from
+        above, the nearer one (the setting itself where its lag leaves it there)."""
+        h = self.config.stigmator_hysteresis_pct
+        targets = []
+        for axis in range(2):
+            optimum, setting = self._stigmator_optimum_pct[axis], self._stigmator_pct[axis]
+            if h == 0 or abs(setting - h * self._stigmator_direction[axis] - optimum) < 1e-12:
+                targets.append(float(optimum if h == 0 else setting))
+                continue
+            above, below = optimum + h, optimum - h
+            reachable = [t for t, ok in ((above, above > setting), (below, below < setting)) if ok]
+            targets.append(float(min(reachable, key=lambda t: abs(t - setting))))
+        return targets[0], targets[1]
 
     def best_quality(self) -> float:
         """Edge width (px) of a noise-free frame at the optimum: 2.563 x probe_sigma0_px."""
@@ -292,7 +315,8 @@ class SyntheticSEM:
         """r = a - g_s M s (volts of line-focus separation, as a vector in the 2 phi plane;
         M the stigmators' response, SEMConfig.stigmator_response: the identity unless their
         axes are turned, coupled or mirrored)."""
-        left = self._stigmator_optimum_pct - self._stigmator_pct
+        lag = self.config.stigmator_hysteresis_pct * self._stigmator_direction
+        left = self._stigmator_optimum_pct - (self._stigmator_pct - lag)
         if self._stigmator_response is not None:
             left = self._stigmator_response @ left
         return self.config.stigmator_v_per_pct * left
@@ -413,6 +437,9 @@ class SyntheticSEM:
         drift = self.config.drift_v_per_acquisition
         if drift > 0:
             self._optimum_v += drift * self._rng.standard_normal()
+        walk = self.config.stigmator_drift_pct_per_acquisition
+        if walk > 0:
+            self._stigmator_optimum_pct += walk * self._stigmator_rng.standard_normal(2)
 
     def _analytic_acquisition(self) -> tuple[np.ndarray, np.ndarray]:
         """An acquisition without an image: the probe's covariance and the image shift now."""
