@@ -84,7 +84,9 @@ def test_a_family_draws_inside_its_box_and_the_same_seed_draws_the_same_column(k
         family.reset(seed)
         for name in box.used():
             low, high = getattr(box, name)
-            assert low - 1e-9 * max(1.0, abs(low)) <= family.values[name] <= high * (1 + 1e-9) + 1e-9
+            assert (
+                low - 1e-9 * max(1.0, abs(low)) <= family.values[name] <= high * (1 + 1e-9) + 1e-9
+            )
         for flag in FLAGS:
             seen[flag].add(family.mirrors[flag])
         low, high = family.knobs["defocus"]
@@ -218,9 +220,7 @@ def test_every_way_to_a_held_out_column_instrument_is_refused(tmp_path) -> None:
     data = yaml.safe_load(copy.read_text())
     data["name"], data["aperture_unit"] = "mine", "nm"
     copy.write_text(yaml.safe_dump(data))
-    assert "simulates the held-out instrument 'ap-weak-wobble'" in held_out_reason(
-        f"family:{copy}"
-    )
+    assert "simulates the held-out instrument 'ap-weak-wobble'" in held_out_reason(f"family:{copy}")
     box = yaml.safe_load(family_path("aperture").read_text())
     box["wobble_shift_px_per_interval"] = [10.0, 400.0]  # now it holds ap-weak-wobble
     assert "contains the held-out instrument 'ap-weak-wobble'" in held_out_reason(

@@ -36,7 +36,9 @@ def _quiet(preset: str) -> dict:
 @pytest.mark.parametrize("response", [{}, TURNED])
 def test_it_aligns_analytic_columns_whatever_the_response(response) -> None:
     apparatus = make_apparatus("synthetic", {**_quiet("synthetic"), **response})
-    result = run_session(get_baseline("column-solve"), apparatus, get_task("column"), SCENARIOS, seed=3)
+    result = run_session(
+        get_baseline("column-solve"), apparatus, get_task("column"), SCENARIOS, seed=3
+    )
     assert result.successes >= SCENARIOS - 1, result
     assert result.median_acquisitions <= 24  # a mirrored aperture costs one more wobble
 

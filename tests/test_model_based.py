@@ -154,6 +154,21 @@ def test_wobble_solve_centres_the_aperture_whatever_the_image_does(response, mos
     assert solved.median_acquisitions <= most
 
 
+def test_wobble_solve_writes_inside_every_interval_from_a_corner() -> None:
+    """The aperture started at a corner of its travel, the image turned and mirrored: the
+    identifying step turns back at the bound, every solution is clipped into the interval."""
+    args = {"analytic": True, "aperture_rotation_deg": 200.0, "aperture_mirror": True}
+    for seed in range(4):
+        apparatus = _Recording(make_apparatus("synthetic-b", args, seed=seed))
+        apparatus.write({"aperture_x": 59.5, "aperture_y": -59.5})
+        WobbleSolve().align_task(apparatus, get_task("aperture"), 40)
+        assert len(apparatus.writes) > 3
+        for values in apparatus.writes:
+            for knob, value in values.items():
+                low, high = apparatus.knobs[knob]
+                assert low <= value <= high, (knob, value)
+
+
 def test_wobbles_recover_the_apertures_response_turned_and_mirrored() -> None:
     """Three wobbles on a quiet analytic column: the affine fit's response is the image's
     turn and mirror against the aperture (SEMConfig.aperture_response) times one gain."""

@@ -18,12 +18,14 @@ differ, so that one box spans columns in volts or amperes, percent or DAC counts
 * the aperture's interval (width Wa, symmetric about 0), how far off axis it sits as a share
   of Wa / 2, the wobble's image shift as px for a focus swing of W with the aperture at its
   interval's end, its blur at that end, the image turned and mirrored against its axes;
-* dose and detector noise (image path), and a factor on the readings' noise (analytic path).
+* dose and detector noise (image path), and a factor on the readings' noise (analytic path);
+* the specimens the image path images (`specimens`: kinds of `SEMConfig.specimen`, one
+  drawn per column from the list like a mirror, `column_specimen`; analytic mode ignores it).
 
 Every numeric parameter is a point or [low, high] within its physical range (`PARAMETERS`),
 drawn log-uniformly where it spans decades; each mirror is a list of the values drawn from
-([false], [true] or [false, true]). What the box does not name comes from its `base`
-preset (the specimen, its yields, the analytic calibration).
+([false], [true] or [false, true]), and so is `specimens`. What the box does not name comes
+from its `base` preset (the specimen's yields and sizes, the analytic calibration).
 
 `kind` says which knobs the box is for: `stigmation` and `aperture` boxes vary their own
 knobs' parameters, and a `column` box is their product (`product: [STIGMATION, APERTURE]`:
@@ -41,15 +43,17 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, create_model, field_validator, model_validator
 
-from alignrl.apparatus.sem_config import PRESET_DIR, SEMConfig, load_sem_config
+from alignrl.apparatus.sem_config import PRESET_DIR, SPECIMEN_KINDS, SEMConfig, load_sem_config
 
 __all__ = [
     "COLUMN_KINDS",
     "FLAGS",
     "GROUPS",
     "PARAMETERS",
+    "SPECIMEN_DRAW",
     "ColumnBox",
     "column_config",
+    "column_specimen",
     "product_data",
 ]
 
@@ -107,6 +111,9 @@ PARAMETERS: dict[str, Parameter] = {
 }
 # fmt: on
 FLAGS = {"stigmator_mirror": "stigmators", "aperture_mirror": "aperture"}  # drawn from lists
+# The specimens are drawn from a list too, by a fraction of their own, drawn after the
+# parameters' and the mirrors' (so that adding it left their draws as they were).
+SPECIMEN_DRAW = "specimens"
 UNITS = {"stigmator_unit": "stigmators", "aperture_unit": "aperture"}  # each knob's own
 PAIR_FIELDS = tuple(PARAMETERS)
 # What only one reading path uses: a designer is offered what its path reads.
@@ -161,6 +168,12 @@ class _Base(BaseModel):
     aperture_mirror: tuple[bool, ...] = Field(
         (False, True), min_length=1, description="the image mirrored against the aperture"
     )
+    specimens: tuple[str, ...] = Field(
+        ("gold",),
+        min_length=1,
+        description="the specimens a column's image path images, one drawn per column "
+        f"(SEMConfig.specimen: {', '.join(SPECIMEN_KINDS)}); analytic mode ignores them",
+    )
 
 
 _FIELDS: dict[str, Any] = {
@@ -182,6 +195,11 @@ class ColumnBox(create_model("_ColumnBoxFields", __base__=_Base, **_FIELDS)):  #
     @classmethod
     def _one_flag_is_a_list(cls, value: Any) -> Any:
         return _flags(value)
+
+    @field_validator("specimens", mode="before")
+    @classmethod
+    def _one_specimen_is_a_list(cls, value: Any) -> Any:
+        return (value,) if isinstance(value, str) else value
 
     @model_validator(mode="after")
     def _check(self) -> ColumnBox:
@@ -205,6 +223,14 @@ class ColumnBox(create_model("_ColumnBoxFields", __base__=_Base, **_FIELDS)):  #
                 f"optimum_fraction {_span(*self.optimum_fraction)} +/- optimum_spread_fraction "
                 f"{spread:g} leaves the defocus interval"
             )
+        unknown = [kind for kind in self.specimens if kind not in SPECIMEN_KINDS]
+        if unknown:
+            problems.append(
+                f"specimens: no kind {', '.join(map(repr, unknown))} "
+                f"(the kinds are {', '.join(SPECIMEN_KINDS)})"
+            )
+        if len(set(self.specimens)) < len(self.specimens):
+            problems.append(f"specimens: each kind once, got {list(self.specimens)}")
         if self.base not in _preset_names():
             problems.append(f"base: no preset {self.base!r} ({', '.join(_preset_names())})")
         if len(problems) > SHOWN_PROBLEMS:
@@ -234,11 +260,29 @@ def _preset_names() -> list[str]:
     return sorted(path.stem for path in PRESET_DIR.glob("*.yaml"))
 
 
+def column_specimen(box: ColumnBox, fraction: float) -> str:
+    """The specimen at `fraction` (in [0, 1], clipped) of the box's list, as a mirror is
+    drawn from its list: each kind an equal share, in the list's order."""
+    options = box.specimens
+    index = int(min(max(float(fraction), 0.0), 1.0) * len(options))
+    return options[min(index, len(options) - 1)]
+
+
 def column_config(
-    box: ColumnBox, values: Mapping[str, float], mirrors: Mapping[str, bool]
+    box: ColumnBox,
+    values: Mapping[str, float],
+    mirrors: Mapping[str, bool],
+    specimen: str | None = None,
 ) -> SEMConfig:
     """The synthetic SEM of one column of `box`: every parameter a number (`values`, by
-    `PARAMETERS` name; `mirrors` by `FLAGS` name), in the SEMConfig's own terms."""
+    `PARAMETERS` name; `mirrors` by `FLAGS` name), in the SEMConfig's own terms, imaging
+    `specimen` (one of the box's; None: the first of its list)."""
+    if specimen is None:
+        specimen = box.specimens[0]
+    elif specimen not in box.specimens:
+        raise ValueError(
+            f"specimen {specimen!r} is not one of the box's ({', '.join(box.specimens)})"
+        )
     v = values
     width, centre = v["defocus_interval_width"], v["defocus_interval_centre"]
     low = centre - 0.5 * width
@@ -282,6 +326,7 @@ def column_config(
         aperture_mirror=bool(mirrors["aperture_mirror"]),
         dose_electrons_per_px=v["dose_electrons_per_px"],
         detector_noise=v["detector_noise"],
+        specimen=specimen,
         analytic_calibration=calibration,
         reset_state="aligned",
     )
@@ -292,7 +337,8 @@ def product_data(data: dict[str, Any], load: Any, path: Path) -> dict[str, Any]:
     """A column box's keys with its `product` resolved: each factor (a family name, read by
     `load`) gives the parameters of its own knobs; the focus and imaging parameters and the
     base must agree between the factors (ValueError naming the first that does not), and
-    keys the file writes itself win. Without `product`, the keys as they are."""
+    keys the file writes itself win; its specimens are those both factors name. Without
+    `product`, the keys as they are."""
     factors = data.pop("product", None)
     if factors is None:
         return data
@@ -323,5 +369,13 @@ def product_data(data: dict[str, Any], load: Any, path: Path) -> dict[str, Any]:
                 f"{name} ({getattr(first, name)} against {getattr(second, name)})"
             )
         merged[name] = getattr(first, name)
+    # a column images the specimens on which both its knobs' controllers cope
+    both = [kind for kind in first.specimens if kind in second.specimens]
+    if not both:
+        raise ValueError(
+            f"{path}: the product's factors {factors[0]} and {factors[1]} share no specimen "
+            f"({', '.join(first.specimens)} against {', '.join(second.specimens)})"
+        )
+    merged["specimens"] = both
     merged.update(data)
     return merged

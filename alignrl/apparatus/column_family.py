@@ -24,8 +24,10 @@ from alignrl.apparatus.column_box import (
     IMAGE_ONLY,
     PAIR_FIELDS,
     PARAMETERS,
+    SPECIMEN_DRAW,
     ColumnBox,
     column_config,
+    column_specimen,
 )
 from alignrl.apparatus.family import FamilyColumn, checked_design
 from alignrl.apparatus.family_box import AnyFamily
@@ -44,7 +46,7 @@ def draw_column_fractions(
     from the arcsine law Beta(1/2, 1/2) (family.draw_fractions)."""
     if sampling not in SAMPLINGS:
         raise ValueError(f"sampling must be one of {', '.join(SAMPLINGS)}, got {sampling!r}")
-    names = (*PAIR_FIELDS, *FLAGS)
+    names = (*PAIR_FIELDS, *FLAGS, SPECIMEN_DRAW)  # the specimen last: earlier draws stay
     if sampling == "edges":
         return {name: float(rng.beta(0.5, 0.5)) for name in names}
     return {name: float(rng.random()) for name in names}
@@ -109,7 +111,8 @@ class ColumnFamily:
             self._spent += previous.acquisitions
         values, mirrors = column_values(self.family, fractions)
         self.values, self.mirrors = values, mirrors
-        self.config = column_config(self.family, values, mirrors)
+        specimen = column_specimen(self.family, fractions.get(SPECIMEN_DRAW, 0.0))
+        self.config = column_config(self.family, values, mirrors, specimen)
         self.sem = SyntheticSEM(self.config, seed=self._seed, analytic=self.analytic)
 
     @property

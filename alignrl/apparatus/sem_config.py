@@ -14,14 +14,32 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
+from alignrl.apparatus.specimens import SPECIMENS
 from alignrl.yaml_io import read_yaml_file
 
-__all__ = ["PRESET_DIR", "AnalyticModel", "FloatTable", "SEMConfig", "load_sem_config"]
+__all__ = [
+    "PRESET_DIR",
+    "SPECIMEN_KINDS",
+    "AnalyticModel",
+    "FloatTable",
+    "SEMConfig",
+    "load_sem_config",
+]
 
 PRESET_DIR = Path(__file__).with_name("presets")
 PositiveFloat = Annotated[float, Field(gt=0)]
+# What the image path images: the simulator's own gold particles (the fields below), or a
+# kind of the instrument family's specimens (alignrl/apparatus/specimens.py).
+SPECIMEN_KINDS: tuple[str, ...] = ("gold", *SPECIMENS)
 NonNegativeFloat = Annotated[float, Field(ge=0)]
 FloatTable = tuple[float, ...]
 
@@ -280,6 +298,13 @@ class SEMConfig(BaseModel):
     detector_noise: NonNegativeFloat = Field(
         0.01, description="Gaussian detector noise, in secondary-electron yield units"
     )
+    specimen: str = Field(
+        "gold",
+        description="what the image path images: gold (the particles below) or a kind of "
+        "alignrl/apparatus/specimens.py (particles, grid, bars, fibres, texture), drawn from "
+        "the scenario's generator where gold is; analytic mode ignores it (its calibration "
+        "is the base preset's, on gold)",
+    )
     substrate_yield: NonNegativeFloat = Field(0.25, description="substrate brightness")
     particle_yield: NonNegativeFloat = Field(0.9, description="gold particle brightness")
     substrate_texture: NonNegativeFloat = Field(
@@ -301,6 +326,13 @@ class SEMConfig(BaseModel):
         default_factory=AnalyticModel,
         description="analytic mode's calibration against the image path (readings without images)",
     )
+
+    @field_validator("specimen")
+    @classmethod
+    def _known_specimen(cls, kind: str) -> str:
+        if kind not in SPECIMEN_KINDS:
+            raise ValueError(f"no kind {kind!r}; the kinds are {', '.join(SPECIMEN_KINDS)}")
+        return kind
 
     @model_validator(mode="after")
     def _check_ranges(self) -> SEMConfig:

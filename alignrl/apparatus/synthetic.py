@@ -4,7 +4,9 @@ Image formation (design.md, docs/physics.md): image = specimen (*) probe, shifte
 
 * Specimen: gold particles with sharp rims on a faintly textured carbon substrate (the Zn-Au
   test specimen of seed section 6.2), drawn anew for every scenario from its seed. Intensities
-  are secondary-electron yields: substrate ~0.25, gold ~0.9.
+  are secondary-electron yields: substrate ~0.25, gold ~0.9. `SEMConfig.specimen` may name
+  a kind of alignrl/apparatus/specimens.py instead (grid, texture, ...), drawn from the same
+  generator at the same place and imaged the same way; analytic mode reads as for gold.
 * Five knobs: `defocus` (V), the stigmators `stigmator_x`, `stigmator_y` (percent of full
   excitation) and the objective aperture's position `aperture_x`, `aperture_y` (um).
 * Probe: an elliptical Gaussian. With focus error dV = V_eff - V_opt (volts), a residual
@@ -77,6 +79,7 @@ from alignrl.apparatus.sem_config import (
     SEMConfig,
     load_sem_config,
 )
+from alignrl.apparatus.specimens import draw_specimen
 from alignrl.apparatus.wobble import wobble_shift
 
 __all__ = [
@@ -555,9 +558,12 @@ class SyntheticSEM:
         return noise, particles
 
     def _draw_specimen(self, rng: np.random.Generator) -> np.ndarray:
-        """Gold particles on a textured substrate, periodic across the frame edges."""
+        """The config's specimen, periodic across the frame edges: gold particles on a
+        textured substrate, or a kind of alignrl/apparatus/specimens.py drawn from `rng`."""
         cfg = self.config
         size = cfg.image_size_px
+        if cfg.specimen != "gold":
+            return draw_specimen(cfg.specimen, size, rng)
         noise, particles = self._specimen_draws(rng)
         # Substrate grain: white noise low-passed in Fourier space (periodic by construction).
         grain = np.fft.irfft2(
