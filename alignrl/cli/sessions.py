@@ -532,7 +532,8 @@ def _add_set_options(parser: argparse.ArgumentParser) -> None:
         default=None,
         help=f"instead of --apparatus: every instrument of an instrument set "
         f"({', '.join(set_names())}), one session each with the same seed, one row each and "
-        "the total",
+        "the total; heldout and validation name the task's own (heldout-stigmation for "
+        "--task stigmation)",
     )
     parser.add_argument(
         "--analytic",
