@@ -215,8 +215,7 @@ class ColumnBox(create_model("_ColumnBoxFields", __base__=_Base, **_FIELDS)):  #
                 )
             elif parameter.log and low <= 0:
                 problems.append(f"{name} {_span(low, high)}: drawn on a log scale, needs > 0")
-        low, _ = self.optimum_fraction
-        _, high = self.optimum_fraction
+        low, high = self.optimum_fraction
         spread = self.optimum_spread_fraction[1]
         if low - spread < 0 or high + spread > 1:
             problems.append(

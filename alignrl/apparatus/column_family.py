@@ -29,13 +29,11 @@ from alignrl.apparatus.column_box import (
     column_config,
     column_specimen,
 )
-from alignrl.apparatus.family import FamilyColumn, checked_design
+from alignrl.apparatus.family import SAMPLINGS, FamilyColumn, checked_design
 from alignrl.apparatus.family_box import AnyFamily
 from alignrl.apparatus.synthetic import SyntheticSEM
 
 __all__ = ["ColumnFamily", "column_values", "draw_column_fractions", "open_family"]
-
-SAMPLINGS = ("uniform", "edges")
 
 
 def draw_column_fractions(
