@@ -218,3 +218,19 @@ def light_export(tmp_path: Path) -> Path:
     argv += ["--set", "task_options.posterior_draws=64", "--out", str(out), "--json"]
     assert main(argv) == 0
     return out
+
+
+class WriteRecorder:
+    """An apparatus passed through, every write kept (`writes`): what a controller asked of
+    the driver, to check against the intervals."""
+
+    def __init__(self, inner) -> None:
+        self.inner, self.writes = inner, []
+        self.knobs = inner.knobs
+
+    def write(self, values) -> None:
+        self.writes.append(dict(values))
+        self.inner.write(values)
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)

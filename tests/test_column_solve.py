@@ -4,9 +4,8 @@ only what a driver gives, writes inside every interval, and refuses what it cann
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-
 import pytest
+from conftest import WriteRecorder
 
 from alignrl.apparatus.registry import make_apparatus
 from alignrl.apparatus.sem_config import PRESET_DIR, load_sem_config
@@ -46,7 +45,7 @@ def test_it_aligns_analytic_columns_whatever_the_response(response) -> None:
 def test_every_write_stays_inside_its_interval() -> None:
     """A column started at the corners of every interval: the stigmators' and the aperture's
     steps turn back at their bounds, every defocus approach stays above the bottom."""
-    apparatus = _Recording(make_apparatus("synthetic-b", {"analytic": True, **TURNED}))
+    apparatus = WriteRecorder(make_apparatus("synthetic-b", {"analytic": True, **TURNED}))
     apparatus.reset(seed=4)
     apparatus.write({"defocus": 1.0, "stigmator_x": 99.0, "stigmator_y": -99.0, "aperture_x": 59.0})
     get_baseline("column-solve").align_task(apparatus, get_task("column"), 60)
@@ -65,18 +64,3 @@ def test_it_refuses_a_task_without_its_knobs_and_runs_by_name() -> None:
     get_baseline("column-solve").check_task(get_task("column"))
     with pytest.raises(ValueError, match="column-solve: switch_fraction"):
         ColumnSolve(focus=HyperbolaFit(), switch_fraction=0.5)
-
-
-class _Recording:
-    """Passes everything through, keeping every write."""
-
-    def __init__(self, apparatus) -> None:
-        self.inner = apparatus
-        self.writes: list[dict[str, float]] = []
-
-    def __getattr__(self, name: str):
-        return getattr(self.inner, name)
-
-    def write(self, values: Mapping[str, float]) -> None:
-        self.writes.append(dict(values))
-        self.inner.write(values)

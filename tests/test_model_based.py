@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import WriteRecorder
 
 from alignrl.apparatus.base import NoEdgesError
 from alignrl.apparatus.registry import make_apparatus
@@ -99,7 +100,7 @@ def test_the_fit_recovers_the_stigmators_matrix_and_their_optimum(response) -> N
 def test_every_write_stays_inside_its_interval_and_the_focus_comes_back() -> None:
     """Near the bottom of the defocus interval the offset goes above the focus instead; the
     stigmators' steps turn back at their bounds; the defocus ends where it was."""
-    apparatus = _Recording(make_apparatus("synthetic-b", {"analytic": True}))
+    apparatus = WriteRecorder(make_apparatus("synthetic-b", {"analytic": True}))
     apparatus.write({"defocus": 1.0, "stigmator_x": 99.0, "stigmator_y": -99.0})
     StigmatorSolve().align_task(apparatus, get_task("stigmation"), 40)
     assert apparatus.writes and apparatus.read()["defocus"] == 1.0
@@ -119,19 +120,6 @@ class _Untouched:
 
     def align_task(self, apparatus, task, budget) -> None:
         return None
-
-
-class _Recording:
-    def __init__(self, inner) -> None:
-        self.inner, self.writes = inner, []
-        self.knobs = inner.knobs
-
-    def write(self, values) -> None:
-        self.writes.append(dict(values))
-        self.inner.write(values)
-
-    def __getattr__(self, name):
-        return getattr(self.inner, name)
 
 
 # --- wobble-solve: the aperture from two wobbles --------------------------------------------
@@ -159,7 +147,7 @@ def test_wobble_solve_writes_inside_every_interval_from_a_corner() -> None:
     identifying step turns back at the bound, every solution is clipped into the interval."""
     args = {"analytic": True, "aperture_rotation_deg": 200.0, "aperture_mirror": True}
     for seed in range(4):
-        apparatus = _Recording(make_apparatus("synthetic-b", args, seed=seed))
+        apparatus = WriteRecorder(make_apparatus("synthetic-b", args, seed=seed))
         apparatus.write({"aperture_x": 59.5, "aperture_y": -59.5})
         WobbleSolve().align_task(apparatus, get_task("aperture"), 40)
         assert len(apparatus.writes) > 3

@@ -35,7 +35,7 @@ them), or its own parameters written out.
 
 from __future__ import annotations
 
-import math
+import functools
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -43,7 +43,14 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, create_model, field_validator, model_validator
 
-from alignrl.apparatus.sem_config import PRESET_DIR, SPECIMEN_KINDS, SEMConfig, load_sem_config
+from alignrl.apparatus.box_values import pair, pick, range_problem, shown_problems, span
+from alignrl.apparatus.sem_config import (
+    PRESET_DIR,
+    SPECIMEN_KINDS,
+    SEMConfig,
+    load_sem_config,
+    preset_names,
+)
 
 __all__ = [
     "COLUMN_KINDS",
@@ -58,7 +65,6 @@ __all__ = [
 ]
 
 COLUMN_KINDS = ("stigmation", "aperture", "column")
-SHOWN_PROBLEMS = 8
 Pair = tuple[float, float]
 
 
@@ -128,20 +134,9 @@ USED = {
 }
 
 
-def _pair(value: Any) -> Any:
-    """A point x means the range [x, x]."""
-    if isinstance(value, int | float) and not isinstance(value, bool):
-        return (float(value), float(value))
-    return value
-
-
 def _flags(value: Any) -> Any:
     """A single true or false means the list of it."""
     return (value,) if isinstance(value, bool) else value
-
-
-def _span(low: float, high: float) -> str:
-    return f"{low:g}" if low == high else f"[{low:g}, {high:g}]"
 
 
 class _Base(BaseModel):
@@ -189,7 +184,7 @@ class ColumnBox(create_model("_ColumnBoxFields", __base__=_Base, **_FIELDS)):  #
     @field_validator(*PAIR_FIELDS, mode="before")
     @classmethod
     def _points_are_ranges(cls, value: Any) -> Any:
-        return _pair(value)
+        return pair(value)
 
     @field_validator(*FLAGS, mode="before")
     @classmethod
@@ -206,20 +201,18 @@ class ColumnBox(create_model("_ColumnBoxFields", __base__=_Base, **_FIELDS)):  #
         problems = []
         for name, parameter in PARAMETERS.items():
             low, high = getattr(self, name)
-            if not (math.isfinite(low) and math.isfinite(high) and low <= high):
-                problems.append(f"{name}: need finite low <= high, got {_span(low, high)}")
-            elif low < parameter.lowest or high > parameter.highest:
-                problems.append(
-                    f"{name} {_span(low, high)} lies outside its physical range "
-                    f"[{parameter.lowest:g}, {parameter.highest:g}] {parameter.unit}".rstrip()
-                )
-            elif parameter.log and low <= 0:
-                problems.append(f"{name} {_span(low, high)}: drawn on a log scale, needs > 0")
+            problem = range_problem(
+                name, low, high, parameter.lowest, parameter.highest, parameter.unit
+            )
+            if problem is None and parameter.log and low <= 0:
+                problem = f"{name} {span(low, high)}: drawn on a log scale, needs > 0"
+            if problem is not None:
+                problems.append(problem)
         low, high = self.optimum_fraction
         spread = self.optimum_spread_fraction[1]
         if low - spread < 0 or high + spread > 1:
             problems.append(
-                f"optimum_fraction {_span(*self.optimum_fraction)} +/- optimum_spread_fraction "
+                f"optimum_fraction {span(*self.optimum_fraction)} +/- optimum_spread_fraction "
                 f"{spread:g} leaves the defocus interval"
             )
         unknown = [kind for kind in self.specimens if kind not in SPECIMEN_KINDS]
@@ -230,12 +223,10 @@ class ColumnBox(create_model("_ColumnBoxFields", __base__=_Base, **_FIELDS)):  #
             )
         if len(set(self.specimens)) < len(self.specimens):
             problems.append(f"specimens: each kind once, got {list(self.specimens)}")
-        if self.base not in _preset_names():
-            problems.append(f"base: no preset {self.base!r} ({', '.join(_preset_names())})")
-        if len(problems) > SHOWN_PROBLEMS:
-            problems = [*problems[:SHOWN_PROBLEMS], f"and {len(problems) - SHOWN_PROBLEMS} more"]
+        if self.base not in preset_names():
+            problems.append(f"base: no preset {self.base!r} ({', '.join(preset_names())})")
         if problems:
-            raise ValueError("; ".join(problems))
+            raise ValueError("; ".join(shown_problems(problems)))
         return self
 
     def used(self) -> tuple[str, ...]:
@@ -255,16 +246,16 @@ class ColumnBox(create_model("_ColumnBoxFields", __base__=_Base, **_FIELDS)):  #
         return tuple(names)
 
 
-def _preset_names() -> list[str]:
-    return sorted(path.stem for path in PRESET_DIR.glob("*.yaml"))
+@functools.cache
+def _preset(name: str) -> SEMConfig:
+    """A preset's config (frozen), read once per process."""
+    return load_sem_config(PRESET_DIR / f"{name}.yaml")
 
 
 def column_specimen(box: ColumnBox, fraction: float) -> str:
     """The specimen at `fraction` (in [0, 1], clipped) of the box's list, as a mirror is
     drawn from its list: each kind an equal share, in the list's order."""
-    options = box.specimens
-    index = int(min(max(float(fraction), 0.0), 1.0) * len(options))
-    return options[min(index, len(options) - 1)]
+    return pick(box.specimens, fraction)
 
 
 def column_config(
@@ -292,7 +283,7 @@ def column_config(
     astigmatism = v["astigmatism_max_px"] / gain  # defocus units between the line foci
     # the setting that cancels the largest astigmatism, at the weakest coupled direction
     per_unit = astigmatism / (v["astigmatism_reach"] * half_s * (1.0 - abs(coupling)))
-    base = load_sem_config(PRESET_DIR / f"{box.base}.yaml").model_dump()
+    base = _preset(box.base).model_dump()  # read once: a column is drawn at every reset
     calibration = dict(base["analytic_calibration"])
     factor = v["reading_noise_factor"]
     for table in ("noise_rel", "directional_noise_rel"):

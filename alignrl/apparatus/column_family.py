@@ -13,11 +13,11 @@ directional widths and the wobble are the simulator's, images or analytic. A des
 from __future__ import annotations
 
 import copy
-import math
 from collections.abc import Mapping
 
 import numpy as np
 
+from alignrl.apparatus.box_values import at_fraction, check_sampling, pick, unit_fractions
 from alignrl.apparatus.column_box import (
     ANALYTIC_ONLY,
     FLAGS,
@@ -29,7 +29,7 @@ from alignrl.apparatus.column_box import (
     column_config,
     column_specimen,
 )
-from alignrl.apparatus.family import SAMPLINGS, FamilyColumn, checked_design
+from alignrl.apparatus.family import FamilyColumn, checked_design
 from alignrl.apparatus.family_box import AnyFamily
 from alignrl.apparatus.synthetic import SyntheticSEM
 
@@ -42,12 +42,8 @@ def draw_column_fractions(
     """One fraction per parameter and per mirror, in that order (a point drawn as well, so
     that narrowing one range leaves the others' draws as they were): "uniform", or "edges"
     from the arcsine law Beta(1/2, 1/2) (family.draw_fractions)."""
-    if sampling not in SAMPLINGS:
-        raise ValueError(f"sampling must be one of {', '.join(SAMPLINGS)}, got {sampling!r}")
-    names = (*PAIR_FIELDS, *FLAGS, SPECIMEN_DRAW)  # the specimen last: earlier draws stay
-    if sampling == "edges":
-        return {name: float(rng.beta(0.5, 0.5)) for name in names}
-    return {name: float(rng.random()) for name in names}
+    # the specimen last: adding it left the earlier draws as they were
+    return unit_fractions((*PAIR_FIELDS, *FLAGS, SPECIMEN_DRAW), rng, sampling)
 
 
 def column_values(
@@ -59,15 +55,8 @@ def column_values(
     for name, parameter in PARAMETERS.items():
         low, high = getattr(box, name)
         u = min(max(float(fractions[name]), 0.0), 1.0)
-        if parameter.log and low < high:
-            values[name] = math.exp(math.log(low) + u * (math.log(high) - math.log(low)))
-        else:
-            values[name] = low + u * (high - low)
-    mirrors = {}
-    for flag in FLAGS:
-        options = getattr(box, flag)
-        index = min(int(float(fractions[flag]) * len(options)), len(options) - 1)
-        mirrors[flag] = bool(options[max(index, 0)])
+        values[name] = at_fraction(low, high, u, parameter.log and low < high)
+    mirrors = {flag: bool(pick(getattr(box, flag), fractions[flag])) for flag in FLAGS}
     return values, mirrors
 
 
@@ -83,8 +72,7 @@ class ColumnFamily:
         analytic: bool = False,
         sampling: str = "uniform",
     ) -> None:
-        if sampling not in SAMPLINGS:
-            raise ValueError(f"sampling must be one of {', '.join(SAMPLINGS)}, got {sampling!r}")
+        check_sampling(sampling)
         self.family = box
         self.analytic = bool(analytic)
         self.sampling = sampling

@@ -46,6 +46,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from alignrl.apparatus.base import NoEdgesError, check_write
+from alignrl.apparatus.box_values import SAMPLINGS, at_fraction, check_sampling, unit_fractions
 from alignrl.apparatus.family_box import (
     LOG_SCALE,
     PAIR_FIELDS,
@@ -66,7 +67,6 @@ __all__ = [
     "even_fractions",
 ]
 
-SAMPLINGS = ("uniform", "edges")  # how a family column draws from its box (draw_fractions)
 NO_EDGES_SPREAD = 0.1  # logistic spread of the no-edges limit, as a share of it
 BEST_QUALITY_FRAMES = 3  # frames in focus whose median reading is best_quality() (images)
 
@@ -110,12 +110,7 @@ def draw_fractions(
     still a third in its middle half, so that training meets the box's edges (a column's
     optimum near its interval's end, the strongest backlash, the steepest curve) as often as
     its middle."""
-    if sampling not in SAMPLINGS:
-        raise ValueError(f"sampling must be one of {', '.join(SAMPLINGS)}, got {sampling!r}")
-    if sampling == "edges":
-        fractions = {name: float(rng.beta(0.5, 0.5)) for name in PAIR_FIELDS}
-    else:
-        fractions = {name: float(rng.random()) for name in PAIR_FIELDS}
+    fractions = unit_fractions(PAIR_FIELDS, rng, sampling)
     return fractions, int(rng.integers(len(family.specimens)))
 
 
@@ -134,11 +129,7 @@ def column_at(family: FocusFamily, fractions: Mapping[str, float], specimen: int
     values: dict[str, float] = {}
     for name in PAIR_FIELDS:
         low, high = getattr(family, name)
-        u = float(fractions[name])
-        if name in LOG_SCALE:
-            values[name] = float(math.exp(math.log(low) + u * (math.log(high) - math.log(low))))
-        else:
-            values[name] = low + u * (high - low)
+        values[name] = at_fraction(low, high, float(fractions[name]), name in LOG_SCALE)
     width, centre = values.pop("interval_width"), values.pop("interval_centre")
     low, high = centre - 0.5 * width, centre + 0.5 * width
     optimum = low + values.pop("optimum_fraction") * width
@@ -205,8 +196,7 @@ class FamilyColumn:
         analytic: bool = False,
         sampling: str = "uniform",
     ) -> None:
-        if sampling not in SAMPLINGS:
-            raise ValueError(f"sampling must be one of {', '.join(SAMPLINGS)}, got {sampling!r}")
+        check_sampling(sampling)
         self.family = family or FocusFamily()
         self.analytic = bool(analytic)
         self.sampling = sampling

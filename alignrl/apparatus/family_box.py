@@ -13,13 +13,13 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
 import re
 from pathlib import Path
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from alignrl.apparatus.box_values import pair, range_problem, shown_problems
 from alignrl.apparatus.column_box import ColumnBox, product_data
 from alignrl.yaml_io import read_yaml_file
 
@@ -40,17 +40,6 @@ __all__ = [
 
 FAMILY_DIR = Path(__file__).with_name("families")
 Pair = tuple[float, float]
-SHOWN_PROBLEMS = 8
-
-
-def _pair(value: Any) -> Any:
-    """A point x means the range [x, x]."""
-    if isinstance(value, int | float) and not isinstance(value, bool):
-        try:
-            return (float(value), float(value))
-        except OverflowError:  # an integer of hundreds of digits
-            raise ValueError(f"a number of {len(str(value))} digits is beyond any range") from None
-    return value
 
 
 # Parameters drawn on a log scale (positive, spanning decades); the rest uniformly.
@@ -99,10 +88,6 @@ PHYSICAL: dict[str, tuple[float, float, str]] = {  # name: (lowest, highest, uni
 }
 PAIR_FIELDS = tuple(PHYSICAL)  # the parameters that are a point or a range, in draw order
 BOUNDED = {name: (lowest, highest) for name, (lowest, highest, _) in PHYSICAL.items()}
-
-
-def _span(low: float, high: float) -> str:
-    return f"{low:g}" if low == high else f"[{low:g}, {high:g}]"
 
 
 class FocusFamily(BaseModel):
@@ -174,7 +159,7 @@ class FocusFamily(BaseModel):
     @field_validator(*PAIR_FIELDS, mode="before")
     @classmethod
     def _points_are_ranges(cls, value: Any) -> Any:
-        return _pair(value)
+        return pair(value)
 
     @model_validator(mode="after")
     def _check(self) -> FocusFamily:
@@ -183,23 +168,17 @@ class FocusFamily(BaseModel):
         problems = []
         for name, (lowest, highest, unit) in PHYSICAL.items():
             low, high = getattr(self, name)
-            if not (math.isfinite(low) and math.isfinite(high) and low <= high):
-                problems.append(f"{name}: need finite low <= high, got {_span(low, high)}")
-            elif low < lowest or high > highest:
-                shown = self.unit[:20] if unit == KNOB_UNITS else unit
-                problems.append(
-                    f"{name} {_span(low, high)} lies outside its physical range "
-                    f"[{lowest:g}, {highest:g}] {shown}"
-                )
+            shown = self.unit[:20] if unit == KNOB_UNITS else unit
+            problem = range_problem(name, low, high, lowest, highest, shown)
+            if problem is not None:
+                problems.append(problem)
         unknown = [kind for kind in self.specimens if kind not in SPECIMENS]
         if unknown:
             problems.append(
                 f"specimens: unknown {', '.join(unknown)[:200]} (known: {', '.join(SPECIMENS)})"
             )
-        if len(problems) > SHOWN_PROBLEMS:
-            problems = [*problems[:SHOWN_PROBLEMS], f"and {len(problems) - SHOWN_PROBLEMS} more"]
         if problems:
-            raise ValueError("; ".join(problems))
+            raise ValueError("; ".join(shown_problems(problems)))
         return self
 
 
@@ -259,9 +238,7 @@ def load_family(path: str | Path, **overrides: Any) -> AnyFamily:
             key = ".".join(str(part) for part in item["loc"])
             message = item["msg"].removeprefix("Value error, ")
             problems.append(f"{key[:200]}: {message[:2000]}" if key else message[:2000])
-        if len(problems) > SHOWN_PROBLEMS:
-            problems = [*problems[:SHOWN_PROBLEMS], f"and {len(problems) - SHOWN_PROBLEMS} more"]
-        text = "; ".join(problems)
+        text = "; ".join(shown_problems(problems))
         given = [
             str(key)[:100] for key in overrides if re.search(rf"\b{re.escape(str(key))}\b", text)
         ]

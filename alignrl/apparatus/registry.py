@@ -53,7 +53,7 @@ from alignrl.apparatus.guard import (
 )
 from alignrl.apparatus.instruments import InstrumentSet, find_instrument, load_set
 from alignrl.apparatus.limits import ShieldOptions
-from alignrl.apparatus.sem_config import PRESET_DIR, load_sem_config
+from alignrl.apparatus.sem_config import PRESET_DIR, load_sem_config, preset_names
 from alignrl.apparatus.simulator import ScenarioSimulator, default_scenarios_path
 from alignrl.apparatus.synthetic import SyntheticSEM
 from alignrl.apparatus.training_shield import shield_apparatus
@@ -65,11 +65,6 @@ __all__ = [
     "preset_names",
     "spec_form",
 ]
-
-
-def preset_names() -> list[str]:
-    """Names of the shipped synthetic instruments."""
-    return sorted(path.stem for path in PRESET_DIR.glob("*.yaml"))
 
 
 def _check_protocol(obj: object, spec: str) -> Apparatus:

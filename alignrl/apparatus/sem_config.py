@@ -33,6 +33,7 @@ __all__ = [
     "FloatTable",
     "SEMConfig",
     "load_sem_config",
+    "preset_names",
 ]
 
 PRESET_DIR = Path(__file__).with_name("presets")
@@ -403,6 +404,11 @@ def _rotation(angle: float) -> np.ndarray:
 
 
 SHOWN_PROBLEMS = 10  # problems of a bad instrument config listed in one message
+
+
+def preset_names() -> list[str]:
+    """Names of the shipped synthetic instruments: every YAML file of PRESET_DIR."""
+    return sorted(path.stem for path in PRESET_DIR.glob("*.yaml"))
 
 
 def load_sem_config(path: str | Path, **overrides: Any) -> SEMConfig:

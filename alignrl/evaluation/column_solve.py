@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
-import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Protocol
@@ -54,6 +53,7 @@ from alignrl.evaluation.model_based import (
     Directional,
     StigmatorSolve,
     WobbleSolve,
+    directional,
 )
 
 __all__ = ["ColumnSolve"]
@@ -82,11 +82,9 @@ class _Recording:
 
     def measure(self) -> float:
         width, bins = measure_directional(self.inner)  # a failed frame fails the measure
-        if math.isfinite(width) and np.all(np.isfinite(bins)) and np.all(bins > 0):
-            values = self.inner.read()
-            setting = np.array([float(values[knob]) for knob in STIGMATORS])
-            defocus = float(values[FOCUS_KNOB])
-            self.readings.append(Directional(defocus, setting, width, np.asarray(bins, float)))
+        reading = directional(self.inner, STIGMATORS, width, bins)
+        if reading is not None:
+            self.readings.append(reading)
         return width
 
 

@@ -62,6 +62,7 @@ __all__ = [
     "Directional",
     "StigmatorSolve",
     "WobbleSolve",
+    "directional",
     "fit_response",
     "read_directional",
 ]
@@ -98,6 +99,14 @@ def read_directional(apparatus: Apparatus, stigmators: tuple[str, ...]) -> Direc
         width, bins = measure_directional(apparatus)
     except ApparatusError:
         return None
+    return directional(apparatus, stigmators, width, bins)
+
+
+def directional(
+    apparatus: Apparatus, stigmators: tuple[str, ...], width: float, bins: np.ndarray
+) -> Directional | None:
+    """A directional reading just taken, with the settings it was taken at; None where a
+    bin read no positive finite width."""
     if not (math.isfinite(width) and np.all(np.isfinite(bins)) and np.all(bins > 0)):
         return None
     values = apparatus.read()
